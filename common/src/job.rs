@@ -1,0 +1,396 @@
+//! Job settings and the work-unit plan: a job is split into tiles x passes (sample ranges).
+//!
+//! The plan is a pure function of the settings, so the coordinator, the worker and a local render
+//! agree on it without talking.
+
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+
+/// How light samples and BSDF samples are combined in direct lighting.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MisHeuristic {
+    Balance,
+    #[default]
+    Power,
+    /// Light sampling only (a single strategy).
+    Light,
+    /// BSDF sampling only (a single strategy).
+    Bsdf,
+}
+
+/// How area lights are sampled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum LightSampling {
+    /// Uniform by area, converted to solid angle.
+    Area,
+    /// Uniform over the spherical triangle's solid angle (Arvo).
+    #[default]
+    SolidAngle,
+}
+
+/// Which sampler addresses the random numbers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum SamplerKind {
+    /// Owen-scrambled Sobol, padded per dimension pair (pbrt-v4's PaddedSobolSampler).
+    #[default]
+    Sobol,
+    /// Counter-based hash: independent uniform numbers.
+    Independent,
+}
+
+fn default_max_depth() -> u32 {
+    8
+}
+fn default_rr_depth() -> u32 {
+    3
+}
+fn default_vpls() -> u32 {
+    64
+}
+fn default_vpl_sets() -> u32 {
+    4
+}
+fn default_g_limit() -> f32 {
+    10.0
+}
+
+/// Integrator and its parameters (JSON: `{"type": "path", "max_depth": 8, ...}`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum IntegratorSettings {
+    /// Emitted plus direct lighting, one light and one BSDF sample with MIS.
+    Direct {
+        #[serde(default)]
+        mis: MisHeuristic,
+        #[serde(default)]
+        light_sampling: LightSampling,
+    },
+    /// Path tracing with next-event estimation, MIS and Russian roulette.
+    /// `max_depth` counts path segments as Mitsuba does (1 = emitters only, 2 = direct); 0 = no limit.
+    Path {
+        #[serde(default = "default_max_depth")]
+        max_depth: u32,
+        #[serde(default = "default_rr_depth")]
+        rr_depth: u32,
+        #[serde(default)]
+        mis: MisHeuristic,
+        #[serde(default)]
+        light_sampling: LightSampling,
+    },
+    /// Bidirectional path tracing.
+    Bdpt {
+        #[serde(default = "default_max_depth")]
+        max_depth: u32,
+        #[serde(default)]
+        mis: MisHeuristic,
+    },
+    /// Instant global illumination with virtual point lights.
+    Igi {
+        #[serde(default = "default_vpls")]
+        vpls: u32,
+        #[serde(default = "default_vpl_sets")]
+        vpl_sets: u32,
+        #[serde(default = "default_g_limit")]
+        g_limit: f32,
+        #[serde(default)]
+        bias_compensation: bool,
+        #[serde(default = "default_max_depth")]
+        max_depth: u32,
+    },
+}
+
+impl Default for IntegratorSettings {
+    fn default() -> Self {
+        IntegratorSettings::Path {
+            max_depth: default_max_depth(),
+            rr_depth: default_rr_depth(),
+            mis: MisHeuristic::default(),
+            light_sampling: LightSampling::default(),
+        }
+    }
+}
+
+/// How the sample budget is cut into passes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum PassSchedule {
+    /// First pass of `first` spp, then each pass doubles, capped at `max` spp per pass.
+    Doubling { first: u32, max: u32 },
+    /// Every pass has `spp` samples (the last may be shorter).
+    Fixed { spp: u32 },
+}
+
+impl Default for PassSchedule {
+    fn default() -> Self {
+        PassSchedule::Doubling { first: 1, max: 64 }
+    }
+}
+
+fn default_tile_size() -> u32 {
+    64
+}
+
+/// Everything that determines a render's pixels. Two renders with equal settings (and the same
+/// scene) produce the same bits, whatever machine, thread count or work order.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RenderSettings {
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    #[serde(default)]
+    pub seed: u64,
+    /// Scene camera index; `None` = camera 0, or a default camera framing the scene.
+    #[serde(default)]
+    pub camera: Option<usize>,
+    #[serde(default)]
+    pub integrator: IntegratorSettings,
+    #[serde(default)]
+    pub sampler: SamplerKind,
+    #[serde(default = "default_tile_size")]
+    pub tile_size: u32,
+    #[serde(default)]
+    pub passes: PassSchedule,
+}
+
+/// Errors in settings, each naming the offending field.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SettingsError {
+    #[error("{field} must be at least {min}, got {value}")]
+    TooSmall { field: &'static str, min: u64, value: u64 },
+    #[error("{field} must be at most {max}, got {value}")]
+    TooLarge { field: &'static str, max: u64, value: u64 },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// Limits a service enforces on settings (configurable on the coordinator).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Limits {
+    pub max_pixels: u64,
+    pub max_dimension: u32,
+    pub max_spp: u32,
+    pub max_depth: u32,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self { max_pixels: 8192 * 8192, max_dimension: 16384, max_spp: 1 << 20, max_depth: 1024 }
+    }
+}
+
+impl RenderSettings {
+    /// A settings value with defaults for everything but the size and the sample count.
+    pub fn new(width: u32, height: u32, spp: u32) -> Self {
+        Self {
+            width,
+            height,
+            spp,
+            seed: 0,
+            camera: None,
+            integrator: IntegratorSettings::default(),
+            sampler: SamplerKind::default(),
+            tile_size: default_tile_size(),
+            passes: PassSchedule::default(),
+        }
+    }
+
+    /// Checks the settings against `limits`.
+    pub fn validate(&self, limits: &Limits) -> Result<(), SettingsError> {
+        fn at_least(field: &'static str, value: u64, min: u64) -> Result<(), SettingsError> {
+            if value < min { Err(SettingsError::TooSmall { field, min, value }) } else { Ok(()) }
+        }
+        fn at_most(field: &'static str, value: u64, max: u64) -> Result<(), SettingsError> {
+            if value > max { Err(SettingsError::TooLarge { field, max, value }) } else { Ok(()) }
+        }
+        at_least("width", self.width.into(), 1)?;
+        at_least("height", self.height.into(), 1)?;
+        at_most("width", self.width.into(), limits.max_dimension.into())?;
+        at_most("height", self.height.into(), limits.max_dimension.into())?;
+        at_most("width x height", u64::from(self.width) * u64::from(self.height), limits.max_pixels)?;
+        at_least("spp", self.spp.into(), 1)?;
+        at_most("spp", self.spp.into(), limits.max_spp.into())?;
+        at_least("tile_size", self.tile_size.into(), 8)?;
+        at_most("tile_size", self.tile_size.into(), 1024)?;
+        match self.passes {
+            PassSchedule::Doubling { first, max } => {
+                at_least("passes.first", first.into(), 1)?;
+                at_least("passes.max", max.into(), first.into())?;
+            }
+            PassSchedule::Fixed { spp } => at_least("passes.spp", spp.into(), 1)?,
+        }
+        match &self.integrator {
+            IntegratorSettings::Path { max_depth, .. }
+            | IntegratorSettings::Bdpt { max_depth, .. }
+            | IntegratorSettings::Igi { max_depth, .. } => {
+                at_most("integrator.max_depth", (*max_depth).into(), limits.max_depth.into())?;
+            }
+            IntegratorSettings::Direct { .. } => {}
+        }
+        if let IntegratorSettings::Igi { vpls, vpl_sets, g_limit, .. } = &self.integrator {
+            at_least("integrator.vpls", (*vpls).into(), 1)?;
+            at_most("integrator.vpls", (*vpls).into(), 1 << 16)?;
+            at_least("integrator.vpl_sets", (*vpl_sets).into(), 1)?;
+            at_most("integrator.vpl_sets", (*vpl_sets).into(), 1024)?;
+            if !(g_limit.is_finite() && *g_limit > 0.0) {
+                return Err(SettingsError::Invalid(format!(
+                    "integrator.g_limit must be a positive number, got {g_limit}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The work-unit plan of these settings.
+    pub fn plan(&self) -> Plan {
+        Plan::new(self)
+    }
+}
+
+/// A rectangle of pixels `[x0, x1) x [y0, y1)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct TileRect {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl TileRect {
+    pub fn width(&self) -> u32 {
+        self.x1 - self.x0
+    }
+    pub fn height(&self) -> u32 {
+        self.y1 - self.y0
+    }
+    pub fn pixel_count(&self) -> usize {
+        self.width() as usize * self.height() as usize
+    }
+}
+
+/// A pass: the sample index range `[s0, s1)` rendered for every pixel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Pass {
+    pub index: u32,
+    pub s0: u32,
+    pub s1: u32,
+}
+
+impl Pass {
+    pub fn samples(&self) -> Range<u32> {
+        self.s0..self.s1
+    }
+    pub fn spp(&self) -> u32 {
+        self.s1 - self.s0
+    }
+}
+
+/// Address of a work unit inside a job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct UnitKey {
+    pub pass: u32,
+    pub tile: u32,
+}
+
+/// Tiles (row-major) and passes of a job.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Plan {
+    pub tiles: Vec<TileRect>,
+    pub passes: Vec<Pass>,
+}
+
+impl Plan {
+    pub fn new(settings: &RenderSettings) -> Self {
+        let ts = settings.tile_size.max(1);
+        let mut tiles = Vec::new();
+        for y0 in (0..settings.height).step_by(ts as usize) {
+            for x0 in (0..settings.width).step_by(ts as usize) {
+                tiles.push(TileRect { x0, y0, x1: (x0 + ts).min(settings.width), y1: (y0 + ts).min(settings.height) });
+            }
+        }
+        let mut passes = Vec::new();
+        let mut s0 = 0u32;
+        let mut next = match settings.passes {
+            PassSchedule::Doubling { first, .. } => first.max(1),
+            PassSchedule::Fixed { spp } => spp.max(1),
+        };
+        while s0 < settings.spp {
+            let s1 = s0.saturating_add(next).min(settings.spp);
+            passes.push(Pass { index: passes.len() as u32, s0, s1 });
+            s0 = s1;
+            if let PassSchedule::Doubling { max, .. } = settings.passes {
+                next = next.saturating_mul(2).min(max.max(1));
+            }
+        }
+        Plan { tiles, passes }
+    }
+
+    pub fn unit_count(&self) -> usize {
+        self.tiles.len() * self.passes.len()
+    }
+
+    /// Units in canonical (pass-major) order.
+    pub fn units(&self) -> impl Iterator<Item = UnitKey> + '_ {
+        (0..self.passes.len() as u32)
+            .flat_map(move |pass| (0..self.tiles.len() as u32).map(move |tile| UnitKey { pass, tile }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plan_covers_every_pixel_and_sample_once() {
+        let mut s = RenderSettings::new(130, 67, 100);
+        s.tile_size = 32;
+        let plan = s.plan();
+        let mut hits = vec![0u32; 130 * 67];
+        for t in &plan.tiles {
+            for y in t.y0..t.y1 {
+                for x in t.x0..t.x1 {
+                    hits[(y * 130 + x) as usize] += 1;
+                }
+            }
+        }
+        assert!(hits.iter().all(|&h| h == 1));
+        let spp: u32 = plan.passes.iter().map(Pass::spp).sum();
+        assert_eq!(spp, 100);
+        assert_eq!(plan.passes[0].s0, 0);
+        for w in plan.passes.windows(2) {
+            assert_eq!(w[0].s1, w[1].s0);
+        }
+        // Doubling 1, 2, 4, ... capped at 64.
+        assert_eq!(plan.passes.iter().map(Pass::spp).collect::<Vec<_>>(), vec![1, 2, 4, 8, 16, 32, 37]);
+    }
+
+    #[test]
+    fn settings_json_roundtrip_and_unknown_fields_rejected() {
+        let s = RenderSettings::new(64, 32, 16);
+        let json = serde_json::to_string(&s).expect("serialize");
+        let back: RenderSettings = serde_json::from_str(&json).expect("parse");
+        assert_eq!(s, back);
+        let bad = r#"{"width": 4, "height": 4, "spp": 1, "bogus": 3}"#;
+        assert!(serde_json::from_str::<RenderSettings>(bad).is_err());
+        let p: RenderSettings =
+            serde_json::from_str(r#"{"width":4,"height":4,"spp":1,"integrator":{"type":"direct","mis":"balance"}}"#)
+                .expect("parse direct");
+        assert_eq!(
+            p.integrator,
+            IntegratorSettings::Direct { mis: MisHeuristic::Balance, light_sampling: LightSampling::SolidAngle }
+        );
+    }
+
+    #[test]
+    fn validate_names_the_limit() {
+        let mut s = RenderSettings::new(100_000, 10, 1);
+        let e = s.validate(&Limits::default()).expect_err("too wide");
+        assert!(e.to_string().contains("width"), "{e}");
+        s.width = 10;
+        s.spp = 0;
+        assert!(s.validate(&Limits::default()).expect_err("spp 0").to_string().contains("spp"));
+    }
+}

@@ -1,0 +1,1 @@
+//! Wire formats between coordinator, workers and clients (defined here, and only here).

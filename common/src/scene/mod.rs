@@ -1,0 +1,194 @@
+//! The scene model: what the renderer needs from a glTF file, flattened to world space.
+//!
+//! `load` turns a glTF 2.0 file (`.glb`, `.gltf` with files beside it, or data URIs) into a
+//! [`Scene`]. Every mesh instance is baked to world space (one [`Mesh`] per primitive per node
+//! instance); materials, textures, cameras and punctual lights keep glTF's meaning, with units
+//! documented in README.md ("Units").
+
+mod error;
+mod load;
+mod texture;
+
+pub use error::SceneError;
+pub use load::{LoadOptions, load_scene, load_scene_from_slice};
+pub use texture::{Texture, TextureTransform, WrapMode};
+
+use glam::{Mat4, Vec2, Vec3, Vec4};
+use serde::{Deserialize, Serialize};
+
+/// A loaded scene, flattened to world space.
+#[derive(Clone, Debug, Default)]
+pub struct Scene {
+    pub meshes: Vec<Mesh>,
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+    pub cameras: Vec<Camera>,
+    pub lights: Vec<PunctualLight>,
+    /// Non-fatal problems (skipped primitives, dangling textures...), each naming the element.
+    pub warnings: Vec<String>,
+}
+
+/// One triangle mesh in world space (one glTF primitive of one node instance).
+#[derive(Clone, Debug, Default)]
+pub struct Mesh {
+    /// `mesh 3 primitive 1 (node 7 "Chair")`, for messages.
+    pub name: String,
+    pub positions: Vec<Vec3>,
+    /// World-space shading normals (normalized); `None` -> geometric normals are used.
+    pub normals: Option<Vec<Vec3>>,
+    /// World-space tangents, `w` = handedness (MikkTSpace convention); present when the material
+    /// has a normal map (read from the file or generated).
+    pub tangents: Option<Vec<Vec4>>,
+    /// TEXCOORD_0 and TEXCOORD_1 when present.
+    pub uv0: Option<Vec<Vec2>>,
+    pub uv1: Option<Vec<Vec2>>,
+    /// Triangles as vertex indices (non-indexed primitives get 0, 1, 2, ...).
+    pub indices: Vec<[u32; 3]>,
+    /// Index into `Scene::materials` (a default material is appended when a primitive has none).
+    pub material: usize,
+}
+
+/// Which reflection model a material uses. glTF's metallic-roughness model is the default;
+/// the lecture's models are chosen with material `extras`: `{"pathfarm": {"model": ...}}`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(tag = "model", rename_all = "snake_case")]
+pub enum MaterialModel {
+    /// glTF 2.0 metallic-roughness (GGX), with transmission and ior when present.
+    #[default]
+    Gltf,
+    /// Pure Lambertian with the base colour.
+    Lambert,
+    /// Torrance-Sparrow with the normalized Blinn distribution, `D = (e+2)/(2 pi) cos^e`.
+    Blinn { exponent: f32 },
+    /// Torrance-Sparrow with the Ashikhmin-Shirley anisotropic distribution.
+    AshikhminShirley { exponent_x: f32, exponent_y: f32 },
+    /// Perfect mirror tinted by the base colour.
+    Mirror,
+}
+
+/// A texture reference of a material: texture index, UV set and optional transform.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TextureRef {
+    /// Index into `Scene::textures`.
+    pub texture: usize,
+    /// 0 or 1.
+    pub tex_coord: u32,
+    pub transform: TextureTransform,
+}
+
+/// A glTF material, in linear units.
+#[derive(Clone, Debug)]
+pub struct Material {
+    pub name: String,
+    pub model: MaterialModel,
+    /// Linear RGBA base colour factor.
+    pub base_color: Vec4,
+    /// sRGB-decoded to linear when loaded.
+    pub base_color_texture: Option<TextureRef>,
+    pub metallic: f32,
+    pub roughness: f32,
+    /// glTF channels: G = roughness, B = metallic (linear).
+    pub metallic_roughness_texture: Option<TextureRef>,
+    /// Emitted radiance = emissive factor x KHR_materials_emissive_strength (linear).
+    pub emissive: Vec3,
+    /// sRGB-decoded to linear; multiplies `emissive`.
+    pub emissive_texture: Option<TextureRef>,
+    pub normal_texture: Option<TextureRef>,
+    pub normal_scale: f32,
+    /// KHR_materials_transmission factor (0 = opaque).
+    pub transmission: f32,
+    pub transmission_texture: Option<TextureRef>,
+    /// KHR_materials_ior (default 1.5).
+    pub ior: f32,
+    /// KHR_materials_specular specularFactor (default 1); 0 removes the dielectric specular
+    /// layer, leaving a Lambertian material.
+    pub specular_factor: f32,
+    /// KHR_materials_unlit: emits its base colour, reflects nothing.
+    pub unlit: bool,
+    /// glTF doubleSided. One-sided materials are black from behind and emit only in front
+    /// (Mitsuba's convention); the surface still blocks light.
+    pub double_sided: bool,
+}
+
+impl Default for Material {
+    fn default() -> Self {
+        // glTF's default material: white, fully metallic, fully rough.
+        Self {
+            name: "default".into(),
+            model: MaterialModel::Gltf,
+            base_color: Vec4::ONE,
+            base_color_texture: None,
+            metallic: 1.0,
+            roughness: 1.0,
+            metallic_roughness_texture: None,
+            emissive: Vec3::ZERO,
+            emissive_texture: None,
+            normal_texture: None,
+            normal_scale: 1.0,
+            transmission: 0.0,
+            transmission_texture: None,
+            ior: 1.5,
+            specular_factor: 1.0,
+            unlit: false,
+            double_sided: false,
+        }
+    }
+}
+
+/// Camera projection, as in glTF.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Projection {
+    /// Vertical field of view in radians; `aspect` from the file if given.
+    Perspective { yfov: f32, aspect: Option<f32> },
+    /// Half extents of the view volume.
+    Orthographic { xmag: f32, ymag: f32 },
+}
+
+/// A camera; it looks down its local -Z with +Y up (glTF convention).
+#[derive(Clone, Debug)]
+pub struct Camera {
+    pub name: String,
+    pub world_from_camera: Mat4,
+    pub projection: Projection,
+}
+
+/// KHR_lights_punctual light types.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PunctualKind {
+    Point,
+    /// Cone angles in radians from the axis.
+    Spot {
+        inner_cone: f32,
+        outer_cone: f32,
+    },
+    Directional,
+}
+
+/// A KHR_lights_punctual light in world space. Units: see README.md ("Units"): intensity in cd
+/// (point, spot) becomes radiant intensity and lux (directional) becomes irradiance, 1:1, the
+/// same scale as emissive radiance (nits).
+#[derive(Clone, Debug)]
+pub struct PunctualLight {
+    pub name: String,
+    pub kind: PunctualKind,
+    /// Linear RGB colour x intensity.
+    pub intensity: Vec3,
+    pub position: Vec3,
+    /// Direction the light points to (spot axis, directional light's travel direction), normalized.
+    pub direction: Vec3,
+    pub range: Option<f32>,
+}
+
+impl Scene {
+    /// Axis-aligned bounds of all mesh vertices; `None` for an empty scene.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        let mut it = self.meshes.iter().flat_map(|m| m.positions.iter().copied());
+        let first = it.next()?;
+        Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
+    }
+
+    /// Total number of triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.meshes.iter().map(|m| m.indices.len()).sum()
+    }
+}

@@ -1,0 +1,3 @@
+//! `pathfarm`: the client CLI.
+
+fn main() {}

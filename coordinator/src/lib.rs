@@ -1,0 +1,1 @@
+//! pathfarm coordinator: REST API, scheduler, merger, store and dashboard.

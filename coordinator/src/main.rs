@@ -1,0 +1,3 @@
+//! `pathfarm-coordinator`: the service.
+
+fn main() {}

@@ -1,0 +1,3 @@
+//! pathfarm worker: the renderer (`render`, pure: no async, no I/O) and the worker daemon.
+
+pub mod render;

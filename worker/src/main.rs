@@ -1,0 +1,3 @@
+//! `pathfarm-worker`: render a scene locally, or run as a farm worker daemon.
+
+fn main() {}
