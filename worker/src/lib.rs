@@ -1,3 +1,4 @@
 //! pathfarm worker: the renderer (`render`, pure: no async, no I/O) and the worker daemon.
 
+pub mod daemon;
 pub mod render;
