@@ -139,8 +139,8 @@ impl SplatBuffer {
     pub fn add(&mut self, x: u32, y: u32, rgb: [f32; 3]) {
         if x < self.width && y < self.height {
             let i = (y as usize * self.width as usize + x as usize) * 3;
-            for c in 0..3 {
-                self.sums[i + c] = self.sums[i + c].wrapping_add(to_fixed(rgb[c]));
+            for (sum, v) in self.sums[i..i + 3].iter_mut().zip(rgb) {
+                *sum = sum.wrapping_add(to_fixed(v));
             }
         }
     }
@@ -302,8 +302,7 @@ impl ImageLayers {
         let size = (self.width as usize, self.height as usize);
         let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
             self.exr_channels().into_iter().map(|(name, v)| AnyChannel::new(name, FlatSamples::F32(v))).collect();
-        let mut attrs = LayerAttributes::default();
-        attrs.software_name = Some(Text::from("pathfarm"));
+        let attrs = LayerAttributes { software_name: Some(Text::from("pathfarm")), ..Default::default() };
         let layer = Layer::new(size, attrs, Encoding::SMALL_LOSSLESS, AnyChannels::sort(channels));
         let mut buf = std::io::Cursor::new(Vec::new());
         Image::from_layer(layer).write().to_buffered(&mut buf)?;

@@ -2,6 +2,8 @@
 //! function of (scene, settings, tile, sample range).
 
 pub mod bsdf;
+#[cfg(test)]
+pub mod chi2;
 pub mod geometry;
 pub mod microfacet;
 pub mod sampler;
