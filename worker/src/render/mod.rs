@@ -1,6 +1,7 @@
 //! The renderer. Pure: no async, no I/O, no global state. Everything a unit computes is a
 //! function of (scene, settings, tile, sample range).
 
+pub mod accel;
 pub mod bsdf;
 #[cfg(test)]
 pub mod chi2;
