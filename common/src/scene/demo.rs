@@ -1,0 +1,373 @@
+//! Scenes written by our own code, as glTF 2.0 binaries: the demo Cornell box, the analytic
+//! furnace enclosures and the caustics scene. [`GltfBuilder`] is a minimal `.glb` writer.
+
+use glam::{Quat, Vec3};
+use serde_json::{Value, json};
+
+/// A minimal glTF 2.0 writer: triangle meshes (positions, normals, u32 indices), materials,
+/// nodes, one camera, punctual lights; one binary buffer.
+#[derive(Default)]
+pub struct GltfBuilder {
+    bin: Vec<u8>,
+    buffer_views: Vec<Value>,
+    accessors: Vec<Value>,
+    meshes: Vec<Value>,
+    materials: Vec<Value>,
+    nodes: Vec<Value>,
+    cameras: Vec<Value>,
+    lights: Vec<Value>,
+}
+
+impl GltfBuilder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    fn push_view(&mut self, bytes: &[u8], target: u32) -> usize {
+        while self.bin.len() % 4 != 0 {
+            self.bin.push(0);
+        }
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        self.buffer_views.push(json!({"buffer": 0, "byteOffset": offset, "byteLength": bytes.len(), "target": target}));
+        self.buffer_views.len() - 1
+    }
+
+    fn push_vec3(&mut self, v: &[Vec3], with_bounds: bool) -> usize {
+        let bytes: Vec<u8> = v.iter().flat_map(|p| p.to_array()).flat_map(f32::to_le_bytes).collect();
+        let view = self.push_view(&bytes, 34962);
+        let mut acc = json!({"bufferView": view, "componentType": 5126, "count": v.len(), "type": "VEC3"});
+        if with_bounds {
+            let lo = v.iter().fold(Vec3::splat(f32::INFINITY), |a, &b| a.min(b));
+            let hi = v.iter().fold(Vec3::splat(f32::NEG_INFINITY), |a, &b| a.max(b));
+            acc["min"] = json!(lo.to_array());
+            acc["max"] = json!(hi.to_array());
+        }
+        self.accessors.push(acc);
+        self.accessors.len() - 1
+    }
+
+    /// Adds a material (glTF JSON object) and returns its index.
+    pub fn material(&mut self, m: Value) -> usize {
+        self.materials.push(m);
+        self.materials.len() - 1
+    }
+
+    /// Adds a triangle mesh and a node instancing it; returns the node index.
+    pub fn mesh(
+        &mut self,
+        name: &str,
+        positions: &[Vec3],
+        normals: &[Vec3],
+        indices: &[u32],
+        material: usize,
+    ) -> usize {
+        let pos = self.push_vec3(positions, true);
+        let nrm = self.push_vec3(normals, false);
+        let bytes: Vec<u8> = indices.iter().flat_map(|i| i.to_le_bytes()).collect();
+        let view = self.push_view(&bytes, 34963);
+        self.accessors
+            .push(json!({"bufferView": view, "componentType": 5125, "count": indices.len(), "type": "SCALAR"}));
+        let idx = self.accessors.len() - 1;
+        self.meshes.push(json!({"name": name, "primitives": [{
+            "attributes": {"POSITION": pos, "NORMAL": nrm}, "indices": idx, "material": material}]}));
+        self.nodes.push(json!({"name": name, "mesh": self.meshes.len() - 1}));
+        self.nodes.len() - 1
+    }
+
+    /// Adds a perspective camera at `eye` looking at `target` (vertical field of view in radians).
+    pub fn camera(&mut self, eye: Vec3, target: Vec3, up: Vec3, yfov: f32, aspect: f32) {
+        self.cameras.push(json!({"type": "perspective", "perspective": {
+            "yfov": yfov, "aspectRatio": aspect, "znear": 0.001, "zfar": 1000.0}}));
+        let rot = look_rotation(eye, target, up);
+        self.nodes.push(json!({"name": "camera", "camera": self.cameras.len() - 1,
+            "translation": eye.to_array(), "rotation": rot.to_array()}));
+    }
+
+    /// Adds a KHR_lights_punctual point light (intensity in cd, see README "Units").
+    pub fn point_light(&mut self, position: Vec3, color: Vec3, intensity: f32) {
+        self.lights.push(json!({"type": "point", "color": color.to_array(), "intensity": intensity}));
+        self.nodes
+            .push(json!({"name": "light", "extensions": {"KHR_lights_punctual": {"light": self.lights.len() - 1}},
+            "translation": position.to_array()}));
+    }
+
+    /// The `.glb` bytes.
+    pub fn to_glb(&self) -> Vec<u8> {
+        let mut extensions_used = vec!["KHR_materials_emissive_strength", "KHR_materials_specular"];
+        let mut root = json!({
+            "asset": {"version": "2.0", "generator": "pathfarm"},
+            "scene": 0,
+            "scenes": [{"nodes": (0..self.nodes.len()).collect::<Vec<_>>()}],
+            "nodes": self.nodes,
+            "meshes": self.meshes,
+            "materials": self.materials,
+            "accessors": self.accessors,
+            "bufferViews": self.buffer_views,
+            "buffers": [{"byteLength": self.bin.len()}],
+        });
+        if !self.cameras.is_empty() {
+            root["cameras"] = json!(self.cameras);
+        }
+        if !self.lights.is_empty() {
+            root["extensions"] = json!({"KHR_lights_punctual": {"lights": self.lights}});
+            extensions_used.push("KHR_lights_punctual");
+        }
+        root["extensionsUsed"] = json!(extensions_used);
+        let mut json = serde_json::to_vec(&root).unwrap_or_default();
+        while json.len() % 4 != 0 {
+            json.push(b' ');
+        }
+        let mut bin = self.bin.clone();
+        while bin.len() % 4 != 0 {
+            bin.push(0);
+        }
+        let total = 12 + 8 + json.len() + 8 + bin.len();
+        let mut out = Vec::with_capacity(total);
+        out.extend_from_slice(b"glTF");
+        out.extend_from_slice(&2u32.to_le_bytes());
+        out.extend_from_slice(&(total as u32).to_le_bytes());
+        out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+        out.extend_from_slice(b"JSON");
+        out.extend_from_slice(&json);
+        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+        out.extend_from_slice(b"BIN\0");
+        out.extend_from_slice(&bin);
+        out
+    }
+}
+
+/// Rotation that turns a glTF camera (looking down -Z, +Y up) to look from `eye` at `target`.
+fn look_rotation(eye: Vec3, target: Vec3, up: Vec3) -> Quat {
+    let f = (target - eye).normalize();
+    let r = f.cross(up).normalize();
+    let u = r.cross(f);
+    Quat::from_mat3(&glam::Mat3::from_cols(r, u, -f))
+}
+
+/// A Lambertian material (KHR_materials_specular factor 0 removes the specular layer).
+pub fn lambert(name: &str, albedo: Vec3) -> Value {
+    json!({"name": name, "pbrMetallicRoughness": {"baseColorFactor": [albedo.x, albedo.y, albedo.z, 1.0],
+        "metallicFactor": 0.0, "roughnessFactor": 1.0},
+        "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}},
+        "extras": {"pathfarm": {"model": "lambert"}}})
+}
+
+/// A Lambertian emitter: `radiance` = emissiveFactor x emissiveStrength.
+pub fn emitter(name: &str, albedo: Vec3, radiance: Vec3) -> Value {
+    let strength = radiance.max_element().max(1e-6);
+    let mut m = lambert(name, albedo);
+    m["emissiveFactor"] = json!((radiance / strength).to_array());
+    m["extensions"]["KHR_materials_emissive_strength"] = json!({"emissiveStrength": strength});
+    m
+}
+
+/// Two triangles of the quad `v0 v1 v2 v3` (counter-clockwise seen from the front).
+fn quad(b: &mut GltfBuilder, name: &str, v: [Vec3; 4], material: usize) {
+    let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize();
+    b.mesh(name, &v, &[n; 4], &[0, 1, 2, 0, 2, 3], material);
+}
+
+/// An axis-aligned box turned about +Y by `angle` (radians), resting on y = `y0`, outward normals.
+fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: f32, material: usize) {
+    let rot = Quat::from_rotation_y(angle);
+    let h = size * 0.5;
+    let c = |x: f32, y: f32, z: f32| center + rot * Vec3::new(x * h.x, y * h.y, z * h.z);
+    let faces: [[Vec3; 4]; 6] = [
+        [c(-1., -1., 1.), c(1., -1., 1.), c(1., 1., 1.), c(-1., 1., 1.)],
+        [c(1., -1., -1.), c(-1., -1., -1.), c(-1., 1., -1.), c(1., 1., -1.)],
+        [c(1., -1., 1.), c(1., -1., -1.), c(1., 1., -1.), c(1., 1., 1.)],
+        [c(-1., -1., -1.), c(-1., -1., 1.), c(-1., 1., 1.), c(-1., 1., -1.)],
+        [c(-1., 1., 1.), c(1., 1., 1.), c(1., 1., -1.), c(-1., 1., -1.)],
+        [c(-1., -1., -1.), c(1., -1., -1.), c(1., -1., 1.), c(-1., -1., 1.)],
+    ];
+    let mut pos = Vec::new();
+    let mut nrm = Vec::new();
+    let mut idx = Vec::new();
+    for f in faces {
+        let n = (f[1] - f[0]).cross(f[2] - f[0]).normalize();
+        let base = pos.len() as u32;
+        pos.extend_from_slice(&f);
+        nrm.extend_from_slice(&[n; 4]);
+        idx.extend_from_slice(&[base, base + 1, base + 2, base, base + 2, base + 3]);
+    }
+    b.mesh(name, &pos, &nrm, &idx, material);
+}
+
+/// The Cornell box walls of Mitsuba's `cornell_box()` ([-1, 1]^3, open toward +Z, normals
+/// inward) with its light quad, and a camera at (0, 0, 3.9).
+fn cornell_walls(b: &mut GltfBuilder, white: usize, red: usize, green: usize, light: usize) {
+    let v = Vec3::new;
+    quad(b, "floor", [v(-1., -1., 1.), v(1., -1., 1.), v(1., -1., -1.), v(-1., -1., -1.)], white);
+    quad(b, "ceiling", [v(-1., 1., -1.), v(1., 1., -1.), v(1., 1., 1.), v(-1., 1., 1.)], white);
+    quad(b, "back", [v(-1., -1., -1.), v(1., -1., -1.), v(1., 1., -1.), v(-1., 1., -1.)], white);
+    quad(b, "green-wall", [v(1., -1., -1.), v(1., -1., 1.), v(1., 1., 1.), v(1., 1., -1.)], green);
+    quad(b, "red-wall", [v(-1., -1., 1.), v(-1., -1., -1.), v(-1., 1., -1.), v(-1., 1., 1.)], red);
+    quad(b, "light", [v(-0.23, 0.99, -0.18), v(0.23, 0.99, -0.18), v(0.23, 0.99, 0.20), v(-0.23, 0.99, 0.20)], light);
+    b.camera(v(0.0, 0.0, 3.9), v(0.0, 0.0, 0.0), Vec3::Y, 0.686_048_8, 1.0);
+}
+
+/// The demo scene: the Cornell box with a Blinn-glossy tall box and an anisotropic
+/// Ashikhmin-Shirley short box, so the lecture's microfacet models show.
+pub fn cornell_demo_glb() -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let white = b.material(lambert("white", Vec3::new(0.885_809, 0.698_859, 0.666_422)));
+    let red = b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6)));
+    let green = b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425)));
+    let light =
+        b.material(emitter("light", Vec3::new(0.885_809, 0.698_859, 0.666_422), Vec3::new(18.387, 13.9873, 6.753_57)));
+    let mut blinn = lambert("blinn-gold", Vec3::new(0.95, 0.75, 0.35));
+    blinn["extras"] = json!({"pathfarm": {"model": "blinn", "exponent": 60.0}});
+    let blinn = b.material(blinn);
+    let mut aniso = lambert("ashikhmin-shirley-steel", Vec3::new(0.8, 0.82, 0.85));
+    aniso["extras"] = json!({"pathfarm": {"model": "ashikhmin_shirley", "exponent_x": 400.0, "exponent_y": 8.0}});
+    let aniso = b.material(aniso);
+    cornell_walls(&mut b, white, red, green, light);
+    turned_box(&mut b, "tall-box-blinn", Vec3::new(-0.33, -0.4, -0.28), Vec3::new(0.6, 1.2, 0.6), 0.3185, blinn);
+    turned_box(&mut b, "short-box-ashikhmin-shirley", Vec3::new(0.335, -0.7, 0.38), Vec3::splat(0.6), -0.2967, aniso);
+    b.to_glb()
+}
+
+/// An icosphere of radius `r` subdivided `level` times; normals point inward (toward the centre)
+/// and triangles wind counter-clockwise seen from inside.
+pub fn inward_sphere(r: f32, level: u32) -> (Vec<Vec3>, Vec<Vec3>, Vec<u32>) {
+    let t = (1.0 + 5f32.sqrt()) / 2.0;
+    let mut v: Vec<Vec3> = [
+        (-1., t, 0.),
+        (1., t, 0.),
+        (-1., -t, 0.),
+        (1., -t, 0.),
+        (0., -1., t),
+        (0., 1., t),
+        (0., -1., -t),
+        (0., 1., -t),
+        (t, 0., -1.),
+        (t, 0., 1.),
+        (-t, 0., -1.),
+        (-t, 0., 1.),
+    ]
+    .iter()
+    .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
+    .collect();
+    let mut f: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..level {
+        let mut mid = std::collections::HashMap::new();
+        let mut next = Vec::with_capacity(f.len() * 4);
+        let mut midpoint = |a: u32, b: u32, v: &mut Vec<Vec3>| -> u32 {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
+                (v.len() - 1) as u32
+            })
+        };
+        for [a, b, c] in f {
+            let ab = midpoint(a, b, &mut v);
+            let bc = midpoint(b, c, &mut v);
+            let ca = midpoint(c, a, &mut v);
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        f = next;
+    }
+    let normals = v.iter().map(|p| -*p).collect();
+    let positions = v.iter().map(|p| *p * r).collect();
+    // Reverse the outward-facing winding so the front faces the inside.
+    let indices = f.iter().flat_map(|&[a, b, c]| [a, c, b]).collect();
+    (positions, normals, indices)
+}
+
+/// The white furnace: the inside of a sphere of radius 1 whose surface emits `le` and reflects
+/// with Lambertian albedo `rho`; the camera sits inside. Every pixel's exact value is
+/// `le / (1 - rho)`.
+pub fn furnace_glb(le: f32, rho: f32) -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let m = b.material(emitter("furnace", Vec3::splat(rho), Vec3::splat(le)));
+    let (p, n, i) = inward_sphere(1.0, 3);
+    b.mesh("sphere", &p, &n, &i, m);
+    b.camera(Vec3::new(0.0, 0.0, 0.3), Vec3::new(0.0, 0.0, -1.0), Vec3::Y, 1.2, 1.0);
+    b.to_glb()
+}
+
+/// pbrt's analytic scene: a point light of intensity `intensity` at the centre of a Lambertian
+/// sphere of radius `r` and albedo `rho`. Every wall point has radiance
+/// `rho / pi * intensity / r^2 / (1 - rho)`.
+pub fn point_furnace_glb(intensity: f32, rho: f32, r: f32) -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let m = b.material(lambert("wall", Vec3::splat(rho)));
+    let (p, n, i) = inward_sphere(r, 5);
+    b.mesh("sphere", &p, &n, &i, m);
+    b.point_light(Vec3::ZERO, Vec3::ONE, intensity);
+    b.camera(Vec3::new(0.0, 0.0, 0.3 * r), Vec3::new(0.0, 0.0, -r), Vec3::Y, 1.2, 1.0);
+    b.to_glb()
+}
+
+/// Caustics: a glass sphere on a diffuse floor lit by a small, bright area light, in a box.
+pub fn caustics_glb() -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let white = b.material(lambert("white", Vec3::splat(0.75)));
+    let light = b.material(emitter("light", Vec3::splat(0.75), Vec3::splat(400.0)));
+    let glass = b.material(json!({"name": "glass",
+        "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.0},
+        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5}}}));
+    let v = Vec3::new;
+    quad(&mut b, "floor", [v(-1., -1., 1.), v(1., -1., 1.), v(1., -1., -1.), v(-1., -1., -1.)], white);
+    quad(&mut b, "ceiling", [v(-1., 1., -1.), v(1., 1., -1.), v(1., 1., 1.), v(-1., 1., 1.)], white);
+    quad(&mut b, "back", [v(-1., -1., -1.), v(1., -1., -1.), v(1., 1., -1.), v(-1., 1., -1.)], white);
+    quad(&mut b, "right", [v(1., -1., -1.), v(1., -1., 1.), v(1., 1., 1.), v(1., 1., -1.)], white);
+    quad(&mut b, "left", [v(-1., -1., 1.), v(-1., -1., -1.), v(-1., 1., -1.), v(-1., 1., 1.)], white);
+    let s = 0.06;
+    quad(&mut b, "light", [v(-s, 0.99, -s), v(s, 0.99, -s), v(s, 0.99, s), v(-s, 0.99, s)], light);
+    let (p, n, i) = inward_sphere(0.35, 3);
+    // Outward sphere: flip the inward one back.
+    let c = v(0.0, -0.65, 0.0);
+    let p: Vec<Vec3> = p.iter().map(|&x| x + c).collect();
+    let n: Vec<Vec3> = n.iter().map(|&x| -x).collect();
+    let i: Vec<u32> = i.chunks(3).flat_map(|t| [t[0], t[2], t[1]]).collect();
+    b.mesh("glass-sphere", &p, &n, &i, glass);
+    b.camera(v(0.0, 0.0, 3.9), v(0.0, 0.0, 0.0), Vec3::Y, 0.686_048_8, 1.0);
+    b.to_glb()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn glb_header_is_consistent() {
+        for glb in [cornell_demo_glb(), furnace_glb(1.0, 0.5), point_furnace_glb(1.0, 0.5, 1.0), caustics_glb()] {
+            assert_eq!(&glb[0..4], b"glTF");
+            assert_eq!(u32::from_le_bytes([glb[8], glb[9], glb[10], glb[11]]) as usize, glb.len());
+            let gltf = gltf::Gltf::from_slice(&glb).expect("valid glTF");
+            assert!(gltf.meshes().count() > 0);
+        }
+    }
+
+    #[test]
+    fn inward_sphere_faces_inward() {
+        let (p, _, i) = inward_sphere(2.0, 2);
+        for t in i.chunks(3) {
+            let (a, b, c) = (p[t[0] as usize], p[t[1] as usize], p[t[2] as usize]);
+            let n = (b - a).cross(c - a);
+            assert!(n.dot(a + b + c) < 0.0, "geometric normal must point to the centre");
+        }
+    }
+}
