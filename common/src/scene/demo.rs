@@ -24,7 +24,7 @@ impl GltfBuilder {
     }
 
     fn push_view(&mut self, bytes: &[u8], target: u32) -> usize {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
         let offset = self.bin.len();
@@ -115,11 +115,11 @@ impl GltfBuilder {
         }
         root["extensionsUsed"] = json!(extensions_used);
         let mut json = serde_json::to_vec(&root).unwrap_or_default();
-        while json.len() % 4 != 0 {
+        while !json.len().is_multiple_of(4) {
             json.push(b' ');
         }
         let mut bin = self.bin.clone();
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         let total = 12 + 8 + json.len() + 8 + bin.len();
