@@ -3,6 +3,7 @@
 
 pub mod accel;
 pub mod bsdf;
+pub mod camera;
 #[cfg(test)]
 pub mod chi2;
 pub mod geometry;

@@ -1,0 +1,156 @@
+//! Cameras: pinhole perspective and orthographic, from the scene's glTF cameras, or a default
+//! perspective camera framing the scene bounds.
+
+use super::geometry::Ray;
+use glam::{Affine3A, Mat4, UVec2, Vec2, Vec3, Vec3A};
+use pathfarm_common::scene::{self, Projection};
+
+#[derive(Clone, Copy, Debug)]
+enum Kind {
+    /// `tan(yfov / 2)` and the image aspect ratio.
+    Perspective {
+        tan_half_y: f32,
+        aspect: f32,
+    },
+    Orthographic {
+        xmag: f32,
+        ymag: f32,
+    },
+}
+
+/// A camera bound to an image size.
+#[derive(Clone, Debug)]
+pub struct Camera {
+    world_from_camera: Affine3A,
+    camera_from_world: Affine3A,
+    kind: Kind,
+    width: u32,
+    height: u32,
+}
+
+impl Camera {
+    /// A camera from a scene camera; the image's aspect ratio wins over the file's.
+    pub fn new(cam: &scene::Camera, width: u32, height: u32) -> Self {
+        let aspect = width as f32 / height.max(1) as f32;
+        let kind = match cam.projection {
+            Projection::Perspective { yfov, .. } => {
+                Kind::Perspective { tan_half_y: (yfov.clamp(1e-4, 3.1) * 0.5).tan(), aspect }
+            }
+            Projection::Orthographic { xmag, ymag } => Kind::Orthographic { xmag: xmag.abs(), ymag: ymag.abs() },
+        };
+        Self::from_parts(cam.world_from_camera, kind, width, height)
+    }
+
+    fn from_parts(world_from_camera: Mat4, kind: Kind, width: u32, height: u32) -> Self {
+        // Remove scale and shear: cameras are rigid.
+        let (_, rot, trans) = world_from_camera.to_scale_rotation_translation();
+        let world_from_camera = Affine3A::from_rotation_translation(rot.normalize(), trans);
+        Self { camera_from_world: world_from_camera.inverse(), world_from_camera, kind, width, height }
+    }
+
+    /// A perspective camera (40 degrees vertical) on the +Z side of `bounds`, looking down -Z,
+    /// far enough that the bounding sphere fits.
+    pub fn framing(bounds: Option<(Vec3, Vec3)>, width: u32, height: u32) -> Self {
+        let (lo, hi) = bounds.unwrap_or((Vec3::splat(-1.0), Vec3::splat(1.0)));
+        let center = (lo + hi) * 0.5;
+        let radius = ((hi - lo).length() * 0.5).max(1e-3);
+        let yfov = 40f32.to_radians();
+        let aspect = width as f32 / height.max(1) as f32;
+        let half = if aspect < 1.0 { (yfov * 0.5).tan() * aspect } else { (yfov * 0.5).tan() };
+        let dist = radius / half.atan().sin();
+        let eye = center + Vec3::Z * dist;
+        Self::from_parts(
+            Mat4::from_translation(eye),
+            Kind::Perspective { tan_half_y: (yfov * 0.5).tan(), aspect },
+            width,
+            height,
+        )
+    }
+
+    pub fn position(&self) -> Vec3A {
+        self.world_from_camera.translation
+    }
+
+    /// The primary ray through `pixel` at offset `u` in [0, 1)^2 inside it (box filter).
+    pub fn generate_ray(&self, pixel: UVec2, u: Vec2) -> Ray {
+        let sx = 2.0 * (pixel.x as f32 + u.x) / self.width as f32 - 1.0;
+        let sy = 1.0 - 2.0 * (pixel.y as f32 + u.y) / self.height as f32;
+        match self.kind {
+            Kind::Perspective { tan_half_y, aspect } => {
+                let d = Vec3A::new(sx * tan_half_y * aspect, sy * tan_half_y, -1.0).normalize();
+                Ray::new(self.world_from_camera.translation, self.world_from_camera.transform_vector3a(d).normalize())
+            }
+            Kind::Orthographic { xmag, ymag } => {
+                let o = self.world_from_camera.transform_point3a(Vec3A::new(sx * xmag, sy * ymag, 0.0));
+                Ray::new(o, self.world_from_camera.transform_vector3a(-Vec3A::Z).normalize())
+            }
+        }
+    }
+
+    /// Raster position of world point `p`, if it is in front of the camera and on the image.
+    pub fn raster(&self, p: Vec3A) -> Option<Vec2> {
+        let c = self.camera_from_world.transform_point3a(p);
+        let (sx, sy) = match self.kind {
+            Kind::Perspective { tan_half_y, aspect } => {
+                if c.z >= 0.0 {
+                    return None;
+                }
+                (c.x / -c.z / (tan_half_y * aspect), c.y / -c.z / tan_half_y)
+            }
+            Kind::Orthographic { xmag, ymag } => (c.x / xmag, c.y / ymag),
+        };
+        let x = (sx + 1.0) * 0.5 * self.width as f32;
+        let y = (1.0 - sy) * 0.5 * self.height as f32;
+        (x >= 0.0 && y >= 0.0 && x < self.width as f32 && y < self.height as f32).then_some(Vec2::new(x, y))
+    }
+
+    /// Pinhole importance for light tracing (pbrt-v4 `PerspectiveCamera::We` with a unit-area
+    /// pixel normalization): returns (We, pdf_dir) for a world direction `w` leaving the camera,
+    /// or `None` for an orthographic camera or a direction off the image. `We` is such that
+    /// splatting `We * L * cos / pdf` onto raster pixels, divided by the pixel's sample count,
+    /// estimates the pixel's mean radiance.
+    pub fn importance(&self, w: Vec3A) -> Option<(f32, f32)> {
+        let Kind::Perspective { tan_half_y, aspect } = self.kind else { return None };
+        let d = self.camera_from_world.transform_vector3a(w);
+        let cos = -d.z;
+        if cos <= 0.0 {
+            return None;
+        }
+        // Area of the image plane at distance 1, and of one pixel on it.
+        let area = 4.0 * tan_half_y * tan_half_y * aspect;
+        let cos2 = cos * cos;
+        let pdf_dir = 1.0 / (area * cos2 * cos);
+        let pixels = self.width as f32 * self.height as f32;
+        Some((pixels / (area * cos2 * cos2), pdf_dir))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn center_ray_looks_down_minus_z_and_raster_inverts_generate_ray() {
+        let cam = scene::Camera {
+            name: "c".into(),
+            world_from_camera: Mat4::from_translation(Vec3::new(0.0, 0.0, 3.9)),
+            projection: Projection::Perspective { yfov: 0.686, aspect: None },
+        };
+        let c = Camera::new(&cam, 64, 32);
+        let r = c.generate_ray(UVec2::new(32, 16), Vec2::ZERO);
+        assert!((r.d - Vec3A::new(0.0, 0.0, -1.0)).length() < 1e-6);
+        for (px, u) in [(UVec2::new(3, 5), Vec2::new(0.25, 0.75)), (UVec2::new(60, 30), Vec2::new(0.5, 0.5))] {
+            let ray = c.generate_ray(px, u);
+            let raster = c.raster(ray.at(2.0)).expect("on image");
+            assert!((raster - (px.as_vec2() + u)).length() < 1e-3, "{raster}");
+        }
+    }
+
+    #[test]
+    fn framing_camera_sees_the_bounds() {
+        let c = Camera::framing(Some((Vec3::splat(-2.0), Vec3::splat(2.0))), 100, 50);
+        for corner in [Vec3A::splat(-2.0), Vec3A::splat(2.0), Vec3A::new(2.0, -2.0, 2.0)] {
+            assert!(c.raster(corner).is_some(), "{corner} off screen");
+        }
+    }
+}
