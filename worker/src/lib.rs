@@ -1,4 +1,5 @@
 //! pathfarm worker: the renderer (`render`, pure: no async, no I/O) and the worker daemon.
 
+pub mod cli;
 pub mod daemon;
 pub mod render;

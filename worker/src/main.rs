@@ -11,6 +11,8 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Render a scene locally to an EXR (same plan and merge as the farm).
+    Render(pathfarm_worker::cli::RenderArgs),
     /// Run as a worker daemon of a coordinator.
     Run(pathfarm_worker::daemon::RunArgs),
 }
@@ -21,6 +23,7 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Render(args) => pathfarm_worker::cli::render(args),
         Command::Run(args) => pathfarm_worker::daemon::run(args),
     }
 }

@@ -1,0 +1,200 @@
+//! `pathfarm-worker render`: render a scene locally, with the same plan and merge as the farm.
+
+use crate::render::{Renderer, render_local};
+use anyhow::Context;
+use clap::{Args, ValueEnum};
+use pathfarm_common::job::{
+    IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings, SamplerKind,
+};
+use pathfarm_common::scene::{LoadOptions, load_scene};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum IntegratorArg {
+    Direct,
+    Path,
+    Bdpt,
+    Igi,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum MisArg {
+    Balance,
+    Power,
+    Light,
+    Bsdf,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum LightSamplingArg {
+    Area,
+    SolidAngle,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum SamplerArg {
+    Sobol,
+    Independent,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq, Eq)]
+pub enum OnOff {
+    On,
+    Off,
+}
+
+/// Job settings shared by `render` and the client CLI.
+#[derive(Args, Debug, Clone)]
+pub struct SettingsArgs {
+    #[arg(long, default_value_t = 256)]
+    pub width: u32,
+    #[arg(long, default_value_t = 256)]
+    pub height: u32,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    #[arg(long, value_enum, default_value = "path")]
+    pub integrator: IntegratorArg,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Scene camera index (default: camera 0, or a camera framing the scene).
+    #[arg(long)]
+    pub camera: Option<usize>,
+    #[arg(long, value_enum, default_value = "power")]
+    pub mis: MisArg,
+    /// Path segments (Mitsuba's convention: 1 = emitters only, 2 = direct); 0 = no limit.
+    #[arg(long, default_value_t = 8)]
+    pub max_depth: u32,
+    /// Scattering events before Russian roulette starts.
+    #[arg(long, default_value_t = 3)]
+    pub rr_depth: u32,
+    #[arg(long, value_enum, default_value = "solid-angle")]
+    pub light_sampling: LightSamplingArg,
+    #[arg(long, value_enum, default_value = "sobol")]
+    pub sampler: SamplerArg,
+    #[arg(long, default_value_t = 64)]
+    pub tile_size: u32,
+    /// Samples per pass; 0 = doubling passes (1, 2, 4, ... up to 64).
+    #[arg(long, default_value_t = 0)]
+    pub pass_spp: u32,
+    /// IGI: virtual point lights per set.
+    #[arg(long, default_value_t = 64)]
+    pub vpls: u32,
+    /// IGI: independent VPL sets per pass.
+    #[arg(long, default_value_t = 4)]
+    pub vpl_sets: u32,
+    /// IGI: clamp of the geometry term.
+    #[arg(long, default_value_t = 10.0)]
+    pub g_limit: f32,
+    /// IGI: add back the clamped-away energy by BSDF sampling.
+    #[arg(long, value_enum, default_value = "off")]
+    pub bias_compensation: OnOff,
+}
+
+impl SettingsArgs {
+    pub fn to_settings(&self) -> RenderSettings {
+        let mis = match self.mis {
+            MisArg::Balance => MisHeuristic::Balance,
+            MisArg::Power => MisHeuristic::Power,
+            MisArg::Light => MisHeuristic::Light,
+            MisArg::Bsdf => MisHeuristic::Bsdf,
+        };
+        let light_sampling = match self.light_sampling {
+            LightSamplingArg::Area => LightSampling::Area,
+            LightSamplingArg::SolidAngle => LightSampling::SolidAngle,
+        };
+        let integrator = match self.integrator {
+            IntegratorArg::Direct => IntegratorSettings::Direct { mis, light_sampling },
+            IntegratorArg::Path => {
+                IntegratorSettings::Path { max_depth: self.max_depth, rr_depth: self.rr_depth, mis, light_sampling }
+            }
+            IntegratorArg::Bdpt => IntegratorSettings::Bdpt { max_depth: self.max_depth, mis },
+            IntegratorArg::Igi => IntegratorSettings::Igi {
+                vpls: self.vpls,
+                vpl_sets: self.vpl_sets,
+                g_limit: self.g_limit,
+                bias_compensation: self.bias_compensation == OnOff::On,
+                max_depth: self.max_depth,
+            },
+        };
+        let mut s = RenderSettings::new(self.width, self.height, self.spp);
+        s.seed = self.seed;
+        s.camera = self.camera;
+        s.integrator = integrator;
+        s.sampler = match self.sampler {
+            SamplerArg::Sobol => SamplerKind::Sobol,
+            SamplerArg::Independent => SamplerKind::Independent,
+        };
+        s.tile_size = self.tile_size;
+        if self.pass_spp > 0 {
+            s.passes = PassSchedule::Fixed { spp: self.pass_spp };
+        }
+        s
+    }
+}
+
+/// `pathfarm-worker render` arguments.
+#[derive(Args, Debug, Clone)]
+pub struct RenderArgs {
+    /// A .glb or .gltf file.
+    pub scene: PathBuf,
+    #[command(flatten)]
+    pub settings: SettingsArgs,
+    /// Output OpenEXR file.
+    #[arg(long, default_value = "out.exr")]
+    pub out: PathBuf,
+    /// Also write an sRGB PNG preview.
+    #[arg(long)]
+    pub png: Option<PathBuf>,
+    /// PNG exposure in stops.
+    #[arg(long, default_value_t = 0.0)]
+    pub exposure: f32,
+    /// Render threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Runs `pathfarm-worker render`.
+pub fn render(args: RenderArgs) -> anyhow::Result<()> {
+    if let Some(n) = args.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global().context("thread pool")?;
+    }
+    let settings = args.settings.to_settings();
+    let scene = load_scene(&args.scene, &LoadOptions::default())?;
+    for w in &scene.warnings {
+        tracing::warn!(scene = %args.scene.display(), "{w}");
+    }
+    let t0 = Instant::now();
+    let renderer = Renderer::new(&scene, &settings)?;
+    let prep = t0.elapsed();
+    let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} units, eta {eta}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let t1 = Instant::now();
+    let film = render_local(&renderer, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    let secs = t1.elapsed().as_secs_f64();
+    let samples = f64::from(settings.width) * f64::from(settings.height) * f64::from(settings.spp);
+    let image = film.resolve();
+    image.write_exr(&args.out)?;
+    if let Some(png) = &args.png {
+        image.write_png(png, args.exposure)?;
+    }
+    tracing::info!(
+        out = %args.out.display(),
+        prepare_s = prep.as_secs_f64(),
+        render_s = secs,
+        msamples_per_s = samples / secs / 1e6,
+        "rendered"
+    );
+    Ok(())
+}
