@@ -347,13 +347,53 @@ pub fn caustics_glb() -> Vec<u8> {
     b.to_glb()
 }
 
+/// Veach's multiple-importance-sampling scene, flattened: four floor strips from rough to near
+/// mirror (Blinn exponents 2, 40, 600, 12000; base colours tagged 0.5, 0.6, 0.7, 0.8 in red so
+/// tests can tell them apart by the albedo layer), lit by a small bright and a large dim light.
+pub fn mis_glb() -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let v = Vec3::new;
+    for (k, exponent) in [2.0f32, 40.0, 600.0, 12_000.0].into_iter().enumerate() {
+        let mut m = lambert("strip", Vec3::new(0.5 + 0.1 * k as f32, 0.7, 0.7));
+        m["extras"] = json!({"pathfarm": {"model": "blinn", "exponent": exponent}});
+        let m = b.material(m);
+        let z0 = 1.0 - 0.5 * k as f32;
+        quad(&mut b, "strip", [v(-2.0, 0.0, z0), v(2.0, 0.0, z0), v(2.0, 0.0, z0 - 0.45), v(-2.0, 0.0, z0 - 0.45)], m);
+    }
+    let small = b.material(emitter("small-light", Vec3::ZERO, Vec3::splat(900.0)));
+    let large = b.material(emitter("large-light", Vec3::ZERO, Vec3::splat(1.5)));
+    // Lights face the strips (normals toward -z and down).
+    let (s, l) = (0.03, 0.6);
+    quad(
+        &mut b,
+        "small",
+        [
+            v(-0.8 - s, 1.0 - s, -1.5),
+            v(-0.8 + s, 1.0 - s, -1.5),
+            v(-0.8 + s, 1.0 + s, -1.5),
+            v(-0.8 - s, 1.0 + s, -1.5),
+        ],
+        small,
+    );
+    quad(
+        &mut b,
+        "large",
+        [v(0.8 - l, 1.0 - l, -1.5), v(0.8 + l, 1.0 - l, -1.5), v(0.8 + l, 1.0 + l, -1.5), v(0.8 - l, 1.0 + l, -1.5)],
+        large,
+    );
+    b.camera(v(0.0, 1.2, 2.6), v(0.0, 0.0, -0.3), Vec3::Y, 0.7, 1.0);
+    b.to_glb()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn glb_header_is_consistent() {
-        for glb in [cornell_demo_glb(), furnace_glb(1.0, 0.5), point_furnace_glb(1.0, 0.5, 1.0), caustics_glb()] {
+        for glb in
+            [cornell_demo_glb(), furnace_glb(1.0, 0.5), point_furnace_glb(1.0, 0.5, 1.0), caustics_glb(), mis_glb()]
+        {
             assert_eq!(&glb[0..4], b"glTF");
             assert_eq!(u32::from_le_bytes([glb[8], glb[9], glb[10], glb[11]]) as usize, glb.len());
             let gltf = gltf::Gltf::from_slice(&glb).expect("valid glTF");
