@@ -112,8 +112,14 @@ pub fn load_scene_from_slice(
     } else {
         (bytes, None)
     };
-    let root: json::Root =
-        json::deserialize::from_slice(json_bytes).map_err(|e| invalid(format!("invalid glTF JSON: {e}")))?;
+    // Animations are dropped before typed parsing: still renders ignore them, and gltf-json
+    // cannot parse KHR_animation_pointer channels (they have no `node`).
+    let mut value: serde_json::Value =
+        serde_json::from_slice(json_bytes).map_err(|e| invalid(format!("invalid JSON: {e}")))?;
+    if let Some(obj) = value.as_object_mut() {
+        obj.remove("animations");
+    }
+    let root: json::Root = serde_json::from_value(value).map_err(|e| invalid(format!("invalid glTF: {e}")))?;
     let mut loader = Loader {
         file,
         root: &root,
@@ -513,9 +519,7 @@ impl Loader<'_> {
         };
         let (w, h) = reader()?.into_dimensions().map_err(|e| self.invalid(&element, e))?;
         let pixels = u64::from(w) * u64::from(h);
-        if let Some(max) = self.opts.max_texture_pixels
-            && pixels > max
-        {
+        if let Some(max) = self.opts.max_texture_pixels.filter(|&m| pixels > m) {
             return Err(SceneError::LimitExceeded {
                 file: self.file.clone(),
                 element: format!("{element}: {w}x{h} pixels"),
@@ -603,20 +607,21 @@ impl Loader<'_> {
         owner: &str,
     ) -> Result<Option<TextureRef>, SceneError> {
         let Some(info) = info else { return Ok(None) };
-        self.texture_ref_parts(info.index.value(), info.tex_coord, info.extensions.as_ref(), srgb, owner)
+        let transform = info.extensions.as_ref().and_then(|e| e.texture_transform.as_ref());
+        self.texture_ref_parts(info.index.value(), info.tex_coord, transform, srgb, owner)
     }
 
     fn texture_ref_parts(
         &mut self,
         index: usize,
         tex_coord: u32,
-        ext: Option<&json::extensions::texture::Info>,
+        transform: Option<&json::extensions::texture::TextureTransform>,
         srgb: bool,
         owner: &str,
     ) -> Result<Option<TextureRef>, SceneError> {
         let Some(texture) = self.texture(index, srgb, owner)? else { return Ok(None) };
         let mut r = TextureRef { texture, tex_coord, transform: TextureTransform::default() };
-        if let Some(t) = ext.and_then(|e| e.texture_transform.as_ref()) {
+        if let Some(t) = transform {
             r.transform = TextureTransform {
                 offset: Vec2::from(t.offset.0),
                 rotation: t.rotation.0,
@@ -665,7 +670,16 @@ impl Loader<'_> {
             ..Material::default()
         };
         if let Some(n) = &m.normal_texture {
-            mat.normal_texture = self.texture_ref_parts(n.index.value(), n.tex_coord, None, false, &owner)?;
+            // gltf-json has no typed KHR_texture_transform on normal textures; read it ourselves.
+            let transform = n
+                .extensions
+                .as_ref()
+                .and_then(|e| e.others.get("KHR_texture_transform"))
+                .map(|v| serde_json::from_value(v.clone()))
+                .transpose()
+                .map_err(|e| self.invalid(&owner, format!("normalTexture KHR_texture_transform: {e}")))?;
+            mat.normal_texture =
+                self.texture_ref_parts(n.index.value(), n.tex_coord, transform.as_ref(), false, &owner)?;
             mat.normal_scale = n.scale;
         }
         if let Some(ext) = ext {
@@ -893,9 +907,7 @@ impl Loader<'_> {
         if e.comps != comps {
             return Err(self.invalid(element, format!("accessor {}: {name} must have {comps} components", acc.value())));
         }
-        if let Some(n) = n
-            && e.values.len() != n * comps
-        {
+        if let Some(n) = n.filter(|&n| e.values.len() != n * comps) {
             return Err(self.invalid(
                 element,
                 format!("accessor {}: {name} has {} elements, POSITION has {n}", acc.value(), e.values.len() / comps),
@@ -961,9 +973,8 @@ impl Loader<'_> {
             self.warn(format!("{element}: {} triangles with out-of-range indices dropped", before - tris.len()));
         }
         self.triangles = self.triangles.saturating_add(tris.len());
-        if let Some(max) = self.opts.max_triangles
-            && self.triangles > max
-        {
+        let total = self.triangles;
+        if let Some(max) = self.opts.max_triangles.filter(|&m| total > m) {
             return Err(SceneError::LimitExceeded {
                 file: self.file.clone(),
                 element: format!("{element} ({node}): triangle count"),
@@ -1002,9 +1013,8 @@ impl Loader<'_> {
                 t.swap(1, 2);
             }
         }
-        if let Some(nt) = self.scene.materials.get(material).and_then(|m| m.normal_texture)
-            && tangents.is_none()
-        {
+        let normal_map = self.scene.materials.get(material).and_then(|m| m.normal_texture);
+        if let Some(nt) = normal_map.filter(|_| tangents.is_none()) {
             let uvs = if nt.tex_coord == 1 { uv1.as_ref() } else { uv0.as_ref() };
             if let (Some(nrm), Some(uvs)) = (normals.as_ref(), uvs) {
                 let mut g = MikkGeometry {
