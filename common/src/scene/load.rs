@@ -1017,17 +1017,21 @@ impl Loader<'_> {
         if let Some(nt) = normal_map.filter(|_| tangents.is_none()) {
             let uvs = if nt.tex_coord == 1 { uv1.as_ref() } else { uv0.as_ref() };
             if let (Some(nrm), Some(uvs)) = (normals.as_ref(), uvs) {
-                let mut g = MikkGeometry {
-                    positions: &positions,
-                    normals: nrm,
-                    uvs,
-                    tris: &tris,
-                    tangents: vec![Vec4::new(1.0, 0.0, 0.0, 1.0); n],
-                };
-                if mikktspace::generate_tangents(&mut g) {
-                    tangents = Some(g.tangents);
-                } else {
-                    self.warn(format!("{element}: tangent generation failed; normal map ignored"));
+                if mikktspace_safe(&positions, &tris) {
+                    let mut g = MikkGeometry {
+                        positions: &positions,
+                        normals: nrm,
+                        uvs,
+                        tris: &tris,
+                        tangents: vec![Vec4::new(1.0, 0.0, 0.0, 1.0); n],
+                    };
+                    if mikktspace::generate_tangents(&mut g) {
+                        tangents = Some(g.tangents);
+                    } else {
+                        self.warn(format!("{element}: tangent generation failed; normal map ignored"));
+                    }
+                } else if !tris.is_empty() {
+                    self.warn(format!("{element}: degenerate geometry, no tangents; normal map ignored"));
                 }
             }
         }
@@ -1061,6 +1065,23 @@ fn material_textures(m: &json::Material) -> Vec<usize> {
         v.extend(infos.into_iter().flatten().map(|i| i.index.value()));
     }
     v
+}
+
+/// Whether `mikktspace` 0.3 can run without panicking (found by the fuzz tests):
+/// * its vertex welding hashes positions into cells along the widest axis and indexes one past
+///   its table when that extent is zero (all vertices equal) or not finite;
+/// * it computes `triangles - 1` after removing degenerate triangles (two corners welded), which
+///   underflows when every triangle is degenerate.
+///
+/// Meshes that fail this have no meaningful tangents anyway.
+fn mikktspace_safe(positions: &[Vec3], tris: &[[u32; 3]]) -> bool {
+    let corner = |t: &[u32; 3]| t.map(|i| positions.get(i as usize).copied().unwrap_or(Vec3::NAN));
+    let mut used = tris.iter().flat_map(corner);
+    let Some(first) = used.next() else { return false };
+    let (lo, hi) = used.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p)));
+    let extent = hi - lo;
+    let proper = tris.iter().map(corner).any(|[a, b, c]| a != b && b != c && a != c);
+    extent.is_finite() && extent.max_element() > 0.0 && proper
 }
 
 /// World-space triangle data for MikkTSpace; tangents are written per vertex.

@@ -22,7 +22,10 @@ pub struct Scene {
     pub meshes: Vec<Mesh>,
     pub materials: Vec<Material>,
     pub textures: Vec<Texture>,
+    /// In node traversal order (depth first, children in file order), so `cameras[0]` is the
+    /// first camera met; empty when the file has none (see [`default_camera`]).
     pub cameras: Vec<Camera>,
+    /// In node traversal order, like `cameras`.
     pub lights: Vec<PunctualLight>,
     /// Non-fatal problems (skipped primitives, dangling textures...), each naming the element.
     pub warnings: Vec<String>,
