@@ -23,7 +23,10 @@ pub struct Scene {
     pub meshes: Vec<Mesh>,
     pub materials: Vec<Material>,
     pub textures: Vec<Texture>,
+    /// In node traversal order (depth first, children in file order), so `cameras[0]` is the
+    /// first camera met; empty when the file has none (see [`default_camera`]).
     pub cameras: Vec<Camera>,
+    /// In node traversal order, like `cameras`.
     pub lights: Vec<PunctualLight>,
     /// Non-fatal problems (skipped primitives, dangling textures...), each naming the element.
     pub warnings: Vec<String>,
@@ -191,5 +194,24 @@ impl Scene {
     /// Total number of triangles.
     pub fn triangle_count(&self) -> usize {
         self.meshes.iter().map(|m| m.indices.len()).sum()
+    }
+}
+
+/// A camera that frames the whole scene: perspective, 40 degrees vertical field of view, on the
+/// +Z side of the bounds' centre looking down -Z, far enough that the bounding sphere fits in
+/// both directions for the given aspect ratio (width / height). Used when the file has no camera.
+pub fn default_camera(scene: &Scene, aspect: f32) -> Camera {
+    let yfov = 40f32.to_radians();
+    let (lo, hi) = scene.bounds().unwrap_or((Vec3::splat(-1.0), Vec3::splat(1.0)));
+    let center = (lo + hi) * 0.5;
+    let radius = ((hi - lo).length() * 0.5).max(1e-3);
+    let aspect = if aspect.is_finite() && aspect > 0.0 { aspect } else { 1.0 };
+    // The narrower of the two half-angles decides the distance.
+    let half = (yfov * 0.5).min((aspect * (yfov * 0.5).tan()).atan());
+    let distance = radius / half.sin();
+    Camera {
+        name: "default".into(),
+        world_from_camera: Mat4::from_translation(center + Vec3::Z * distance),
+        projection: Projection::Perspective { yfov, aspect: Some(aspect) },
     }
 }

@@ -4,7 +4,7 @@
 use glam::{Vec2, Vec4};
 
 /// glTF sampler wrap modes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
 pub enum WrapMode {
     #[default]
     Repeat,
