@@ -1,1 +1,555 @@
-//! (being written)
+//! Addressable samplers (pbrt-v4's `Sampler` interface, `IndependentSampler`, and a padded,
+//! Owen-scrambled Sobol sampler after Burley 2020, "Practical Hash-based Owen Scrambling").
+//!
+//! Every number a sampler returns is a pure function of (seed, pixel, sample index, dimension).
+//! It never depends on what was sampled before, on the tile, the thread or how the samples of a
+//! pixel are split into passes, so a farm render is bit-identical to a local one.
+//!
+//! # Dimension convention
+//! [`Sampler::start_pixel_sample`] sets the current dimension. [`Sampler::get_1d`] reads one
+//! number at the current dimension and advances it by 1. [`Sampler::get_2d`] and
+//! [`Sampler::get_pixel_2d`] read a pair keyed by the current dimension and advance it by 2.
+//! A pair is keyed by its first dimension, whatever its parity (pbrt-v4's `PaddedSobolSampler`),
+//! so `get_1d` before `get_2d` does not break the 2D stratification.
+//! The camera calls `get_pixel_2d` first, at dimension 0.
+//!
+//! # Streams not tied to a pixel
+//! Light paths (BDPT) or virtual point lights (IGI) use a pseudo pixel, for example
+//! `UVec2::new(pass_index, u32::MAX)`, with their own seed or dimension offset. Any `UVec2` is a
+//! valid address.
+
+use glam::{UVec2, Vec2};
+use pathfarm_common::job::SamplerKind;
+
+/// The 64-bit golden-ratio increment (SplitMix64), used to keep hashed values away from zero.
+const GOLDEN: u64 = 0x9E37_79B9_7F4A_7C15;
+
+/// A 64-bit bit mixer with full avalanche (pbrt-v4's `MixBits`); a bijection.
+#[inline]
+pub fn mix_bits(mut v: u64) -> u64 {
+    v ^= v >> 31;
+    v = v.wrapping_mul(0x7fb5_d329_728e_a185);
+    v ^= v >> 27;
+    v = v.wrapping_mul(0x81da_def4_bc2d_d44d);
+    v ^= v >> 33;
+    v
+}
+
+/// Hashes a tuple of values into 64 well-mixed bits. Order matters: `[a, b]` and `[b, a]` hash
+/// differently, and so do `[a]` and `[a, 0]`.
+#[inline]
+pub fn hash_u64(values: &[u64]) -> u64 {
+    let mut h = 0x6A09_E667_F3BC_C909; // fractional bits of sqrt(2): any nonzero start works
+    for &v in values {
+        // mix_bits is a bijection, so for a fixed prefix distinct values give distinct hashes.
+        h = mix_bits(h ^ v.wrapping_add(GOLDEN));
+    }
+    h
+}
+
+/// Maps 32 random bits to a float in [0, 1): the top 24 bits on a uniform grid of step 2^-24,
+/// so the result is at most `1 - 2^-24` and never rounds up to 1.
+#[inline]
+pub fn u32_to_unit_float(v: u32) -> f32 {
+    (v >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
+}
+
+/// The fast hash-based Laine-Karras permutation of Burley 2020 with Vegdahl's improved constants
+/// (pbrt-v4's `FastOwenScrambler` core). It operates on bit-reversed values: every step changes
+/// a bit only as a function of the bits below it, which is exactly a nested (Owen) permutation
+/// once the bits are reversed back.
+#[inline]
+pub fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
+    x ^= x.wrapping_mul(0x3d20_adea);
+    x = x.wrapping_add(seed);
+    x = x.wrapping_mul((seed >> 16) | 1);
+    x ^= x.wrapping_mul(0x0552_6c56);
+    x ^= x.wrapping_mul(0x53a2_2864);
+    x
+}
+
+/// Owen scrambling of a 32-bit fixed-point number in [0, 1) (most significant bit first), or of
+/// a sample index (Burley's shuffle). Applied to the indices `0..2^m`, it permutes an aligned
+/// block of `2^m` indices; applied to coordinates, it keeps every elementary interval.
+#[inline]
+pub fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
+    laine_karras_permutation(x.reverse_bits(), seed).reverse_bits()
+}
+
+/// Direction numbers of the second Sobol dimension: the Pascal matrix modulo 2, column `k`
+/// being `v_k = v_{k-1} ^ (v_{k-1} >> 1)` from `v_0 = 2^31`.
+const SOBOL_DIM1_MATRIX: [u32; 32] = {
+    let mut m = [0u32; 32];
+    let mut v = 1u32 << 31;
+    let mut k = 0;
+    while k < 32 {
+        m[k] = v;
+        v ^= v >> 1;
+        k += 1;
+    }
+    m
+};
+
+/// First Sobol dimension (van der Corput in base 2) as 32-bit fixed point.
+#[inline]
+pub fn sobol_dim0(index: u32) -> u32 {
+    index.reverse_bits()
+}
+
+/// Second Sobol dimension as 32-bit fixed point.
+#[inline]
+pub fn sobol_dim1(mut index: u32) -> u32 {
+    let mut r = 0;
+    let mut k = 0;
+    while index != 0 {
+        if index & 1 != 0 {
+            r ^= SOBOL_DIM1_MATRIX[k];
+        }
+        index >>= 1;
+        k += 1;
+    }
+    r
+}
+
+/// A source of sample values addressed by (pixel, sample index, dimension).
+pub trait Sampler {
+    /// Positions the stream at (pixel, sample index, first dimension `dim`).
+    fn start_pixel_sample(&mut self, pixel: UVec2, index: u32, dim: u32);
+    /// One number in [0, 1) (strictly below 1); advances the dimension by 1.
+    fn get_1d(&mut self) -> f32;
+    /// Two numbers in [0, 1); advances the dimension by 2.
+    fn get_2d(&mut self) -> Vec2;
+    /// The 2D sample used for the position inside the pixel (pbrt's `GetPixel2D`); here it is
+    /// `get_2d` and advances the dimension by 2.
+    fn get_pixel_2d(&mut self) -> Vec2;
+}
+
+/// Independent uniform numbers from a counter-based hash of (seed, pixel, index, dimension).
+/// `get_2d` at dimension `d` equals two `get_1d` calls at `d` and `d + 1`.
+#[derive(Clone, Debug)]
+pub struct IndependentSampler {
+    seed: u64,
+    /// Hash of (seed, pixel, index), so each number costs one more hash.
+    sample_hash: u64,
+    dim: u32,
+}
+
+impl IndependentSampler {
+    pub fn new(seed: u64) -> Self {
+        let mut s = Self { seed, sample_hash: 0, dim: 0 };
+        s.start_pixel_sample(UVec2::ZERO, 0, 0);
+        s
+    }
+
+    #[inline]
+    fn value(&self, dim: u32) -> f32 {
+        let h = hash_u64(&[self.sample_hash, u64::from(dim)]);
+        u32_to_unit_float((h >> 32) as u32)
+    }
+}
+
+impl Sampler for IndependentSampler {
+    fn start_pixel_sample(&mut self, pixel: UVec2, index: u32, dim: u32) {
+        self.sample_hash = hash_u64(&[self.seed, u64::from(pixel.x), u64::from(pixel.y), u64::from(index)]);
+        self.dim = dim;
+    }
+
+    #[inline]
+    fn get_1d(&mut self) -> f32 {
+        let v = self.value(self.dim);
+        self.dim = self.dim.wrapping_add(1);
+        v
+    }
+
+    #[inline]
+    fn get_2d(&mut self) -> Vec2 {
+        let v = Vec2::new(self.value(self.dim), self.value(self.dim.wrapping_add(1)));
+        self.dim = self.dim.wrapping_add(2);
+        v
+    }
+
+    #[inline]
+    fn get_pixel_2d(&mut self) -> Vec2 {
+        self.get_2d()
+    }
+}
+
+/// Owen-scrambled Sobol points, padded per dimension (Burley 2020; pbrt-v4's
+/// `PaddedSobolSampler` with `FastOwen` randomization).
+///
+/// For a 2D request at dimension `d`, the sample index is shuffled by a nested uniform scramble
+/// seeded by hash(seed, pixel, d); the point is (Sobol dimension 0, Sobol dimension 1) of the
+/// shuffled index, each coordinate Owen-scrambled with its own seed. A 1D request uses Sobol
+/// dimension 0 alone. The samples `0..2^m` of a pixel are therefore a (0, m, 2)-net in every
+/// 2D request (one point in each elementary interval of area `2^-m`), and stratified in 1D;
+/// different dimensions are decorrelated by their independent shuffles. Only the first two
+/// Sobol dimensions are needed, so there are no tables beyond one 32-entry matrix.
+#[derive(Clone, Debug)]
+pub struct SobolSampler {
+    seed: u64,
+    /// Hash of (seed, pixel).
+    pixel_hash: u64,
+    index: u32,
+    dim: u32,
+}
+
+impl SobolSampler {
+    pub fn new(seed: u64) -> Self {
+        let mut s = Self { seed, pixel_hash: 0, index: 0, dim: 0 };
+        s.start_pixel_sample(UVec2::ZERO, 0, 0);
+        s
+    }
+
+    /// The seeds of the request at the current dimension; `tag` separates 1D from 2D requests.
+    #[inline]
+    fn dim_hash(&self, tag: u64) -> u64 {
+        hash_u64(&[self.pixel_hash, u64::from(self.dim), tag])
+    }
+}
+
+impl Sampler for SobolSampler {
+    fn start_pixel_sample(&mut self, pixel: UVec2, index: u32, dim: u32) {
+        self.pixel_hash = hash_u64(&[self.seed, u64::from(pixel.x), u64::from(pixel.y)]);
+        self.index = index;
+        self.dim = dim;
+    }
+
+    #[inline]
+    fn get_1d(&mut self) -> f32 {
+        let h = self.dim_hash(1);
+        let shuffled = nested_uniform_scramble(self.index, h as u32);
+        let x = nested_uniform_scramble(sobol_dim0(shuffled), (h >> 32) as u32);
+        self.dim = self.dim.wrapping_add(1);
+        u32_to_unit_float(x)
+    }
+
+    #[inline]
+    fn get_2d(&mut self) -> Vec2 {
+        let h = self.dim_hash(2);
+        let h2 = mix_bits(h.wrapping_add(GOLDEN));
+        let shuffled = nested_uniform_scramble(self.index, h as u32);
+        let x = nested_uniform_scramble(sobol_dim0(shuffled), (h >> 32) as u32);
+        let y = nested_uniform_scramble(sobol_dim1(shuffled), h2 as u32);
+        self.dim = self.dim.wrapping_add(2);
+        Vec2::new(u32_to_unit_float(x), u32_to_unit_float(y))
+    }
+
+    #[inline]
+    fn get_pixel_2d(&mut self) -> Vec2 {
+        self.get_2d()
+    }
+}
+
+/// The sampler a job chose. The integrator matches on it once per unit and runs a loop
+/// monomorphized for the concrete sampler; this enum's own `Sampler` impl is for cold paths.
+#[derive(Clone, Debug)]
+pub enum AnySampler {
+    Independent(IndependentSampler),
+    Sobol(SobolSampler),
+}
+
+impl AnySampler {
+    pub fn new(kind: SamplerKind, seed: u64) -> Self {
+        match kind {
+            SamplerKind::Independent => Self::Independent(IndependentSampler::new(seed)),
+            SamplerKind::Sobol => Self::Sobol(SobolSampler::new(seed)),
+        }
+    }
+}
+
+impl Sampler for AnySampler {
+    #[inline]
+    fn start_pixel_sample(&mut self, pixel: UVec2, index: u32, dim: u32) {
+        match self {
+            Self::Independent(s) => s.start_pixel_sample(pixel, index, dim),
+            Self::Sobol(s) => s.start_pixel_sample(pixel, index, dim),
+        }
+    }
+
+    #[inline]
+    fn get_1d(&mut self) -> f32 {
+        match self {
+            Self::Independent(s) => s.get_1d(),
+            Self::Sobol(s) => s.get_1d(),
+        }
+    }
+
+    #[inline]
+    fn get_2d(&mut self) -> Vec2 {
+        match self {
+            Self::Independent(s) => s.get_2d(),
+            Self::Sobol(s) => s.get_2d(),
+        }
+    }
+
+    #[inline]
+    fn get_pixel_2d(&mut self) -> Vec2 {
+        match self {
+            Self::Independent(s) => s.get_pixel_2d(),
+            Self::Sobol(s) => s.get_pixel_2d(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::chi2::{Chi2Options, test_rect};
+
+    const SEED: u64 = 0x5EED_0001;
+
+    fn samplers(seed: u64) -> [AnySampler; 2] {
+        [AnySampler::new(SamplerKind::Independent, seed), AnySampler::new(SamplerKind::Sobol, seed)]
+    }
+
+    /// The first `n` numbers at (pixel, index, dim) as bits: 1D requests then 2D requests.
+    fn stream(s: &mut impl Sampler, pixel: UVec2, index: u32, dim: u32, n: usize) -> Vec<u32> {
+        s.start_pixel_sample(pixel, index, dim);
+        let mut out = Vec::new();
+        for k in 0..n {
+            if k % 3 == 0 {
+                out.push(s.get_1d().to_bits());
+            } else {
+                let v = s.get_2d();
+                out.extend([v.x.to_bits(), v.y.to_bits()]);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn hash_helpers_are_sensitive_to_order_and_length() {
+        assert_ne!(hash_u64(&[1, 2]), hash_u64(&[2, 1]));
+        assert_ne!(hash_u64(&[1]), hash_u64(&[1, 0]));
+        assert_ne!(hash_u64(&[0]), hash_u64(&[]));
+        assert_eq!(mix_bits(0), 0);
+        assert_ne!(mix_bits(1), 1);
+        assert_eq!(u32_to_unit_float(0), 0.0);
+        assert!(u32_to_unit_float(u32::MAX) < 1.0);
+        assert_eq!(u32_to_unit_float(u32::MAX), crate::render::sampling::ONE_MINUS_EPSILON);
+    }
+
+    #[test]
+    fn sobol_dim1_matches_the_known_sequence() {
+        // Sobol's second dimension in index (not Gray code) order.
+        let expected = [0.0, 0.5, 0.75, 0.25, 0.625, 0.125, 0.375, 0.875];
+        for (i, e) in expected.iter().enumerate() {
+            assert_eq!(sobol_dim1(i as u32) as f64 / 2f64.powi(32), *e, "index {i}");
+            assert_eq!(sobol_dim0(i as u32), (i as u32).reverse_bits());
+        }
+    }
+
+    #[test]
+    fn nested_uniform_scramble_permutes_aligned_blocks() {
+        for seed in [0u32, 1, 0xdead_beef, 0x1234_5678] {
+            for m in [1u32, 4, 8] {
+                let mut seen: Vec<u32> = (0..1u32 << m).map(|i| nested_uniform_scramble(i, seed)).collect();
+                let block = seen[0] >> m;
+                assert!(seen.iter().all(|&v| v >> m == block), "seed {seed} m {m}: not one aligned block");
+                seen.sort_unstable();
+                seen.dedup();
+                assert_eq!(seen.len(), 1 << m, "seed {seed} m {m}: not a permutation");
+            }
+        }
+    }
+
+    #[test]
+    fn values_depend_only_on_the_address() {
+        let addresses: Vec<(UVec2, u32, u32)> =
+            (0..40u32).map(|k| (UVec2::new(k * 7 % 13, k * 5 % 11), k * 37 % 64, k % 9 * 3)).collect();
+        for kind in [SamplerKind::Independent, SamplerKind::Sobol] {
+            let mut fresh = AnySampler::new(kind, SEED);
+            let reference: Vec<Vec<u32>> = addresses.iter().map(|&(p, i, d)| stream(&mut fresh, p, i, d, 6)).collect();
+            // Another instance, with unrelated work interleaved, in reverse order.
+            let mut busy = AnySampler::new(kind, SEED);
+            for (k, &(p, i, d)) in addresses.iter().enumerate().rev() {
+                busy.start_pixel_sample(UVec2::new(999, k as u32), 12345, 77);
+                for _ in 0..k % 5 {
+                    busy.get_1d();
+                    busy.get_2d();
+                }
+                assert_eq!(stream(&mut busy, p, i, d, 6), reference[k], "{kind:?} address {p} {i} {d}");
+            }
+            // Starting at a later dimension gives the tail of the same stream.
+            let (p, i) = (UVec2::new(3, 4), 5);
+            fresh.start_pixel_sample(p, i, 0);
+            let head: Vec<u32> = (0..3).map(|_| fresh.get_1d().to_bits()).collect();
+            let pair = fresh.get_2d();
+            fresh.start_pixel_sample(p, i, 2);
+            assert_eq!(fresh.get_1d().to_bits(), head[2], "{kind:?}");
+            assert_eq!(fresh.get_2d(), pair, "{kind:?}");
+            // get_pixel_2d is the 2D request at its dimension.
+            fresh.start_pixel_sample(p, i, 4);
+            let a = fresh.get_pixel_2d();
+            fresh.start_pixel_sample(p, i, 4);
+            assert_eq!(a, fresh.get_2d(), "{kind:?}");
+        }
+    }
+
+    #[test]
+    fn seeds_pixels_indices_and_dimensions_give_different_streams() {
+        for kind in [SamplerKind::Independent, SamplerKind::Sobol] {
+            let mut a = AnySampler::new(kind, SEED);
+            let mut b = AnySampler::new(kind, SEED + 1);
+            let base = stream(&mut a, UVec2::new(5, 6), 7, 0, 8);
+            let others = [
+                stream(&mut b, UVec2::new(5, 6), 7, 0, 8),
+                stream(&mut a, UVec2::new(6, 5), 7, 0, 8),
+                stream(&mut a, UVec2::new(5, 7), 7, 0, 8),
+                stream(&mut a, UVec2::new(5, 6), 8, 0, 8),
+                stream(&mut a, UVec2::new(5, 6), 7, 3, 8),
+            ];
+            for (k, o) in others.iter().enumerate() {
+                let same = base.iter().zip(o).filter(|(x, y)| x == y).count();
+                assert!(same <= 1, "{kind:?} variant {k}: {same} equal values");
+            }
+            // Within one sample, the dimensions are not copies of each other.
+            let mut v = base.clone();
+            v.sort_unstable();
+            v.dedup();
+            assert_eq!(v.len(), base.len(), "{kind:?}");
+        }
+    }
+
+    #[test]
+    fn values_lie_in_the_unit_interval() {
+        for mut s in samplers(SEED) {
+            for i in 0..4096 {
+                s.start_pixel_sample(UVec2::new(i % 17, i / 17), i, 0);
+                for _ in 0..8 {
+                    let x = s.get_1d();
+                    let v = s.get_2d();
+                    let pv = s.get_pixel_2d();
+                    for c in [x, v.x, v.y, pv.x, pv.y] {
+                        assert!((0.0..1.0).contains(&c), "{c}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// Elementary intervals: for every split a + b = m, the 2^m points of a pixel fall one in each
+    /// of the 2^a x 2^b boxes.
+    fn assert_net(points: &[Vec2], m: u32, what: &str) {
+        for a in 0..=m {
+            let b = m - a;
+            let mut hit = vec![false; 1 << m];
+            for p in points {
+                let (ix, iy) = ((p.x * (1u32 << a) as f32) as usize, (p.y * (1u32 << b) as f32) as usize);
+                let cell = ix << b | iy;
+                assert!(!hit[cell], "{what}: two points in box ({ix}, {iy}) of shape 2^{a} x 2^{b}");
+                hit[cell] = true;
+            }
+        }
+    }
+
+    #[test]
+    fn sobol_pairs_are_0_m_2_nets() {
+        for seed in [SEED, 42] {
+            let mut s = SobolSampler::new(seed);
+            for pixel in [UVec2::new(0, 0), UVec2::new(17, 3), UVec2::new(640, 479)] {
+                for m in [4u32, 6, 8] {
+                    for dim in [0u32, 2, 10, 5] {
+                        let pts: Vec<Vec2> = (0..1u32 << m)
+                            .map(|i| {
+                                s.start_pixel_sample(pixel, i, dim);
+                                s.get_2d()
+                            })
+                            .collect();
+                        assert_net(&pts, m, &format!("seed {seed} pixel {pixel} m {m} dims {dim}-{}", dim + 1));
+                    }
+                    // 1D requests are stratified: one point in each interval of length 2^-m.
+                    let mut strata: Vec<u32> = (0..1u32 << m)
+                        .map(|i| {
+                            s.start_pixel_sample(pixel, i, 7);
+                            (s.get_1d() * (1u32 << m) as f32) as u32
+                        })
+                        .collect();
+                    strata.sort_unstable();
+                    strata.dedup();
+                    assert_eq!(strata.len(), 1 << m, "1D seed {seed} pixel {pixel} m {m}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn sobol_dimensions_are_decorrelated() {
+        // Different pads must not repeat the same point set in the same order.
+        let mut s = SobolSampler::new(SEED);
+        let n = 256;
+        let (mut same_order, mut corr) = (0, 0.0f64);
+        for i in 0..n {
+            s.start_pixel_sample(UVec2::new(1, 2), i, 0);
+            let a = s.get_2d();
+            let b = s.get_2d();
+            same_order += usize::from(a == b);
+            corr += f64::from((a.x - 0.5) * (b.x - 0.5));
+        }
+        assert!(same_order < 2);
+        // Correlation coefficient of two independent sequences: about N(0, 1/sqrt(n)).
+        assert!((corr / n as f64 * 12.0).abs() < 4.0 / (n as f64).sqrt(), "correlation {corr}");
+    }
+
+    // Chi-square tests of this module (Sidak correction).
+    const CHI2_TESTS: usize = 2;
+
+    #[test]
+    fn independent_sampler_is_uniform_chi2() {
+        // alpha = 0.01 over the module, seed SEED; 10^6 sample indices of one pixel, and of one
+        // sample index over many pixels.
+        let opts = Chi2Options { samples: 1_000_000, res: (64, 64), alpha: 0.01, tests: CHI2_TESTS, seed: 1 };
+        let mut s = IndependentSampler::new(SEED);
+        let mut index = 0;
+        let by_index = |_| {
+            s.start_pixel_sample(UVec2::new(3, 9), index, 4);
+            index += 1;
+            Some(s.get_2d())
+        };
+        test_rect("independent, by index", by_index, |_| 1.0, (0.0, 1.0), (0.0, 1.0), &opts)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let mut s = IndependentSampler::new(SEED);
+        let mut k = 0u32;
+        let by_pixel = |_| {
+            s.start_pixel_sample(UVec2::new(k % 1000, k / 1000), 0, 0);
+            k += 1;
+            Some(s.get_pixel_2d())
+        };
+        test_rect("independent, by pixel", by_pixel, |_| 1.0, (0.0, 1.0), (0.0, 1.0), &opts)
+            .unwrap_or_else(|e| panic!("{e}"));
+    }
+
+    /// RMS error, over 64 pixels, of the 256-sample estimate of a 2D Gaussian bump's integral.
+    fn bump_rms_error(kind: SamplerKind) -> f64 {
+        let sigma = 0.15f64;
+        let f = |p: Vec2| {
+            let (x, y) = (f64::from(p.x) - 0.5, f64::from(p.y) - 0.5);
+            (-(x * x + y * y) / (2.0 * sigma * sigma)).exp()
+        };
+        let one_d =
+            sigma * (2.0 * std::f64::consts::PI).sqrt() * statrs::function::erf::erf(0.5 / (sigma * 2f64.sqrt()));
+        let exact = one_d * one_d;
+        let mut s = AnySampler::new(kind, SEED);
+        let mut sq = 0.0;
+        for pixel in 0..64u32 {
+            let pixel = UVec2::new(pixel % 8, pixel / 8);
+            let mut sum = 0.0;
+            for i in 0..256 {
+                s.start_pixel_sample(pixel, i, 0);
+                s.get_1d(); // an unrelated dimension first: pads are keyed by dimension
+                sum += f(s.get_2d());
+            }
+            let err = sum / 256.0 - exact;
+            sq += err * err;
+        }
+        (sq / 64.0).sqrt()
+    }
+
+    #[test]
+    fn sobol_converges_faster_than_independent() {
+        let (sobol, independent) = (bump_rms_error(SamplerKind::Sobol), bump_rms_error(SamplerKind::Independent));
+        // Owen-scrambled Sobol has error near N^-1.5 on smooth integrands vs N^-0.5: at 256 spp
+        // the ratio is about 1/16 (deterministic: fixed seed).
+        assert!(sobol < 0.1 * independent, "sobol {sobol:e} vs independent {independent:e}");
+    }
+}
