@@ -1,16 +1,13 @@
 //! Lights: point, spot and directional (KHR_lights_punctual, delta lights) and triangle area
 //! lights (emissive triangles), sampled by area or by solid angle; light selection by power.
 
-use super::sampling::{sample_spherical_triangle, sample_uniform_triangle, spherical_triangle_area};
+use super::sampling::{
+    MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA, sample_spherical_triangle, sample_uniform_triangle,
+    triangle_solid_angle,
+};
 use glam::{Vec2, Vec3A};
 use pathfarm_common::job::LightSampling;
 use std::f32::consts::PI;
-
-/// Spherical triangles smaller than this solid angle (sr) are sampled by area instead: Arvo's
-/// method loses precision on tiny triangles (pbrt-v4 uses the same cut-off).
-pub const MIN_SPHERICAL_SAMPLE_AREA: f32 = 3e-4;
-/// ... and so are huge ones, whose spherical excess is ill-conditioned.
-pub const MAX_SPHERICAL_SAMPLE_AREA: f32 = 6.22;
 
 /// A light.
 #[derive(Clone, Debug)]
@@ -53,6 +50,9 @@ pub struct LightLiSample {
     pub infinite: bool,
 }
 
+/// Whether a triangle of this solid angle is sampled by solid angle: Arvo's method loses
+/// precision on tiny and on huge spherical triangles, which are sampled by area instead (pbrt-v4's
+/// cut-offs). `sample_li` and `pdf_li` decide alike, so their densities always match.
 fn use_solid_angle(mode: LightSampling, solid_angle: f32) -> bool {
     mode == LightSampling::SolidAngle
         && solid_angle.is_finite()
@@ -117,11 +117,7 @@ impl Light {
                 infinite: true,
             }),
             Light::Triangle { v, n, area, le, two_sided, .. } => {
-                let solid_angle = spherical_triangle_area(
-                    (v[0] - ctx.p).normalize_or_zero(),
-                    (v[1] - ctx.p).normalize_or_zero(),
-                    (v[2] - ctx.p).normalize_or_zero(),
-                );
+                let solid_angle = triangle_solid_angle(v, ctx.p);
                 let (b, pdf_sa) = if use_solid_angle(mode, solid_angle) {
                     let (b, pdf) = sample_spherical_triangle(v, ctx.p, u)?;
                     (b, Some(pdf))
@@ -170,11 +166,7 @@ impl Light {
         if !two_sided && cos_l <= 0.0 {
             return 0.0;
         }
-        let solid_angle = spherical_triangle_area(
-            (v[0] - ctx.p).normalize_or_zero(),
-            (v[1] - ctx.p).normalize_or_zero(),
-            (v[2] - ctx.p).normalize_or_zero(),
-        );
+        let solid_angle = triangle_solid_angle(v, ctx.p);
         if use_solid_angle(mode, solid_angle) {
             1.0 / solid_angle
         } else if cos_l == 0.0 {
@@ -205,7 +197,8 @@ mod tests {
         let light = tri_light();
         let ctx = LightSampleContext { p: Vec3A::new(0.1, 0.2, 0.05), n: Vec3A::Y };
         for (k, mode) in [LightSampling::Area, LightSampling::SolidAngle].into_iter().enumerate() {
-            let opts = Chi2Options { samples: 500_000, res: (60, 120), tests: 2, seed: 11 + k as u64, ..Default::default() };
+            let opts =
+                Chi2Options { samples: 500_000, res: (60, 120), tests: 2, seed: 11 + k as u64, ..Default::default() };
             let pdf = |w: Vec3A| {
                 // Direction -> point on the light plane.
                 let Light::Triangle { v, n, .. } = light else { return 0.0 };
@@ -219,13 +212,19 @@ mod tests {
                 }
                 let p = ctx.p + w * t;
                 // Inside test with barycentrics.
-                let (e0, e1, e2) = ((v[1] - v[0]).cross(p - v[0]), (v[2] - v[1]).cross(p - v[1]), (v[0] - v[2]).cross(p - v[2]));
+                let (e0, e1, e2) =
+                    ((v[1] - v[0]).cross(p - v[0]), (v[2] - v[1]).cross(p - v[1]), (v[0] - v[2]).cross(p - v[2]));
                 if e0.dot(n) * e1.dot(n) < 0.0 || e1.dot(n) * e2.dot(n) < 0.0 {
                     return 0.0;
                 }
                 light.pdf_li(&ctx, p, mode)
             };
-            let result = test_sphere(&format!("triangle light {mode:?}"), |u, _| light.sample_li(&ctx, u, mode).map(|s| s.wi), pdf, &opts);
+            let result = test_sphere(
+                &format!("triangle light {mode:?}"),
+                |u, _| light.sample_li(&ctx, u, mode).map(|s| s.wi),
+                pdf,
+                &opts,
+            );
             assert!(result.is_ok(), "{result:?}");
         }
     }

@@ -7,9 +7,11 @@ pub mod camera;
 #[cfg(test)]
 pub mod chi2;
 pub mod geometry;
+pub mod light;
 pub mod microfacet;
 pub mod sampler;
 pub mod sampling;
+pub mod scene;
 
 use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{Pass, RenderSettings, TileRect};

@@ -1,0 +1,185 @@
+//! Renderer benchmark (prints figures; not a timed test). Run:
+//!
+//! ```sh
+//! cargo bench -p pathfarm-worker --bench render            # everything
+//! cargo bench -p pathfarm-worker --bench render -- quick   # skip the Mitsuba comparison
+//! ```
+//!
+//! 1. BVH build time and Mrays/s for primary and diffuse (cosine) rays on
+//!    ../shared/scenes/01_vertex_count_32bit (130k triangles), closest hit with full hit data.
+//! 2. Direct-lighting samples/s on the reference Cornell box.
+//! 3. Path tracing on the Cornell box at 256 x 256, max depth 8, 64 spp, 2 threads, in samples/s;
+//!    when the `mitsuba` Python package is installed, the same scene with Mitsuba 3's
+//!    `scalar_rgb` and `llvm_ad_rgb` variants (../shared/reference/mitsuba_cornell.py) and the
+//!    ratios; and the equal-time error: RMSE against the 16k-spp reference of our render given
+//!    the wall time of Mitsuba's llvm render of 64 spp, and of Mitsuba's.
+
+#![allow(clippy::print_stdout)] // a benchmark prints its figures
+
+use glam::{UVec2, Vec2, Vec3A};
+use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, RenderSettings};
+use pathfarm_common::scene::{LoadOptions, load_scene};
+use pathfarm_worker::render::camera::Camera;
+use pathfarm_worker::render::geometry::Frame;
+use pathfarm_worker::render::scene::RenderScene;
+use pathfarm_worker::render::{Renderer, render_local};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+fn shared() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared")
+}
+
+fn hash(mut x: u64) -> u64 {
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+    x ^ (x >> 33)
+}
+
+fn unit(x: u64) -> f32 {
+    (hash(x) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+fn bvh_figures() {
+    let path = shared().join("scenes/01_vertex_count_32bit/01_vertex_count_32bit.gltf");
+    let scene = match load_scene(&path, &LoadOptions::default()) {
+        Ok(s) => s,
+        Err(e) => {
+            println!("bvh: cannot load {}: {e}", path.display());
+            return;
+        }
+    };
+    let t0 = Instant::now();
+    let rs = RenderScene::new(&scene);
+    let build = t0.elapsed().as_secs_f64();
+    println!("bvh: {} triangles, scene + BVH build {:.1} ms", rs.triangle_count(), build * 1e3);
+    let (w, h) = (512u32, 512u32);
+    let cam = Camera::framing(scene.bounds(), w, h);
+    let t1 = Instant::now();
+    let mut hits = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let r = cam.generate_ray(UVec2::new(x, y), Vec2::splat(0.5));
+            if let Some(si) = rs.intersect(r.o, r.d, f32::INFINITY) {
+                hits.push(si);
+            }
+        }
+    }
+    let primary = t1.elapsed().as_secs_f64();
+    println!(
+        "bvh: primary rays {:.2} Mrays/s (1 thread, {} of {} hit)",
+        f64::from(w * h) / primary / 1e6,
+        hits.len(),
+        w * h
+    );
+    let t2 = Instant::now();
+    let mut n = 0u64;
+    for (i, si) in hits.iter().enumerate() {
+        for k in 0..4u64 {
+            let (u1, u2) = (unit(i as u64 * 8 + k), unit(i as u64 * 8 + k + 4));
+            let r = u1.sqrt();
+            let phi = 2.0 * std::f32::consts::PI * u2;
+            let local = Vec3A::new(r * phi.cos(), r * phi.sin(), (1.0 - u1).max(0.0).sqrt());
+            let n_f = if si.ng.dot(Vec3A::Z) > 0.0 { si.ng } else { -si.ng };
+            let d = Frame::from_z(n_f).from_local(local);
+            let o = pathfarm_worker::render::geometry::offset_ray_origin(si.p, n_f, d);
+            std::hint::black_box(rs.intersect(o, d, f32::INFINITY));
+            n += 1;
+        }
+    }
+    let diffuse = t2.elapsed().as_secs_f64();
+    println!("bvh: diffuse rays {:.2} Mrays/s (1 thread, {n} rays)", n as f64 / diffuse / 1e6);
+}
+
+fn settings(spp: u32, integrator: IntegratorSettings) -> RenderSettings {
+    let mut s = RenderSettings::new(256, 256, spp);
+    s.integrator = integrator;
+    s
+}
+
+fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
+    let r = Renderer::new(scene, s).expect("renderer");
+    let t = Instant::now();
+    let film = render_local(&r, |_, _| {});
+    (t.elapsed().as_secs_f64(), film.resolve())
+}
+
+fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
+    let mut sum = 0.0;
+    for (i, p) in a.iter().enumerate() {
+        for (c, reference) in [r, g, b].iter().enumerate() {
+            let d = f64::from(p[c]) - f64::from(reference[i]);
+            sum += d * d;
+        }
+    }
+    (sum / (a.len() * 3) as f64).sqrt()
+}
+
+/// Runs the reference script; returns (samples/s median, render seconds median, output exr).
+fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
+    let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{variant}_{spp}.exr"));
+    let script = shared().join("reference/mitsuba_cornell.py");
+    let o = Command::new("python3")
+        .arg(script)
+        .args(["--variant", variant, "--spp", &spp.to_string(), "--res", "256", "--repeats", "3", "--threads", "2"])
+        .args(["--rfilter", "box", "--max-depth", "8", "--no-json", "--output"])
+        .arg(&out)
+        .output()
+        .ok()?;
+    let text = String::from_utf8_lossy(&o.stdout);
+    let line = text.lines().find_map(|l| l.strip_prefix("RESULT "))?;
+    let v: serde_json::Value = serde_json::from_str(line).ok()?;
+    Some((v["samples_per_s_median"].as_f64()?, v["render_median_s"].as_f64()?, out))
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "quick");
+    rayon::ThreadPoolBuilder::new().num_threads(2).build_global().ok();
+    bvh_figures();
+
+    let reference = shared().join("reference");
+    let scene = load_scene(&reference.join("cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
+    let direct = IntegratorSettings::Direct { mis: MisHeuristic::Power, light_sampling: LightSampling::SolidAngle };
+    let (t, _) = time_render(&scene, &settings(64, direct));
+    println!("direct: cornell 256x256x64, 2 threads: {:.2} M samples/s", 256.0 * 256.0 * 64.0 / t / 1e6);
+
+    let path = IntegratorSettings::Path {
+        max_depth: 8,
+        rr_depth: 5,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    let (t, _) = time_render(&scene, &settings(64, path.clone()));
+    let ours = 256.0 * 256.0 * 64.0 / t;
+    println!("path: cornell 256x256x64 max_depth 8, 2 threads: {:.2} M samples/s ({t:.2} s)", ours / 1e6);
+    if quick {
+        return;
+    }
+    let exr = pathfarm_common::film::read_exr(&reference.join("cornell_mitsuba_box_16384spp.exr")).expect("reference");
+    let (r, g, b) = (exr.get("R").expect("R"), exr.get("G").expect("G"), exr.get("B").expect("B"));
+    let Some((scalar, _, _)) = mitsuba("scalar_rgb", 64) else {
+        println!("mitsuba: not installed (pip install mitsuba) - no comparison");
+        return;
+    };
+    println!("mitsuba scalar_rgb: {:.2} M samples/s; ours / scalar_rgb = {:.2}", scalar / 1e6, ours / scalar);
+    let Some((llvm, llvm_s, llvm_exr)) = mitsuba("llvm_ad_rgb", 64) else { return };
+    println!("mitsuba llvm_ad_rgb: {:.2} M samples/s; ours / llvm_ad_rgb = {:.2}", llvm / 1e6, ours / llvm);
+    // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
+    let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
+    let (t_eq, img) = time_render(&scene, &settings(spp, path));
+    let ours_rmse = rmse(&img.rgb, r, g, b);
+    if let Ok(m) = pathfarm_common::film::read_exr(&llvm_exr) {
+        let mi: Vec<[f32; 3]> = (0..65536)
+            .map(|i| {
+                [m.get("R").map_or(0.0, |c| c[i]), m.get("G").map_or(0.0, |c| c[i]), m.get("B").map_or(0.0, |c| c[i])]
+            })
+            .collect();
+        println!(
+            "equal time ({llvm_s:.2} s): ours {spp} spp in {t_eq:.2} s RMSE {ours_rmse:.5}; mitsuba llvm 64 spp RMSE {:.5}",
+            rmse(&mi, r, g, b)
+        );
+    }
+}

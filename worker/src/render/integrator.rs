@@ -1,0 +1,171 @@
+//! Integrators: `direct` (emission + direct lighting with MIS) and `path` (path tracing with
+//! next-event estimation, MIS and Russian roulette). Both trace one camera sample; the renderer
+//! schedules samples over pixels (Tungsten's split between scheduling and `trace_sample`).
+
+use super::camera::Camera;
+use super::geometry::{Ray, offset_ray_origin};
+use super::light::LightSampleContext;
+use super::material::{Shading, shade};
+use super::sampler::Sampler;
+use super::sampling::{balance_heuristic, power_heuristic};
+use super::scene::RenderScene;
+use glam::{UVec2, Vec3A};
+use pathfarm_common::film::SampleValue;
+use pathfarm_common::job::{LightSampling, MisHeuristic};
+
+/// Path-tracing parameters (`direct` is `path` with two segments and no roulette).
+#[derive(Clone, Copy, Debug)]
+pub struct PathParams {
+    /// Path segments, as Mitsuba counts them: 1 = emitters seen directly, 2 = direct lighting;
+    /// 0 = no limit (Russian roulette only).
+    pub max_depth: u32,
+    /// Scattering events before Russian roulette starts; `u32::MAX` disables it.
+    pub rr_depth: u32,
+    pub mis: MisHeuristic,
+    pub light_sampling: LightSampling,
+}
+
+/// Survival probability cap of Russian roulette (Mitsuba's 0.95): even bright paths end.
+const RR_MAX_SURVIVAL: f32 = 0.95;
+
+#[inline]
+fn mis_weight(mis: MisHeuristic, pdf_this: f32, pdf_other: f32) -> f32 {
+    match mis {
+        MisHeuristic::Power => power_heuristic(1.0, pdf_this, 1.0, pdf_other),
+        MisHeuristic::Balance => balance_heuristic(1.0, pdf_this, 1.0, pdf_other),
+        MisHeuristic::Light | MisHeuristic::Bsdf => 1.0,
+    }
+}
+
+/// Next-event estimation at a non-delta vertex: one light sample, weighted against BSDF
+/// sampling. Returns the contribution without the path throughput.
+pub fn sample_ld(
+    scene: &RenderScene,
+    p: Vec3A,
+    sh: &Shading,
+    wo: Vec3A,
+    sampler: &mut impl Sampler,
+    params: &PathParams,
+) -> Vec3A {
+    let u_select = sampler.get_1d();
+    let u = sampler.get_2d();
+    let Some(bsdf) = &sh.bsdf else { return Vec3A::ZERO };
+    let ctx = LightSampleContext { p, n: sh.ng };
+    let Some((index, ls, pmf)) = scene.sample_light(&ctx, u_select, u, params.light_sampling) else {
+        return Vec3A::ZERO;
+    };
+    let light = &scene.lights[index];
+    let delta = light.is_delta();
+    // BSDF-only: area lights are found by BSDF sampling instead; delta lights can only be
+    // reached by light sampling, so they stay.
+    if params.mis == MisHeuristic::Bsdf && !delta {
+        return Vec3A::ZERO;
+    }
+    // Reflection only: directions below the geometric surface receive nothing (no leaks through
+    // shading normals).
+    if ls.l == Vec3A::ZERO || ls.wi.dot(sh.ng) <= 0.0 {
+        return Vec3A::ZERO;
+    }
+    let f = bsdf.f(wo, ls.wi) * ls.wi.dot(bsdf.frame.z).abs();
+    if f == Vec3A::ZERO || !scene.unoccluded(p, sh.ng, &ls) {
+        return Vec3A::ZERO;
+    }
+    let light_pdf = pmf * ls.pdf;
+    if delta {
+        return f * ls.l / pmf;
+    }
+    let w = mis_weight(params.mis, light_pdf, bsdf.pdf(wo, ls.wi));
+    f * ls.l * (w / light_pdf)
+}
+
+/// Traces one camera sample through `pixel` and returns its radiance and AOVs.
+pub fn li_path(
+    scene: &RenderScene,
+    camera: &Camera,
+    pixel: UVec2,
+    sampler: &mut impl Sampler,
+    params: &PathParams,
+) -> SampleValue {
+    let mut out = SampleValue::default();
+    let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let mut l = Vec3A::ZERO;
+    let mut beta = Vec3A::ONE;
+    let mut eta_scale = 1.0f32;
+    // Emission found by a camera ray or after a specular bounce is counted in full.
+    let mut specular_bounce = true;
+    let mut prev_bsdf_pdf = 0.0f32;
+    let mut prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
+    let mut depth = 0u32;
+    loop {
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else { break };
+        let wo = -ray.d;
+        if depth == 0 {
+            out.depth = Some(si.t);
+        }
+        let le = scene.emitted(&si, wo);
+        if le != Vec3A::ZERO {
+            let w = if specular_bounce {
+                1.0
+            } else {
+                match params.mis {
+                    MisHeuristic::Bsdf => 1.0,
+                    MisHeuristic::Light => 0.0,
+                    mis => {
+                        let light_pdf = scene.light_of_prim(si.prim).map_or(0.0, |i| {
+                            scene.light_pmf(i) * scene.lights[i].pdf_li(&prev_ctx, si.p, params.light_sampling)
+                        });
+                        mis_weight(mis, prev_bsdf_pdf, light_pdf)
+                    }
+                }
+            };
+            l += beta * le * w;
+        }
+        // The next segment would exceed the depth limit.
+        if params.max_depth != 0 && depth + 1 >= params.max_depth {
+            if depth == 0 {
+                let sh = shade(scene, &si, wo, 0.5);
+                out.albedo = sh.albedo.to_array();
+                out.normal = sh.ns.to_array();
+            }
+            break;
+        }
+        let sh = shade(scene, &si, wo, sampler.get_1d());
+        if depth == 0 {
+            out.albedo = sh.albedo.to_array();
+            out.normal = sh.ns.to_array();
+        }
+        let Some(bsdf) = &sh.bsdf else { break };
+        if !bsdf.is_delta() {
+            l += beta * sample_ld(scene, si.p, &sh, wo, sampler, params);
+        }
+        let uc = sampler.get_1d();
+        let u = sampler.get_2d();
+        let Some(bs) = bsdf.sample_f(wo, uc, u) else { break };
+        // Reflection must stay on the viewer's side of the geometric surface.
+        if !bs.is_transmission() && bs.wi.dot(sh.ng) <= 0.0 {
+            break;
+        }
+        beta *= bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+        specular_bounce = bs.is_specular();
+        prev_bsdf_pdf = bs.pdf;
+        prev_ctx = LightSampleContext { p: si.p, n: sh.ng };
+        if bs.is_transmission() {
+            eta_scale *= bs.eta * bs.eta;
+        }
+        depth += 1;
+        if !(beta.max_element() > 0.0) || !beta.is_finite() {
+            break;
+        }
+        if depth >= params.rr_depth {
+            let u_rr = sampler.get_1d();
+            let q = (beta.max_element() * eta_scale).min(RR_MAX_SURVIVAL);
+            if u_rr >= q {
+                break;
+            }
+            beta /= q;
+        }
+        ray = Ray::new(offset_ray_origin(si.p, sh.ng, bs.wi), bs.wi);
+    }
+    out.radiance = l.to_array();
+    out
+}

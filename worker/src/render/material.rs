@@ -1,0 +1,101 @@
+//! Materials: glTF material + textures at a hit -> a BSDF in the shading frame.
+//!
+//! One-sided materials (glTF `doubleSided: false`) are black from behind, as in Mitsuba; the
+//! surface still blocks light. Double-sided materials flip their normals toward the viewer.
+//! Glass (transmission) keeps its true orientation so that entering and leaving differ.
+
+use super::bsdf::{Bsdf, Bxdf};
+use super::geometry::Frame;
+use super::microfacet::MicrofacetDistribution;
+use super::scene::{RenderScene, SurfaceInteraction, sample_texture};
+use glam::{Vec3A, Vec4Swizzles};
+use pathfarm_common::scene::MaterialModel;
+
+/// What the integrators need to scatter at a hit.
+#[derive(Clone, Debug)]
+pub struct Shading {
+    /// `None`: the surface reflects nothing toward this side (back of a one-sided material,
+    /// unlit material).
+    pub bsdf: Option<Bsdf>,
+    /// Geometric normal, flipped toward `wo` unless the material transmits.
+    pub ng: Vec3A,
+    /// Reflectance for the albedo AOV.
+    pub albedo: Vec3A,
+    /// Shading normal for the normal AOV (world space, toward `wo` for opaque materials).
+    pub ns: Vec3A,
+}
+
+/// Builds the BSDF at `si` seen from direction `wo` (pointing away from the surface).
+/// `u_lobe` picks between glTF's transmission and reflection layers (stochastic mixing).
+pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f32) -> Shading {
+    let Some(m) = scene.materials.get(si.material as usize) else {
+        return Shading { bsdf: None, ng: si.ng, albedo: Vec3A::ZERO, ns: si.ns };
+    };
+    let tex = |r: &Option<pathfarm_common::scene::TextureRef>| {
+        r.as_ref().map_or(glam::Vec4::ONE, |r| sample_texture(&scene.textures, r, &si.uv))
+    };
+    let base = Vec3A::from((m.base_color * tex(&m.base_color_texture)).xyz());
+    let front = si.ng.dot(wo) > 0.0;
+    let transmission = m.transmission * tex(&m.transmission_texture).x;
+    let is_glass = matches!(m.model, MaterialModel::Gltf) && transmission > 0.0 && u_lobe < transmission;
+
+    if m.unlit || (!front && !m.double_sided && !is_glass) {
+        return Shading { bsdf: None, ng: si.ng, albedo: base, ns: si.ns };
+    }
+    // Orient normals: toward the viewer for opaque surfaces, as modelled for glass.
+    let flip = !front && !is_glass;
+    let ng = if flip { -si.ng } else { si.ng };
+    let mut ns = if flip { -si.ns } else { si.ns };
+    if ns.dot(ng) < 0.0 {
+        ns = ng;
+    }
+    // Normal map: perturb the shading normal in the tangent frame.
+    if let (Some(nt), Some(t)) = (&m.normal_texture, si.tangent) {
+        let c = sample_texture(&scene.textures, nt, &si.uv);
+        let tn = Vec3A::new((2.0 * c.x - 1.0) * m.normal_scale, (2.0 * c.y - 1.0) * m.normal_scale, 2.0 * c.z - 1.0);
+        let tangent = Vec3A::from(t.xyz());
+        let bitangent = ns.cross(tangent) * t.w;
+        let n = (tangent * tn.x + bitangent * tn.y + ns * tn.z).normalize_or_zero();
+        if n != Vec3A::ZERO && n.dot(ng) > 0.0 {
+            ns = n;
+        }
+    }
+    let frame = match si.tangent {
+        Some(t) => Frame::from_xz(Vec3A::from(t.xyz()), ns),
+        None => Frame::from_z(ns),
+    };
+    let bxdf = match m.model {
+        MaterialModel::Lambert => Bxdf::Lambertian { r: base },
+        MaterialModel::Mirror => Bxdf::Mirror { r: base },
+        MaterialModel::Blinn { exponent } => Bxdf::TorranceSparrow {
+            r: base,
+            distribution: MicrofacetDistribution::Blinn { exponent: exponent.max(0.0) },
+        },
+        MaterialModel::AshikhminShirley { exponent_x, exponent_y } => Bxdf::TorranceSparrow {
+            r: base,
+            distribution: MicrofacetDistribution::AshikhminShirley {
+                exponent_x: exponent_x.max(0.0),
+                exponent_y: exponent_y.max(0.0),
+            },
+        },
+        MaterialModel::Gltf if is_glass => Bxdf::Dielectric { eta: m.ior.max(1.0001), tint: base },
+        MaterialModel::Gltf => {
+            let mr = tex(&m.metallic_roughness_texture);
+            let metallic = (m.metallic * mr.z).clamp(0.0, 1.0);
+            let roughness = (m.roughness * mr.y).clamp(0.0, 1.0);
+            if metallic == 0.0 && m.specular_factor == 0.0 {
+                // KHR_materials_specular factor 0: no dielectric specular layer.
+                Bxdf::Lambertian { r: base }
+            } else {
+                Bxdf::GltfMetalRough {
+                    base_color: base,
+                    metallic,
+                    alpha: (roughness * roughness).max(1e-3),
+                    specular_factor: m.specular_factor.clamp(0.0, 1.0),
+                }
+            }
+        }
+    };
+    let albedo = bxdf.albedo();
+    Shading { bsdf: Some(Bsdf { frame, bxdf }), ng, albedo, ns }
+}

@@ -1,0 +1,267 @@
+//! The scene as the renderer sees it: world-space triangles in a BVH, the surface data to shade
+//! a hit, the lights and the light-selection distribution.
+
+use super::accel::Accel;
+use super::geometry::{offset_ray_origin, shadow_segment};
+use super::light::{Light, LightLiSample, LightSampleContext};
+use super::sampling::Distribution1D;
+use glam::{Vec2, Vec3A, Vec4};
+use pathfarm_common::job::LightSampling;
+use pathfarm_common::scene::{Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
+
+/// Marks a triangle that is not a light.
+const NO_LIGHT: u32 = u32::MAX;
+
+/// Geometry of a ray hit.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceInteraction {
+    pub p: Vec3A,
+    pub t: f32,
+    /// Geometric normal from the triangle's winding (counter-clockwise front), not flipped.
+    pub ng: Vec3A,
+    /// Interpolated shading normal (`ng` when the mesh has none), not flipped.
+    pub ns: Vec3A,
+    pub uv: [Vec2; 2],
+    /// Interpolated tangent (xyz) and handedness (w), when the mesh has tangents.
+    pub tangent: Option<Vec4>,
+    pub prim: u32,
+    pub material: u32,
+    /// Barycentrics of vertices 1 and 2.
+    pub b1: f32,
+    pub b2: f32,
+}
+
+/// Per-triangle lookup: which mesh and which triangle of it.
+#[derive(Clone, Copy, Debug)]
+struct TriRef {
+    mesh: u32,
+    tri: u32,
+}
+
+/// The render-side scene.
+pub struct RenderScene {
+    accel: Accel,
+    tris: Vec<TriRef>,
+    pub meshes: Vec<Mesh>,
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+    pub lights: Vec<Light>,
+    light_distr: Distribution1D,
+    /// Light index of each triangle, or [`NO_LIGHT`].
+    tri_light: Vec<u32>,
+    pub center: Vec3A,
+    pub radius: f32,
+}
+
+/// Looks up a texture reference at a hit.
+pub fn sample_texture(textures: &[Texture], r: &TextureRef, uv: &[Vec2; 2]) -> Vec4 {
+    let uv = uv[(r.tex_coord as usize).min(1)];
+    textures.get(r.texture).map_or(Vec4::ONE, |t| t.sample(r.transform.apply(uv)))
+}
+
+impl RenderScene {
+    pub fn new(scene: &Scene) -> Self {
+        let mut world_tris = Vec::with_capacity(scene.triangle_count());
+        let mut tris = Vec::with_capacity(scene.triangle_count());
+        for (mi, mesh) in scene.meshes.iter().enumerate() {
+            for (ti, idx) in mesh.indices.iter().enumerate() {
+                let v = idx.map(|i| Vec3A::from(mesh.positions.get(i as usize).copied().unwrap_or_default()));
+                world_tris.push(v);
+                tris.push(TriRef { mesh: mi as u32, tri: ti as u32 });
+            }
+        }
+        let (lo, hi) = scene.bounds().unwrap_or_default();
+        let center = Vec3A::from((lo + hi) * 0.5);
+        let radius = (Vec3A::from(hi - lo).length() * 0.5).max(1e-3);
+
+        let mut lights = Vec::new();
+        let mut tri_light = vec![NO_LIGHT; world_tris.len()];
+        for (prim, (v, tr)) in world_tris.iter().zip(&tris).enumerate() {
+            let mesh = &scene.meshes[tr.mesh as usize];
+            let Some(material) = scene.materials.get(mesh.material) else { continue };
+            let le = if material.unlit {
+                Vec3A::from(material.base_color.truncate())
+            } else {
+                Vec3A::from(material.emissive)
+            };
+            if le.max_element() <= 0.0 {
+                continue;
+            }
+            let cross = (v[1] - v[0]).cross(v[2] - v[0]);
+            let area = 0.5 * cross.length();
+            if !(area > 0.0) {
+                continue;
+            }
+            tri_light[prim] = lights.len() as u32;
+            lights.push(Light::Triangle {
+                prim: prim as u32,
+                v: *v,
+                n: cross.normalize(),
+                area,
+                le,
+                two_sided: material.double_sided || material.unlit,
+            });
+        }
+        for pl in &scene.lights {
+            let i = Vec3A::from(pl.intensity);
+            let p = Vec3A::from(pl.position);
+            let dir = Vec3A::from(pl.direction).normalize_or(-Vec3A::Z);
+            lights.push(match pl.kind {
+                PunctualKind::Point => Light::Point { p, i },
+                PunctualKind::Spot { inner_cone, outer_cone } => {
+                    Light::Spot { p, i, axis: dir, cos_inner: inner_cone.cos(), cos_outer: outer_cone.cos() }
+                }
+                PunctualKind::Directional => Light::Directional { w: dir, e: i, radius },
+            });
+        }
+        let weights: Vec<f32> = lights.iter().map(|l| luminance(l.power())).collect();
+        Self {
+            accel: Accel::new(&world_tris),
+            tris,
+            meshes: scene.meshes.clone(),
+            materials: scene.materials.clone(),
+            textures: scene.textures.clone(),
+            lights,
+            light_distr: Distribution1D::new(&weights),
+            tri_light,
+            center,
+            radius,
+        }
+    }
+
+    pub fn triangle_count(&self) -> usize {
+        self.tris.len()
+    }
+
+    /// Closest hit along a ray.
+    pub fn intersect(&self, o: Vec3A, d: Vec3A, t_max: f32) -> Option<SurfaceInteraction> {
+        let hit = self.accel.intersect(o, d, t_max)?;
+        let tr = self.tris[hit.prim as usize];
+        let mesh = &self.meshes[tr.mesh as usize];
+        let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
+        let (b1, b2) = (hit.b1, hit.b2);
+        let b0 = 1.0 - b1 - b2;
+        let pos = |i: usize| Vec3A::from(mesh.positions.get(idx[i]).copied().unwrap_or_default());
+        let (p0, p1, p2) = (pos(0), pos(1), pos(2));
+        let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
+        // Interpolate the hit point from the vertices: more accurate than o + t d.
+        let p = p0 * b0 + p1 * b1 + p2 * b2;
+        let ns = mesh
+            .normals
+            .as_ref()
+            .and_then(|n| {
+                let get = |i: usize| n.get(idx[i]).copied().map(Vec3A::from);
+                Some((get(0)? * b0 + get(1)? * b1 + get(2)? * b2).normalize_or_zero())
+            })
+            .filter(|n| *n != Vec3A::ZERO)
+            .unwrap_or(ng);
+        let interp_uv = |uv: &Option<Vec<Vec2>>| {
+            uv.as_ref()
+                .and_then(|uv| Some(*uv.get(idx[0])? * b0 + *uv.get(idx[1])? * b1 + *uv.get(idx[2])? * b2))
+                .unwrap_or(Vec2::ZERO)
+        };
+        let tangent = mesh.tangents.as_ref().and_then(|t| {
+            let (a, b, c) = (t.get(idx[0])?, t.get(idx[1])?, t.get(idx[2])?);
+            let xyz = a.truncate() * b0 + b.truncate() * b1 + c.truncate() * b2;
+            Some(xyz.extend(if a.w < 0.0 { -1.0 } else { 1.0 }))
+        });
+        Some(SurfaceInteraction {
+            p,
+            t: hit.t,
+            ng,
+            ns,
+            uv: [interp_uv(&mesh.uv0), interp_uv(&mesh.uv1)],
+            tangent,
+            prim: hit.prim,
+            material: mesh.material as u32,
+            b1,
+            b2,
+        })
+    }
+
+    /// Whether the segment between two surface points (or a point and a light) is blocked.
+    pub fn unoccluded(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample) -> bool {
+        if s.infinite {
+            let o = offset_ray_origin(p0, n0, s.wi);
+            return !self.accel.occluded(o, s.wi, f32::INFINITY);
+        }
+        let (o, d, t_max) = shadow_segment(p0, n0, s.p_light, s.n_light);
+        !self.accel.occluded(o, d, t_max)
+    }
+
+    /// Whether `p1` (normal `n1`) is visible from `p0` (normal `n0`).
+    pub fn visible(&self, p0: Vec3A, n0: Vec3A, p1: Vec3A, n1: Option<Vec3A>) -> bool {
+        let (o, d, t_max) = shadow_segment(p0, n0, p1, n1);
+        !self.accel.occluded(o, d, t_max)
+    }
+
+    /// Emission-texture factor of an area light's triangle at barycentrics `b`.
+    fn emission_texture(&self, prim: u32, b: [f32; 3]) -> Vec3A {
+        let tr = self.tris[prim as usize];
+        let mesh = &self.meshes[tr.mesh as usize];
+        let Some(m) = self.materials.get(mesh.material) else { return Vec3A::ONE };
+        let tex = if m.unlit { m.base_color_texture } else { m.emissive_texture };
+        let Some(tex) = tex else { return Vec3A::ONE };
+        let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
+        let uv = |set: &Option<Vec<Vec2>>| {
+            set.as_ref()
+                .and_then(|uv| Some(*uv.get(idx[0])? * b[0] + *uv.get(idx[1])? * b[1] + *uv.get(idx[2])? * b[2]))
+                .unwrap_or(Vec2::ZERO)
+        };
+        Vec3A::from(sample_texture(&self.textures, &tex, &[uv(&mesh.uv0), uv(&mesh.uv1)]).truncate())
+    }
+
+    /// Picks a light by power and samples it: (light index, sample, selection pmf).
+    pub fn sample_light(
+        &self,
+        ctx: &LightSampleContext,
+        u_select: f32,
+        u: Vec2,
+        mode: LightSampling,
+    ) -> Option<(usize, LightLiSample, f32)> {
+        if self.lights.is_empty() {
+            return None;
+        }
+        let (index, pmf, _) = self.light_distr.sample(u_select);
+        if !(pmf > 0.0) {
+            return None;
+        }
+        let light = &self.lights[index];
+        let mut s = light.sample_li(ctx, u, mode)?;
+        if let Light::Triangle { prim, .. } = *light {
+            s.l *= self.emission_texture(prim, s.b);
+        }
+        Some((index, s, pmf))
+    }
+
+    /// Light index of an emissive triangle.
+    pub fn light_of_prim(&self, prim: u32) -> Option<usize> {
+        self.tri_light.get(prim as usize).copied().filter(|&l| l != NO_LIGHT).map(|l| l as usize)
+    }
+
+    /// Selection probability of light `index`.
+    pub fn light_pmf(&self, index: usize) -> f32 {
+        self.light_distr.pmf(index)
+    }
+
+    /// Radiance emitted by the surface at `si` toward `w` (away from the surface).
+    pub fn emitted(&self, si: &SurfaceInteraction, w: Vec3A) -> Vec3A {
+        match self.light_of_prim(si.prim) {
+            Some(l) => {
+                let le = self.lights[l].l(w);
+                if le == Vec3A::ZERO {
+                    le
+                } else {
+                    le * self.emission_texture(si.prim, [1.0 - si.b1 - si.b2, si.b1, si.b2])
+                }
+            }
+            None => Vec3A::ZERO,
+        }
+    }
+}
+
+/// Relative luminance of linear sRGB.
+#[inline]
+pub fn luminance(c: Vec3A) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
