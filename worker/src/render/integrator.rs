@@ -96,8 +96,7 @@ pub fn li_path(
     let mut prev_bsdf_pdf = 0.0f32;
     let mut prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
     let mut depth = 0u32;
-    loop {
-        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else { break };
+    while let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) {
         let wo = -ray.d;
         if depth == 0 {
             out.depth = Some(si.t);

@@ -6,7 +6,7 @@
 
 use super::bsdf::{Bsdf, Bxdf};
 use super::geometry::Frame;
-use super::microfacet::MicrofacetDistribution;
+use super::microfacet::{Fresnel, MicrofacetDistribution};
 use super::scene::{RenderScene, SurfaceInteraction, sample_texture};
 use glam::{Vec3A, Vec4Swizzles};
 use pathfarm_common::scene::MaterialModel;
@@ -67,16 +67,20 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
     let bxdf = match m.model {
         MaterialModel::Lambert => Bxdf::Lambertian { r: base },
         MaterialModel::Mirror => Bxdf::Mirror { r: base },
+        // The lecture's Torrance-Sparrow: the base colour is the normal-incidence reflectance
+        // (Schlick), the distribution sets the gloss.
         MaterialModel::Blinn { exponent } => Bxdf::TorranceSparrow {
-            r: base,
+            r: Vec3A::ONE,
             distribution: MicrofacetDistribution::Blinn { exponent: exponent.max(0.0) },
+            fresnel: Fresnel::Schlick { f0: base },
         },
         MaterialModel::AshikhminShirley { exponent_x, exponent_y } => Bxdf::TorranceSparrow {
-            r: base,
+            r: Vec3A::ONE,
             distribution: MicrofacetDistribution::AshikhminShirley {
                 exponent_x: exponent_x.max(0.0),
                 exponent_y: exponent_y.max(0.0),
             },
+            fresnel: Fresnel::Schlick { f0: base },
         },
         MaterialModel::Gltf if is_glass => Bxdf::Dielectric { eta: m.ior.max(1.0001), tint: base },
         MaterialModel::Gltf => {
@@ -97,5 +101,5 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
         }
     };
     let albedo = bxdf.albedo();
-    Shading { bsdf: Some(Bsdf { frame, bxdf }), ng, albedo, ns }
+    Shading { bsdf: Some(Bsdf::new(frame, bxdf)), ng, albedo, ns }
 }
