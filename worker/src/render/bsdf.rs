@@ -8,8 +8,9 @@
 
 use super::geometry::Frame;
 use super::microfacet::{Fresnel, MicrofacetDistribution, fr_dielectric};
+use super::sampling::sample_cosine_hemisphere;
 use glam::{Vec2, Vec3A};
-use std::f32::consts::{FRAC_1_PI, PI};
+use std::f32::consts::FRAC_1_PI;
 
 /// What kind of scattering a sampled lobe did (pbrt-v4 `BxDFFlags`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -186,7 +187,7 @@ impl Bxdf {
         let wo_up = unflip(wo);
         match *self {
             Self::Lambertian { r } => {
-                let wi = cosine_hemisphere(u);
+                let wi = sample_cosine_hemisphere(u);
                 let pdf = wi.z * FRAC_1_PI;
                 if !(pdf > 0.0) {
                     return None;
@@ -210,7 +211,8 @@ impl Bxdf {
             Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } => {
                 let p_spec = gltf_specular_probability(base_color, metallic, specular_factor, wo_up.z);
                 let ggx = MicrofacetDistribution::ggx(alpha);
-                let wi = if uc < p_spec { reflect(wo_up, ggx.sample_wm(wo_up, u)) } else { cosine_hemisphere(u) };
+                let wi =
+                    if uc < p_spec { reflect(wo_up, ggx.sample_wm(wo_up, u)) } else { sample_cosine_hemisphere(u) };
                 if !(wi.z > 0.0) {
                     return None;
                 }
@@ -299,26 +301,6 @@ fn refract(wi: Vec3A, eta: f32) -> Option<(Vec3A, f32)> {
     let cos_t = (1.0 - sin2_t).max(0.0).sqrt();
     let wt = -wi / eta + (cos_i / eta - cos_t) * n;
     Some((wt, eta))
-}
-
-/// Cosine-weighted upper hemisphere (Malley's method on a concentric disk).
-/// Private until `sampling.rs` is shared; then this becomes a call there.
-fn cosine_hemisphere(u: Vec2) -> Vec3A {
-    let d = concentric_disk(u);
-    let z = (1.0 - d.length_squared()).max(0.0).sqrt();
-    Vec3A::new(d.x, d.y, z)
-}
-
-/// Shirley-Chiu concentric map of the unit square to the unit disk.
-fn concentric_disk(u: Vec2) -> Vec2 {
-    let o = 2.0 * u - Vec2::ONE;
-    if o == Vec2::ZERO {
-        return Vec2::ZERO;
-    }
-    let (r, theta) =
-        if o.x.abs() > o.y.abs() { (o.x, PI / 4.0 * (o.y / o.x)) } else { (o.y, PI / 2.0 - PI / 4.0 * (o.x / o.y)) };
-    let (s, c) = theta.sin_cos();
-    r * Vec2::new(c, s)
 }
 
 /// Density of `wi = reflect(wo, wm)` when `wm` is drawn from `distribution` (upper-side `wo`).
@@ -450,6 +432,7 @@ pub(crate) mod tests {
     use super::*;
     use crate::render::chi2::{self, Chi2Options, TestRng};
     use crate::render::microfacet::tests::MICROFACET_CHI2_TESTS;
+    use std::f32::consts::PI;
 
     /// Cosines of the incident angles every non-delta lobe is tested at (0.05 is grazing).
     const COS_THETA_O: [f32; 4] = [1.0, 0.7, 0.2, 0.05];
@@ -520,49 +503,7 @@ pub(crate) mod tests {
     }
 
     fn chi2_case(name: &str, bxdf: &Bxdf, wo: Vec3A, opts: &Chi2Options) -> Result<f64, String> {
-        test_sphere_open(name, |u, uc| bxdf.sample_f(wo, uc, u).map(|s| s.wi), |wi| bxdf.pdf(wo, wi), opts)
-    }
-
-    /// `chi2::test_sphere`, except that each cell's pdf integral stays a hair (1e-9 rad) inside
-    /// the cell. The harness integrates over closed cells, so with an even theta resolution it
-    /// evaluates the pdf at theta = pi/2 for the first cell below the horizon, where
-    /// `cos(pi/2) = 6e-17 > 0` reads as the upper hemisphere. A lobe that is cut off at the
-    /// horizon (any reflection lobe at grazing incidence) then leaks expected counts below it, and
-    /// the test rejects correct samplers (Blinn e=1000 at cos_o = 0.05: 203 expected, 0 observed).
-    pub(crate) fn test_sphere_open(
-        name: &str,
-        mut sample: impl FnMut(Vec2, f32) -> Option<Vec3A>,
-        pdf: impl Fn(Vec3A) -> f32,
-        opts: &Chi2Options,
-    ) -> Result<f64, String> {
-        use std::f64::consts::PI as PI64;
-        const INSET: f64 = 1e-9;
-        let (nt, np) = opts.res;
-        let mut rng = TestRng::new(opts.seed);
-        let mut observed = vec![0.0; nt * np];
-        for _ in 0..opts.samples {
-            let uc = rng.uniform();
-            let u = rng.uniform_2d();
-            if let Some(w) = sample(u, uc) {
-                if !w.is_finite() || (w.length() - 1.0).abs() > 1e-3 {
-                    return Err(format!("{name}: sampled direction {w} is not a unit vector"));
-                }
-                let (t, p) = chi2::to_spherical(w);
-                let it = ((t / PI64 * nt as f64) as usize).min(nt - 1);
-                let ip = ((p / (2.0 * PI64) * np as f64) as usize).min(np - 1);
-                observed[it * np + ip] += 1.0;
-            }
-        }
-        let f = |theta: f64, phi: f64| f64::from(pdf(chi2::from_spherical(theta, phi))) * theta.sin();
-        let mut expected = vec![0.0; nt * np];
-        for it in 0..nt {
-            let t = (it as f64 * PI64 / nt as f64 + INSET, (it + 1) as f64 * PI64 / nt as f64 - INSET);
-            for ip in 0..np {
-                let p = (ip as f64 * 2.0 * PI64 / np as f64, (ip + 1) as f64 * 2.0 * PI64 / np as f64);
-                expected[it * np + ip] = chi2::integrate_2d(&f, t, p) * opts.samples as f64;
-            }
-        }
-        chi2::pearson(name, &observed, &expected, opts)
+        chi2::test_sphere(name, |u, uc| bxdf.sample_f(wo, uc, u).map(|s| s.wi), |wi| bxdf.pdf(wo, wi), opts)
     }
 
     /// Chi-square of `sample_f` against `pdf` for each lobe at each incident direction.
@@ -636,12 +577,12 @@ pub(crate) mod tests {
         let sampled = ts(MicrofacetDistribution::Blinn { exponent: 100.0 });
         let claimed = ts(MicrofacetDistribution::Blinn { exponent: 90.0 });
         let sample = |u: Vec2, uc: f32| sampled.sample_f(wo, uc, u).map(|s| s.wi);
-        assert!(test_sphere_open("blinn wrong exponent", sample, |wi| claimed.pdf(wo, wi), &opts).is_err());
-        test_sphere_open("blinn control", sample, |wi| sampled.pdf(wo, wi), &opts).expect("true pdf passes");
+        assert!(chi2::test_sphere("blinn wrong exponent", sample, |wi| claimed.pdf(wo, wi), &opts).is_err());
+        chi2::test_sphere("blinn control", sample, |wi| sampled.pdf(wo, wi), &opts).expect("true pdf passes");
         let g = ts(MicrofacetDistribution::ggx(0.5));
         let sample = |u: Vec2, uc: f32| g.sample_f(wo, uc, u).map(|s| s.wi);
-        assert!(test_sphere_open("ggx pdf * 1.1", sample, |wi| 1.1 * g.pdf(wo, wi), &opts).is_err());
-        test_sphere_open("ggx control", sample, |wi| g.pdf(wo, wi), &opts).expect("true pdf passes");
+        assert!(chi2::test_sphere("ggx pdf * 1.1", sample, |wi| 1.1 * g.pdf(wo, wi), &opts).is_err());
+        chi2::test_sphere("ggx control", sample, |wi| g.pdf(wo, wi), &opts).expect("true pdf passes");
     }
 
     #[test]

@@ -305,7 +305,8 @@ fn fr_complex(cos_theta_i: f32, eta: Complex) -> f32 {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::render::bsdf::tests::{CHI2_SUITE_TESTS, test_sphere_open};
+    use crate::render::bsdf::tests::CHI2_SUITE_TESTS;
+    use crate::render::chi2::test_sphere as test_sphere_open;
     use crate::render::chi2::{self, Chi2Options};
 
     /// Every distribution the BSDF suite uses.
