@@ -96,11 +96,21 @@ impl Renderer {
     /// Renders the sample indices of `pass` for every pixel of `tile`, in parallel over rows on
     /// the current rayon pool. The result does not depend on the thread count.
     pub fn render_unit(&self, tile: TileRect, pass: Pass) -> UnitResult {
+        // One match per unit: the per-sample loop is monomorphized for the concrete sampler.
+        let seed = self.settings.seed;
+        let accum = match AnySampler::new(self.settings.sampler, seed) {
+            AnySampler::Sobol(_) => self.render_tile(tile, pass, || sampler::SobolSampler::new(seed)),
+            AnySampler::Independent(_) => self.render_tile(tile, pass, || sampler::IndependentSampler::new(seed)),
+        };
+        UnitResult { accum, splats: None }
+    }
+
+    fn render_tile<S: Sampler>(&self, tile: TileRect, pass: Pass, new_sampler: impl Fn() -> S + Sync) -> TileAccum {
         let row_len = tile.width() as usize * film::ch::COUNT;
         let rows: Vec<Vec<film::Fixed>> = (tile.y0..tile.y1)
             .into_par_iter()
             .map(|y| {
-                let mut sampler = AnySampler::new(self.settings.sampler, self.settings.seed);
+                let mut sampler = new_sampler();
                 let mut row = vec![0; row_len];
                 for x in tile.x0..tile.x1 {
                     let i = (x - tile.x0) as usize * film::ch::COUNT;
@@ -118,7 +128,7 @@ impl Renderer {
         for (dst, src) in accum.sums.chunks_mut(row_len).zip(rows) {
             dst.copy_from_slice(&src);
         }
-        UnitResult { accum, splats: None }
+        accum
     }
 }
 

@@ -96,19 +96,39 @@ pub fn sobol_dim0(index: u32) -> u32 {
     index.reverse_bits()
 }
 
-/// Second Sobol dimension as 32-bit fixed point.
-#[inline]
-pub fn sobol_dim1(mut index: u32) -> u32 {
-    let mut r = 0;
+/// `SOBOL_DIM1_MATRIX` folded per index byte: entry `[k][b]` is the XOR of the matrix columns
+/// selected by the bits of byte `b` at byte position `k`. Four lookups replace a 32-step loop
+/// whose branches a scrambled (random) index makes unpredictable.
+const SOBOL_DIM1_BYTES: [[u32; 256]; 4] = {
+    let mut t = [[0u32; 256]; 4];
     let mut k = 0;
-    while index != 0 {
-        if index & 1 != 0 {
-            r ^= SOBOL_DIM1_MATRIX[k];
+    while k < 4 {
+        let mut b = 0;
+        while b < 256 {
+            let mut r = 0u32;
+            let mut bit = 0;
+            while bit < 8 {
+                if b & (1 << bit) != 0 {
+                    r ^= SOBOL_DIM1_MATRIX[k * 8 + bit];
+                }
+                bit += 1;
+            }
+            t[k][b] = r;
+            b += 1;
         }
-        index >>= 1;
         k += 1;
     }
-    r
+    t
+};
+
+/// Second Sobol dimension as 32-bit fixed point.
+#[inline]
+pub fn sobol_dim1(index: u32) -> u32 {
+    let b = index.to_le_bytes();
+    SOBOL_DIM1_BYTES[0][b[0] as usize]
+        ^ SOBOL_DIM1_BYTES[1][b[1] as usize]
+        ^ SOBOL_DIM1_BYTES[2][b[2] as usize]
+        ^ SOBOL_DIM1_BYTES[3][b[3] as usize]
 }
 
 /// A source of sample values addressed by (pixel, sample index, dimension).
@@ -203,7 +223,9 @@ impl SobolSampler {
     /// The seeds of the request at the current dimension; `tag` separates 1D from 2D requests.
     #[inline]
     fn dim_hash(&self, tag: u64) -> u64 {
-        hash_u64(&[self.pixel_hash, u64::from(self.dim), tag])
+        // `pixel_hash` is already well mixed; one more bijective mix per request keeps 2D
+        // requests (odd tags) and 1D requests apart at every dimension.
+        mix_bits(self.pixel_hash ^ (u64::from(self.dim) << 1 | tag).wrapping_mul(GOLDEN))
     }
 }
 
@@ -216,7 +238,7 @@ impl Sampler for SobolSampler {
 
     #[inline]
     fn get_1d(&mut self) -> f32 {
-        let h = self.dim_hash(1);
+        let h = self.dim_hash(0);
         let shuffled = nested_uniform_scramble(self.index, h as u32);
         let x = nested_uniform_scramble(sobol_dim0(shuffled), (h >> 32) as u32);
         self.dim = self.dim.wrapping_add(1);
@@ -225,7 +247,7 @@ impl Sampler for SobolSampler {
 
     #[inline]
     fn get_2d(&mut self) -> Vec2 {
-        let h = self.dim_hash(2);
+        let h = self.dim_hash(1);
         let h2 = mix_bits(h.wrapping_add(GOLDEN));
         let shuffled = nested_uniform_scramble(self.index, h as u32);
         let x = nested_uniform_scramble(sobol_dim0(shuffled), (h >> 32) as u32);
@@ -327,6 +349,25 @@ mod tests {
         assert_eq!(u32_to_unit_float(0), 0.0);
         assert!(u32_to_unit_float(u32::MAX) < 1.0);
         assert_eq!(u32_to_unit_float(u32::MAX), crate::render::sampling::ONE_MINUS_EPSILON);
+    }
+
+    #[test]
+    fn sobol_dim1_table_matches_the_matrix_product() {
+        let reference = |mut index: u32| {
+            let (mut r, mut k) = (0u32, 0);
+            while index != 0 {
+                if index & 1 != 0 {
+                    r ^= SOBOL_DIM1_MATRIX[k];
+                }
+                index >>= 1;
+                k += 1;
+            }
+            r
+        };
+        for i in (0..100_000u32).chain([u32::MAX, 0x8000_0000, 0xdead_beef]) {
+            let i = mix_bits(u64::from(i)) as u32;
+            assert_eq!(sobol_dim1(i), reference(i), "index {i:#x}");
+        }
     }
 
     #[test]
