@@ -122,7 +122,15 @@ fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
 fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
     let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{variant}_{spp}.exr"));
     let script = shared().join("reference/mitsuba_cornell.py");
-    let o = Command::new("python3")
+    let mut cmd = Command::new("python3");
+    // drjit's LLVM backend needs a recent libLLVM (Debian's default 14 fails with "Cannot select
+    // fminimum"): point it at the newest one installed (`apt-get install libllvm19`).
+    if std::env::var_os("DRJIT_LIBLLVM_PATH").is_none() {
+        if let Some(lib) = newest_libllvm() {
+            cmd.env("DRJIT_LIBLLVM_PATH", lib);
+        }
+    }
+    let o = cmd
         .arg(script)
         .args(["--variant", variant, "--spp", &spp.to_string(), "--res", "256", "--repeats", "3", "--threads", "2"])
         .args(["--rfilter", "box", "--max-depth", "8", "--no-json", "--output"])
@@ -133,6 +141,20 @@ fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
     let line = text.lines().find_map(|l| l.strip_prefix("RESULT "))?;
     let v: serde_json::Value = serde_json::from_str(line).ok()?;
     Some((v["samples_per_s_median"].as_f64()?, v["render_median_s"].as_f64()?, out))
+}
+
+/// The newest `libLLVM-N.so` in the system library directory.
+fn newest_libllvm() -> Option<PathBuf> {
+    let dir = Path::new("/usr/lib/x86_64-linux-gnu");
+    std::fs::read_dir(dir)
+        .ok()?
+        .filter_map(|e| {
+            let name = e.ok()?.file_name().into_string().ok()?;
+            let version: u32 = name.strip_prefix("libLLVM-")?.strip_suffix(".so")?.parse().ok()?;
+            Some((version, dir.join(name)))
+        })
+        .max()
+        .map(|(_, p)| p)
 }
 
 fn main() {
