@@ -125,10 +125,8 @@ fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
     let mut cmd = Command::new("python3");
     // drjit's LLVM backend needs a recent libLLVM (Debian's default 14 fails with "Cannot select
     // fminimum"): point it at the newest one installed (`apt-get install libllvm19`).
-    if std::env::var_os("DRJIT_LIBLLVM_PATH").is_none() {
-        if let Some(lib) = newest_libllvm() {
-            cmd.env("DRJIT_LIBLLVM_PATH", lib);
-        }
+    if let (None, Some(lib)) = (std::env::var_os("DRJIT_LIBLLVM_PATH"), newest_libllvm()) {
+        cmd.env("DRJIT_LIBLLVM_PATH", lib);
     }
     let o = cmd
         .arg(script)
