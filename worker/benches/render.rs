@@ -155,7 +155,29 @@ fn newest_libllvm() -> Option<PathBuf> {
         .map(|(_, p)| p)
 }
 
+/// `tiny`: one small path-traced render on one thread, for instruction counts under
+/// `valgrind --tool=callgrind` (repeatable whatever the machine's load).
+fn tiny() {
+    let scene = load_scene(&shared().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
+    let mut s = RenderSettings::new(64, 64, 16);
+    s.integrator = IntegratorSettings::Path {
+        max_depth: 8,
+        rr_depth: 5,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::Area,
+    };
+    let (t, img) = time_render(&scene, &s);
+    println!(
+        "tiny: 64x64x16 path (area) in {t:.3} s, mean R {:.4}",
+        img.rgb.iter().map(|p| p[0]).sum::<f32>() / 4096.0
+    );
+}
+
 fn main() {
+    if std::env::args().any(|a| a == "tiny") {
+        rayon::ThreadPoolBuilder::new().num_threads(1).build_global().ok();
+        return tiny();
+    }
     let quick = std::env::args().any(|a| a == "quick");
     rayon::ThreadPoolBuilder::new().num_threads(2).build_global().ok();
     bvh_figures();

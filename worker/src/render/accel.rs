@@ -29,32 +29,33 @@ pub struct Accel {
     prim_ids: Vec<u32>,
 }
 
-/// Per-ray constants of the watertight test: the axis permutation and the shear.
+/// Per-ray constants of the watertight test: the shear for the axis permutation `(KX, KY, KZ)`
+/// (`KZ` = the ray's dominant axis). The permutation is a const parameter, so vertex components
+/// are picked at compile time instead of by a runtime index into a SIMD register.
 #[derive(Clone, Copy)]
-struct RayShear {
+struct RayShear<const KX: usize, const KY: usize, const KZ: usize> {
     o: Vec3A,
-    kx: usize,
-    ky: usize,
-    kz: usize,
     sx: f32,
     sy: f32,
     sz: f32,
 }
 
-impl RayShear {
+/// The dominant axis of `d`.
+fn dominant_axis(d: Vec3A) -> usize {
+    let ad = d.abs();
+    if ad.x > ad.y {
+        if ad.x > ad.z { 0 } else { 2 }
+    } else if ad.y > ad.z {
+        1
+    } else {
+        2
+    }
+}
+
+impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
     fn new(o: Vec3A, d: Vec3A) -> Self {
-        let ad = d.abs();
-        let kz = if ad.x > ad.y {
-            if ad.x > ad.z { 0 } else { 2 }
-        } else if ad.y > ad.z {
-            1
-        } else {
-            2
-        };
-        let kx = (kz + 1) % 3;
-        let ky = (kx + 1) % 3;
-        let (dx, dy, dz) = (d[kx], d[ky], d[kz]);
-        Self { o, kx, ky, kz, sx: -dx / dz, sy: -dy / dz, sz: 1.0 / dz }
+        let (dx, dy, dz) = (d[KX], d[KY], d[KZ]);
+        Self { o, sx: -dx / dz, sy: -dy / dz, sz: 1.0 / dz }
     }
 
     /// Returns (t, b1, b2) of a hit with `0 < t < t_max`.
@@ -63,9 +64,9 @@ impl RayShear {
         let p0 = v[0] - self.o;
         let p1 = v[1] - self.o;
         let p2 = v[2] - self.o;
-        let (mut p0x, mut p0y, p0z) = (p0[self.kx], p0[self.ky], p0[self.kz]);
-        let (mut p1x, mut p1y, p1z) = (p1[self.kx], p1[self.ky], p1[self.kz]);
-        let (mut p2x, mut p2y, p2z) = (p2[self.kx], p2[self.ky], p2[self.kz]);
+        let (mut p0x, mut p0y, p0z) = (p0[KX], p0[KY], p0[KZ]);
+        let (mut p1x, mut p1y, p1z) = (p1[KX], p1[KY], p1[KZ]);
+        let (mut p2x, mut p2y, p2z) = (p2[KX], p2[KY], p2[KZ]);
         p0x += self.sx * p0z;
         p0y += self.sy * p0z;
         p1x += self.sx * p1z;
@@ -149,8 +150,22 @@ impl Accel {
 
     /// Closest hit along `o + t d` with `0 < t < t_max`.
     pub fn intersect(&self, o: Vec3A, d: Vec3A, t_max: f32) -> Option<Hit> {
+        match dominant_axis(d) {
+            0 => self.intersect_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max),
+            1 => self.intersect_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max),
+            _ => self.intersect_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max),
+        }
+    }
+
+    #[inline(always)]
+    fn intersect_with<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        shear: RayShear<KX, KY, KZ>,
+        o: Vec3A,
+        d: Vec3A,
+        t_max: f32,
+    ) -> Option<Hit> {
         let bvh = self.bvh.as_ref()?;
-        let shear = RayShear::new(o, d);
         let ray = obvhs::ray::Ray::new(o, d, 0.0, t_max);
         let mut hit = RayHit::none();
         let mut best = (0.0f32, 0.0f32);
@@ -170,8 +185,22 @@ impl Accel {
 
     /// Whether anything blocks `o + t d` for `0 < t < t_max`.
     pub fn occluded(&self, o: Vec3A, d: Vec3A, t_max: f32) -> bool {
+        match dominant_axis(d) {
+            0 => self.occluded_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max),
+            1 => self.occluded_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max),
+            _ => self.occluded_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max),
+        }
+    }
+
+    #[inline(always)]
+    fn occluded_with<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        shear: RayShear<KX, KY, KZ>,
+        o: Vec3A,
+        d: Vec3A,
+        t_max: f32,
+    ) -> bool {
         let Some(bvh) = self.bvh.as_ref() else { return false };
-        let shear = RayShear::new(o, d);
         let ray = obvhs::ray::Ray::new(o, d, 0.0, t_max);
         !bvh.ray_traverse_miss(ray, |r, slot| match shear.intersect(&self.tris[slot], r.tmax) {
             Some((t, _, _)) => t,
