@@ -164,6 +164,7 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
         rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global().context("thread pool")?;
     }
     let settings = args.settings.to_settings();
+    settings.validate(&pathfarm_common::job::Limits::default()).context("invalid settings")?;
     let scene = load_scene(&args.scene, &LoadOptions::default())?;
     for w in &scene.warnings {
         tracing::warn!(scene = %args.scene.display(), "{w}");

@@ -1,0 +1,83 @@
+//! `pathfarm-worker render` as a real process: its EXR equals the in-process render bit for
+//! bit, and bad input gives a usage error or a message naming the problem, never a panic.
+
+mod common;
+
+use common::glb_scene;
+use pathfarm_common::film::read_exr;
+use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, RenderSettings};
+use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_worker::render::{Renderer, render_local};
+use std::process::Command;
+
+fn worker() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_pathfarm-worker"))
+}
+
+#[test]
+fn render_cli_matches_in_process_render_bit_for_bit() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene_path = dir.path().join("demo.glb");
+    std::fs::write(&scene_path, cornell_demo_glb()).expect("write scene");
+    let out = dir.path().join("out.exr");
+    let png = dir.path().join("out.png");
+    let status = worker()
+        .args(["render"])
+        .arg(&scene_path)
+        .args(["--width", "40", "--height", "24", "--spp", "6", "--integrator", "path", "--seed", "3"])
+        .args(["--max-depth", "5", "--tile-size", "16", "--threads", "2", "--quiet", "--out"])
+        .arg(&out)
+        .arg("--png")
+        .arg(&png)
+        .status()
+        .expect("run pathfarm-worker");
+    assert!(status.success());
+    assert!(png.exists());
+
+    let mut s = RenderSettings::new(40, 24, 6);
+    s.seed = 3;
+    s.tile_size = 16;
+    s.integrator = IntegratorSettings::Path {
+        max_depth: 5,
+        rr_depth: 3,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    let scene = glb_scene(&cornell_demo_glb());
+    let local = render_local(&Renderer::new(&scene, &s).expect("renderer"), |_, _| {}).resolve();
+    let file = read_exr(&out).expect("read exr");
+    for (name, values) in local.exr_channels() {
+        let theirs = file.get(name).unwrap_or_else(|| panic!("{name} missing"));
+        assert!(
+            values.iter().zip(theirs).all(|(a, b)| a.to_bits() == b.to_bits()),
+            "channel {name} differs between the CLI and the in-process render"
+        );
+    }
+}
+
+#[test]
+fn bad_flags_and_files_fail_cleanly() {
+    let bad_flag = worker().args(["render", "x.glb", "--width", "many"]).output().expect("run");
+    assert_eq!(bad_flag.status.code(), Some(2), "usage errors exit with 2");
+    assert!(String::from_utf8_lossy(&bad_flag.stderr).contains("--width"));
+
+    let unknown = worker().args(["render", "x.glb", "--integrator", "magic"]).output().expect("run");
+    assert_eq!(unknown.status.code(), Some(2));
+
+    let missing = worker().args(["render", "/nonexistent/scene.glb", "--quiet"]).output().expect("run");
+    assert!(!missing.status.success());
+    let err = String::from_utf8_lossy(&missing.stderr);
+    assert!(err.contains("scene.glb") && !err.contains("panicked"), "{err}");
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let garbage = dir.path().join("garbage.glb");
+    std::fs::write(&garbage, b"glTF not really").expect("write");
+    let bad = worker().arg("render").arg(&garbage).arg("--quiet").output().expect("run");
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("garbage.glb") && !err.contains("panicked"), "{err}");
+
+    let zero = worker().args(["render", "x.glb", "--spp", "0", "--quiet"]).output().expect("run");
+    assert!(!zero.status.success());
+    assert!(String::from_utf8_lossy(&zero.stderr).contains("spp"), "the error names the setting");
+}
