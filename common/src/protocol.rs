@@ -1,1 +1,501 @@
-//! Wire formats between coordinator, workers and clients (defined here, and only here).
+//! Wire protocol between clients, the coordinator and workers: the JSON bodies of the REST API
+//! and the binary format of a unit's result.
+//!
+//! JSON is for control (small, debuggable); results are binary because a 64 x 64 tile is 13
+//! channels of 128-bit sums (850 KB raw), which lz4 shrinks several times over.
+
+use crate::film::{Fixed, SplatBuffer, TileAccum, ch};
+use crate::job::{Pass, RenderSettings, TileRect, UnitKey};
+use serde::{Deserialize, Serialize};
+
+/// API path prefix.
+pub const API: &str = "/api/v1";
+
+/// Job identifier (a decimal number in URLs).
+pub type JobId = u64;
+/// Worker identifier assigned at registration.
+pub type WorkerId = u64;
+/// Lease identifier; one per hand-out of a unit, never reused.
+pub type LeaseId = u64;
+
+/// Every error body: `{"error": {"code": "...", "message": "..."}}`.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ErrorBody {
+    pub error: ErrorDetail,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ErrorDetail {
+    /// Stable machine-readable code, e.g. `invalid_scene`, `lease_lost`, `not_found`.
+    pub code: String,
+    pub message: String,
+}
+
+/// `POST /scenes` answer.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct SceneCreated {
+    /// SHA-256 of the uploaded bundle, lower-case hex.
+    pub scene_id: String,
+    pub triangles: usize,
+    /// Loader warnings (e.g. a dangling texture that was dropped).
+    pub warnings: Vec<String>,
+}
+
+/// Lifecycle of a job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Queued,
+    Running,
+    Paused,
+    Completed,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    /// No more work will be done.
+    pub fn is_finished(self) -> bool {
+        matches!(self, JobState::Completed | JobState::Failed | JobState::Cancelled)
+    }
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Paused => "paused",
+            JobState::Completed => "completed",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// `POST /jobs` body: the job's own fields plus every field of [`RenderSettings`] at the top
+/// level, e.g. `{"scene_id": "...", "name": "cornell", "priority": 0, "width": 256, ...}`.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobRequest {
+    pub scene_id: String,
+    pub name: Option<String>,
+    pub priority: i32,
+    pub settings: RenderSettings,
+}
+
+impl JobRequest {
+    /// The JSON body as the API takes it (settings flattened to the top level).
+    pub fn to_json(&self) -> serde_json::Value {
+        let mut v = serde_json::to_value(&self.settings).unwrap_or_default();
+        if let Some(o) = v.as_object_mut() {
+            o.insert("scene_id".into(), self.scene_id.clone().into());
+            if let Some(n) = &self.name {
+                o.insert("name".into(), n.clone().into());
+            }
+            o.insert("priority".into(), self.priority.into());
+        }
+        v
+    }
+
+    /// Parses the API body; unknown fields are refused with a message that names them.
+    pub fn from_json(mut v: serde_json::Value) -> Result<Self, String> {
+        let o = v.as_object_mut().ok_or("the job must be a JSON object")?;
+        let scene_id = match o.remove("scene_id") {
+            Some(serde_json::Value::String(s)) => s,
+            Some(_) => return Err("scene_id must be a string".into()),
+            None => return Err("missing field `scene_id`".into()),
+        };
+        let name = match o.remove("name") {
+            None | Some(serde_json::Value::Null) => None,
+            Some(serde_json::Value::String(s)) => Some(s),
+            Some(_) => return Err("name must be a string".into()),
+        };
+        let priority = match o.remove("priority") {
+            None | Some(serde_json::Value::Null) => 0,
+            Some(p) => p
+                .as_i64()
+                .and_then(|p| i32::try_from(p).ok())
+                .ok_or("priority must be an integer between -2^31 and 2^31-1")?,
+        };
+        let settings: RenderSettings = serde_json::from_value(v).map_err(|e| e.to_string())?;
+        Ok(Self { scene_id, name, priority, settings })
+    }
+}
+
+/// `POST /jobs` answer (201).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobCreated {
+    pub id: JobId,
+}
+
+/// `GET /jobs/{id}`: a job's state and progress.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobInfo {
+    pub id: JobId,
+    pub name: String,
+    pub scene_id: String,
+    pub state: JobState,
+    pub priority: i32,
+    pub settings: RenderSettings,
+    pub tiles: u32,
+    pub passes_total: u32,
+    /// Passes merged for every tile.
+    pub passes_done: u32,
+    pub units_total: u64,
+    pub units_merged: u64,
+    /// Samples per pixel merged for the whole image (the last complete pass's end).
+    pub spp_done: u32,
+    /// Pixel samples merged so far (over all tiles).
+    pub samples_done: u64,
+    pub samples_total: u64,
+    /// `samples_done / samples_total`.
+    pub progress: f64,
+    /// Pixel samples per second over the job's running time.
+    pub samples_per_sec: f64,
+    pub eta_secs: Option<f64>,
+    pub elapsed_secs: f64,
+    /// Unix time in milliseconds.
+    pub created_ms: u64,
+    pub finished_ms: Option<u64>,
+    /// Why the job failed.
+    pub error: Option<String>,
+    /// Workers refused for this job after repeated failures.
+    pub blocklist: Vec<WorkerId>,
+}
+
+/// Worker states as the coordinator sees them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WorkerState {
+    Idle,
+    Busy,
+    Offline,
+}
+
+/// `GET /workers` entry.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct WorkerInfo {
+    pub id: WorkerId,
+    pub name: String,
+    pub threads: u32,
+    pub state: WorkerState,
+    /// `(job, pass, tile)` of the unit it holds.
+    pub current: Option<(JobId, UnitKey)>,
+    pub units_done: u64,
+    pub samples_done: u64,
+    pub samples_per_sec: f64,
+    pub last_seen_ms: u64,
+}
+
+/// `POST /workers/register` body.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RegisterRequest {
+    pub name: String,
+    pub threads: u32,
+}
+
+/// `POST /workers/register` answer.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Registered {
+    pub worker_id: WorkerId,
+    /// Send a heartbeat at least this often.
+    pub heartbeat_ms: u64,
+    /// A lease not renewed by a heartbeat for this long expires.
+    pub lease_timeout_ms: u64,
+}
+
+/// `POST /workers/{id}/lease?wait_ms=N` answer (200; 204 when there is no work).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct LeaseGrant {
+    pub lease_id: LeaseId,
+    pub job_id: JobId,
+    pub scene_id: String,
+    pub settings: RenderSettings,
+    pub unit: UnitKey,
+    pub tile: TileRect,
+    pub pass: Pass,
+}
+
+/// `POST /leases/{id}/release` body: give a unit back (shutdown) or report its failure.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ReleaseRequest {
+    /// `true` if rendering failed (counts towards retries and the blocklist).
+    pub failed: bool,
+    pub reason: String,
+}
+
+/// `PUT /leases/{id}/result` answer.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ResultAccepted {
+    pub merged: bool,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Binary result format
+// ---------------------------------------------------------------------------------------------
+
+/// Magic bytes at the start of a result body.
+pub const RESULT_MAGIC: &[u8; 4] = b"PFR1";
+
+/// A unit's result as it travels from worker to coordinator.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UnitResultFrame {
+    pub lease_id: LeaseId,
+    pub job_id: JobId,
+    pub unit: UnitKey,
+    pub accum: TileAccum,
+    pub splats: Option<SplatBuffer>,
+}
+
+/// Why a result body was refused.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum DecodeError {
+    #[error("result body is truncated ({0} bytes)")]
+    Truncated(usize),
+    #[error("result body does not start with the magic bytes PFR1")]
+    BadMagic,
+    #[error("result checksum mismatch (body says {expected:08x}, computed {actual:08x})")]
+    Checksum { expected: u32, actual: u32 },
+    #[error("result header: {0}")]
+    Header(String),
+    #[error("result {section} section: {message}")]
+    Section { section: &'static str, message: String },
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FrameHeader {
+    lease_id: LeaseId,
+    job_id: JobId,
+    unit: UnitKey,
+    tile: TileRect,
+    channels: u32,
+    splats: Option<(u32, u32)>,
+}
+
+fn fixed_to_bytes(values: &[Fixed]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(values.len() * 16);
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+fn bytes_to_fixed(bytes: &[u8], expected: usize, section: &'static str) -> Result<Vec<Fixed>, DecodeError> {
+    if bytes.len() != expected * 16 {
+        return Err(DecodeError::Section {
+            section,
+            message: format!("expected {} values ({} bytes), got {} bytes", expected, expected * 16, bytes.len()),
+        });
+    }
+    Ok(bytes
+        .chunks_exact(16)
+        .map(|c| {
+            let mut a = [0u8; 16];
+            a.copy_from_slice(c);
+            i128::from_le_bytes(a)
+        })
+        .collect())
+}
+
+fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
+    let packed = lz4_flex::compress_prepend_size(&fixed_to_bytes(values));
+    out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
+    out.extend_from_slice(&packed);
+}
+
+/// Upper bound on a decompressed section (a 16k x 16k splat buffer is 12 GB; refuse above 4 GB).
+const MAX_SECTION_BYTES: usize = 1 << 32;
+
+fn read_section<'a>(rest: &mut &'a [u8], section: &'static str) -> Result<Vec<u8>, DecodeError> {
+    let err = |message: String| DecodeError::Section { section, message };
+    if rest.len() < 8 {
+        return Err(err("missing length".into()));
+    }
+    let (len, tail) = rest.split_at(8);
+    let len = u64::from_le_bytes(len.try_into().map_err(|_| err("length".into()))?) as usize;
+    if len > tail.len() {
+        return Err(err(format!("length {len} exceeds the {} bytes left", tail.len())));
+    }
+    let (packed, tail) = tail.split_at(len);
+    *rest = tail;
+    if packed.len() >= 4 {
+        let raw = u32::from_le_bytes([packed[0], packed[1], packed[2], packed[3]]) as usize;
+        if raw > MAX_SECTION_BYTES {
+            return Err(err(format!("declares {raw} bytes uncompressed")));
+        }
+    }
+    lz4_flex::decompress_size_prepended(packed).map_err(|e| err(format!("lz4: {e}")))
+}
+
+impl UnitResultFrame {
+    /// Layout: magic, u32 header length, JSON header, sums section, optional splat section,
+    /// CRC-32 of everything before it. A section is u64 length + lz4 block (size-prefixed) of
+    /// little-endian i128 values.
+    pub fn encode(&self) -> Vec<u8> {
+        let header = FrameHeader {
+            lease_id: self.lease_id,
+            job_id: self.job_id,
+            unit: self.unit,
+            tile: self.accum.rect,
+            channels: ch::COUNT as u32,
+            splats: self.splats.as_ref().map(|s| (s.width, s.height)),
+        };
+        let header = serde_json::to_vec(&header).unwrap_or_default();
+        let mut out = Vec::new();
+        out.extend_from_slice(RESULT_MAGIC);
+        out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+        out.extend_from_slice(&header);
+        push_section(&mut out, &self.accum.sums);
+        if let Some(s) = &self.splats {
+            push_section(&mut out, &s.sums);
+        }
+        let crc = crc32fast::hash(&out);
+        out.extend_from_slice(&crc.to_le_bytes());
+        out
+    }
+
+    /// Parses and checks a body; never panics, whatever the bytes.
+    pub fn decode(bytes: &[u8]) -> Result<Self, DecodeError> {
+        if bytes.len() < 12 {
+            return Err(DecodeError::Truncated(bytes.len()));
+        }
+        let (body, crc) = bytes.split_at(bytes.len() - 4);
+        if &body[..4] != RESULT_MAGIC {
+            return Err(DecodeError::BadMagic);
+        }
+        let expected = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
+        let actual = crc32fast::hash(body);
+        if expected != actual {
+            return Err(DecodeError::Checksum { expected, actual });
+        }
+        let hlen = u32::from_le_bytes([body[4], body[5], body[6], body[7]]) as usize;
+        if 8 + hlen > body.len() {
+            return Err(DecodeError::Truncated(bytes.len()));
+        }
+        let header: FrameHeader =
+            serde_json::from_slice(&body[8..8 + hlen]).map_err(|e| DecodeError::Header(e.to_string()))?;
+        if header.channels != ch::COUNT as u32 {
+            return Err(DecodeError::Header(format!("{} channels, expected {}", header.channels, ch::COUNT)));
+        }
+        let t = header.tile;
+        if t.x1 <= t.x0 || t.y1 <= t.y0 || t.width() > 4096 || t.height() > 4096 {
+            return Err(DecodeError::Header(format!("bad tile rectangle {t:?}")));
+        }
+        let mut rest = &body[8 + hlen..];
+        let sums = read_section(&mut rest, "sums")?;
+        let sums = bytes_to_fixed(&sums, t.pixel_count() * ch::COUNT, "sums")?;
+        let splats = match header.splats {
+            None => None,
+            Some((w, h)) => {
+                let raw = read_section(&mut rest, "splats")?;
+                let n = w as usize * h as usize * 3;
+                Some(SplatBuffer { width: w, height: h, sums: bytes_to_fixed(&raw, n, "splats")? })
+            }
+        };
+        if !rest.is_empty() {
+            return Err(DecodeError::Section { section: "trailer", message: format!("{} extra bytes", rest.len()) });
+        }
+        let mut accum = TileAccum::new(t);
+        accum.sums = sums;
+        Ok(Self { lease_id: header.lease_id, job_id: header.job_id, unit: header.unit, accum, splats })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::film::{SampleValue, add_sample};
+
+    fn frame(splats: bool) -> UnitResultFrame {
+        let rect = TileRect { x0: 8, y0: 16, x1: 24, y1: 20 };
+        let mut accum = TileAccum::new(rect);
+        for y in rect.y0..rect.y1 {
+            for x in rect.x0..rect.x1 {
+                let v = SampleValue { radiance: [x as f32 * 0.1, y as f32, 0.25], ..Default::default() };
+                add_sample(accum.pixel_mut(x - rect.x0, y - rect.y0), &v);
+            }
+        }
+        let splats = splats.then(|| {
+            let mut s = SplatBuffer::new(32, 32);
+            s.add(3, 4, [1.0, 2.0, 3.0]);
+            s
+        });
+        UnitResultFrame { lease_id: 7, job_id: 3, unit: UnitKey { pass: 2, tile: 5 }, accum, splats }
+    }
+
+    #[test]
+    fn roundtrip_with_and_without_splats() {
+        for s in [false, true] {
+            let f = frame(s);
+            let bytes = f.encode();
+            assert_eq!(UnitResultFrame::decode(&bytes).expect("decode"), f);
+        }
+    }
+
+    #[test]
+    fn corruption_is_refused_not_panicking() {
+        let bytes = frame(true).encode();
+        // Every truncation.
+        for n in 0..bytes.len() {
+            assert!(UnitResultFrame::decode(&bytes[..n]).is_err(), "truncated at {n}");
+        }
+        // Every single-bit flip is caught (by the checksum, or the magic).
+        for i in (0..bytes.len()).step_by(7) {
+            let mut b = bytes.clone();
+            b[i] ^= 0x10;
+            assert!(UnitResultFrame::decode(&b).is_err(), "flip at {i}");
+        }
+        assert_eq!(UnitResultFrame::decode(b"PFR0\0\0\0\0\0\0\0\0\0\0"), Err(DecodeError::BadMagic));
+    }
+
+    #[test]
+    fn wrong_size_with_valid_checksum_is_refused() {
+        // A well-formed body whose sums section is the wrong length for its tile.
+        let mut f = frame(false);
+        f.accum.sums.pop();
+        let bytes = f.encode();
+        let e = UnitResultFrame::decode(&bytes).expect_err("wrong size");
+        assert!(e.to_string().contains("sums"), "{e}");
+    }
+
+    #[test]
+    fn job_request_flattens_settings_and_names_unknown_fields() {
+        let req = JobRequest {
+            scene_id: "ab".into(),
+            name: Some("n".into()),
+            priority: 3,
+            settings: RenderSettings::new(16, 8, 4),
+        };
+        let back = JobRequest::from_json(req.to_json()).expect("roundtrip");
+        assert_eq!(back, req);
+        let e =
+            JobRequest::from_json(serde_json::json!({"scene_id": "x", "width": 4, "height": 4, "spp": 1, "wdth": 3}))
+                .expect_err("unknown field");
+        assert!(e.contains("wdth"), "{e}");
+        let e = JobRequest::from_json(serde_json::json!({"width": 4})).expect_err("no scene");
+        assert!(e.contains("scene_id"), "{e}");
+    }
+}
+
+/// Proptest target: the decoder never panics on arbitrary bytes.
+#[cfg(test)]
+mod fuzz {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+        #[test]
+        fn decode_never_panics(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
+            let _ = UnitResultFrame::decode(&bytes);
+        }
+
+        #[test]
+        fn decode_never_panics_with_valid_magic_and_crc(mut body in proptest::collection::vec(any::<u8>(), 8..512)) {
+            body[..4].copy_from_slice(RESULT_MAGIC);
+            let crc = crc32fast::hash(&body);
+            body.extend_from_slice(&crc.to_le_bytes());
+            let _ = UnitResultFrame::decode(&body);
+        }
+    }
+}

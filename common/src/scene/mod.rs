@@ -5,6 +5,7 @@
 //! instance); materials, textures, cameras and punctual lights keep glTF's meaning, with units
 //! documented in README.md ("Units").
 
+pub mod bundle;
 pub mod demo;
 mod error;
 mod load;
