@@ -306,7 +306,7 @@ fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
 /// Upper bound on a decompressed section (a 16k x 16k splat buffer is 12 GB; refuse above 4 GB).
 const MAX_SECTION_BYTES: usize = 1 << 32;
 
-fn read_section<'a>(rest: &mut &'a [u8], section: &'static str) -> Result<Vec<u8>, DecodeError> {
+fn read_section(rest: &mut &[u8], section: &'static str) -> Result<Vec<u8>, DecodeError> {
     let err = |message: String| DecodeError::Section { section, message };
     if rest.len() < 8 {
         return Err(err("missing length".into()));
