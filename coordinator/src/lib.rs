@@ -1,1 +1,10 @@
-//! pathfarm coordinator: REST API, scheduler, merger, store and dashboard.
+//! pathfarm coordinator: the REST API, the farm state machine (scheduler and merger), scene
+//! storage, progressive output, the web dashboard, local workers, the demo and the client.
+
+pub mod api;
+pub mod client;
+pub mod dashboard;
+pub mod demo;
+pub mod farm;
+pub mod local;
+pub mod server;

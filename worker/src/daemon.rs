@@ -1,4 +1,23 @@
-//! The worker daemon: registers with a coordinator, leases units, renders, uploads.
+//! The worker daemon: registers with a coordinator, long-polls for units, renders them on all
+//! cores, heartbeats while rendering, uploads results with retries, and on SIGTERM finishes its
+//! unit and leaves.
+//!
+//! Blocking HTTP (reqwest) on plain threads: the daemon does one thing at a time, and the render
+//! itself runs on a rayon pool.
+
+use crate::render::{Renderer, UnitResult};
+use anyhow::{Context, bail};
+use pathfarm_common::protocol::{
+    API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WorkerId,
+};
+use pathfarm_common::scene::bundle::{is_scene_id, load_bundle, scene_id};
+use pathfarm_common::scene::{LoadOptions, Scene};
+use reqwest::StatusCode;
+use reqwest::blocking::{Client, RequestBuilder, Response};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 /// `pathfarm-worker run` arguments.
 #[derive(clap::Args, Debug, Clone)]
@@ -6,9 +25,363 @@ pub struct RunArgs {
     /// Coordinator base URL, e.g. http://127.0.0.1:8080
     #[arg(long, env = "PATHFARM_COORDINATOR")]
     pub coordinator: String,
+    /// Worker token (bearer).
+    #[arg(long, env = "PATHFARM_WORKER_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Render threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Where downloaded scenes are kept (default: a pathfarm folder in the system temp dir).
+    #[arg(long)]
+    pub cache_dir: Option<PathBuf>,
+    /// Name shown on the dashboard (default: host name and process id).
+    #[arg(long)]
+    pub name: Option<String>,
+}
+
+/// Daemon settings.
+#[derive(Clone, Debug)]
+pub struct DaemonConfig {
+    pub coordinator: String,
+    pub token: Option<String>,
+    pub threads: usize,
+    pub cache_dir: PathBuf,
+    pub name: String,
+    /// Long-poll time of a lease request.
+    pub lease_wait: Duration,
+}
+
+impl DaemonConfig {
+    pub fn from_args(args: RunArgs) -> Self {
+        let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+        let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "worker".into());
+        Self {
+            coordinator: args.coordinator.trim_end_matches('/').to_string(),
+            token: args.token,
+            threads: threads.max(1),
+            cache_dir: args.cache_dir.unwrap_or_else(|| std::env::temp_dir().join("pathfarm-worker-cache")),
+            name: args.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
+            lease_wait: Duration::from_secs(5),
+        }
+    }
 }
 
 /// Runs the daemon until SIGTERM/SIGINT.
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    anyhow::bail!("worker daemon for {} is not written yet", args.coordinator)
+    let shutdown = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(sig, shutdown.clone()).context("installing the signal handler")?;
+    }
+    Daemon::new(DaemonConfig::from_args(args))?.run(&shutdown)
+}
+
+/// Pseudo-random jitter in `[0, 1)` without a global RNG: hashes the clock.
+fn jitter() -> f64 {
+    let nanos = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+    let mut x = u64::from(nanos) ^ 0x9E37_79B9_7F4A_7C15;
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x ^= x >> 33;
+    (x >> 11) as f64 / (1u64 << 53) as f64
+}
+
+/// Sleeps for attempt `n`'s backoff (exponential, capped at 5 s, with full jitter), waking
+/// early on shutdown. Returns false if shutting down.
+fn backoff(n: u32, shutdown: &AtomicBool) -> bool {
+    let cap = (100.0 * 2f64.powi(n.min(6) as i32)).min(5000.0);
+    let until = Instant::now() + Duration::from_millis((cap * (0.5 + 0.5 * jitter())) as u64);
+    while Instant::now() < until {
+        if shutdown.load(Ordering::Relaxed) {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    true
+}
+
+/// The daemon's state.
+pub struct Daemon {
+    cfg: DaemonConfig,
+    http: Client,
+    pool: rayon::ThreadPool,
+    worker_id: Option<WorkerId>,
+    heartbeat: Duration,
+    /// The scene of the last unit, by scene id.
+    scene: Option<(String, Arc<Scene>)>,
+    /// The renderer (BVH and all) of the last job.
+    renderer: Option<(JobId, Arc<Renderer>)>,
+}
+
+impl Daemon {
+    pub fn new(cfg: DaemonConfig) -> anyhow::Result<Self> {
+        let http = Client::builder()
+            .timeout(Duration::from_secs(120))
+            .connect_timeout(Duration::from_secs(5))
+            .build()
+            .context("building the HTTP client")?;
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(cfg.threads)
+            .thread_name(|i| format!("render-{i}"))
+            .build()
+            .context("building the render thread pool")?;
+        std::fs::create_dir_all(&cfg.cache_dir)
+            .with_context(|| format!("creating the cache dir {}", cfg.cache_dir.display()))?;
+        Ok(Self { cfg, http, pool, worker_id: None, heartbeat: Duration::from_secs(2), scene: None, renderer: None })
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{API}{path}", self.cfg.coordinator)
+    }
+
+    fn auth(&self, rb: RequestBuilder) -> RequestBuilder {
+        match &self.cfg.token {
+            Some(t) => rb.bearer_auth(t),
+            None => rb,
+        }
+    }
+
+    fn register(&mut self, shutdown: &AtomicBool) -> anyhow::Result<()> {
+        let body = RegisterRequest { name: self.cfg.name.clone(), threads: self.cfg.threads as u32 };
+        let mut attempt = 0;
+        loop {
+            let r = self.auth(self.http.post(self.url("/workers/register")).json(&body)).send();
+            match r {
+                Ok(resp) if resp.status().is_success() => {
+                    let reg: Registered = resp.json().context("register answer")?;
+                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, "registered");
+                    self.worker_id = Some(reg.worker_id);
+                    self.heartbeat = Duration::from_millis(reg.heartbeat_ms.max(100));
+                    return Ok(());
+                }
+                Ok(resp) if resp.status() == StatusCode::UNAUTHORIZED || resp.status() == StatusCode::FORBIDDEN => {
+                    bail!("the coordinator refused the worker token: {}", resp.text().unwrap_or_default());
+                }
+                Ok(resp) => tracing::warn!(status = %resp.status(), "register failed; retrying"),
+                Err(e) => tracing::warn!("coordinator unreachable ({e}); retrying"),
+            }
+            attempt += 1;
+            if !backoff(attempt, shutdown) {
+                bail!("shutting down before registering");
+            }
+        }
+    }
+
+    /// Serves units until `shutdown` is set; a unit in progress is finished and uploaded.
+    pub fn run(&mut self, shutdown: &AtomicBool) -> anyhow::Result<()> {
+        let mut failures = 0u32;
+        while !shutdown.load(Ordering::Relaxed) {
+            let Some(worker) = self.worker_id else {
+                match self.register(shutdown) {
+                    Ok(()) => continue,
+                    Err(e) if shutdown.load(Ordering::Relaxed) => {
+                        tracing::info!("{e}");
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                }
+            };
+            let wait = self.cfg.lease_wait.as_millis();
+            let resp = self.auth(self.http.post(self.url(&format!("/workers/{worker}/lease?wait_ms={wait}")))).send();
+            let grant: LeaseGrant = match resp {
+                Ok(r) if r.status() == StatusCode::OK => match r.json() {
+                    Ok(g) => g,
+                    Err(e) => {
+                        tracing::warn!("unreadable lease: {e}");
+                        continue;
+                    }
+                },
+                Ok(r) if r.status() == StatusCode::NO_CONTENT => {
+                    failures = 0;
+                    continue;
+                }
+                Ok(r) if r.status() == StatusCode::NOT_FOUND => {
+                    tracing::warn!("the coordinator does not know this worker (restarted?); registering again");
+                    self.worker_id = None;
+                    continue;
+                }
+                Ok(r) => {
+                    tracing::warn!(status = %r.status(), "lease request failed");
+                    failures += 1;
+                    backoff(failures, shutdown);
+                    continue;
+                }
+                Err(e) => {
+                    tracing::warn!("coordinator unreachable: {e}");
+                    failures += 1;
+                    backoff(failures, shutdown);
+                    continue;
+                }
+            };
+            failures = 0;
+            self.work(worker, grant, shutdown);
+        }
+        tracing::info!("worker stopped");
+        Ok(())
+    }
+
+    /// Renders one leased unit and delivers it (or reports the failure).
+    fn work(&mut self, worker: WorkerId, grant: LeaseGrant, shutdown: &AtomicBool) {
+        let lease = grant.lease_id;
+        tracing::debug!(lease, job = grant.job_id, pass = grant.unit.pass, tile = grant.unit.tile, "rendering unit");
+        let renderer = match self.renderer_for(&grant) {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::error!(lease, job = grant.job_id, "cannot render: {e:#}");
+                self.release(lease, true, &format!("{e:#}"));
+                return;
+            }
+        };
+        let t0 = Instant::now();
+        let result = self.render_with_heartbeats(worker, &renderer, &grant);
+        let result = match result {
+            Ok(r) => r,
+            Err(reason) => {
+                tracing::error!(lease, "render failed: {reason}");
+                self.release(lease, true, &reason);
+                return;
+            }
+        };
+        let frame = UnitResultFrame {
+            lease_id: lease,
+            job_id: grant.job_id,
+            unit: grant.unit,
+            accum: result.accum,
+            splats: result.splats,
+        };
+        let body = frame.encode();
+        tracing::debug!(lease, ms = t0.elapsed().as_millis() as u64, bytes = body.len(), "unit rendered");
+        self.upload(lease, body, shutdown);
+    }
+
+    fn render_with_heartbeats(
+        &mut self,
+        worker: WorkerId,
+        renderer: &Renderer,
+        grant: &LeaseGrant,
+    ) -> Result<UnitResult, String> {
+        let done = AtomicBool::new(false);
+        let lost = AtomicBool::new(false);
+        let result = std::thread::scope(|s| {
+            s.spawn(|| {
+                let mut last = Instant::now();
+                while !done.load(Ordering::Relaxed) {
+                    std::thread::sleep(Duration::from_millis(25));
+                    if last.elapsed() < self.heartbeat {
+                        continue;
+                    }
+                    last = Instant::now();
+                    let r = self.auth(self.http.post(self.url(&format!("/workers/{worker}/heartbeat")))).send();
+                    if let Ok(resp) = r
+                        && resp.status() == StatusCode::NOT_FOUND
+                    {
+                        lost.store(true, Ordering::Relaxed);
+                    }
+                }
+            });
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                self.pool.install(|| renderer.render_unit(grant.tile, grant.pass))
+            }));
+            done.store(true, Ordering::Relaxed);
+            r
+        });
+        if lost.load(Ordering::Relaxed) {
+            self.worker_id = None;
+        }
+        result.map_err(|p| {
+            let msg = p
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| p.downcast_ref::<&str>().map(|s| (*s).to_string()))
+                .unwrap_or_else(|| "unknown panic".into());
+            format!("the renderer panicked: {msg}")
+        })
+    }
+
+    fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {
+        for attempt in 0..10u32 {
+            let r = self
+                .auth(self.http.put(self.url(&format!("/leases/{lease}/result"))))
+                .header("content-type", "application/octet-stream")
+                .body(body.clone())
+                .send();
+            match r {
+                Ok(resp) if resp.status().is_success() => return,
+                Ok(resp) if resp.status() == StatusCode::CONFLICT => {
+                    tracing::warn!(lease, "result refused: the lease is no longer ours (expired or job ended)");
+                    return;
+                }
+                Ok(resp) if resp.status().is_client_error() => {
+                    let status = resp.status();
+                    tracing::error!(lease, %status, "result refused: {}", text(resp));
+                    return;
+                }
+                Ok(resp) => tracing::warn!(lease, status = %resp.status(), attempt, "upload failed; retrying"),
+                Err(e) => tracing::warn!(lease, attempt, "upload failed ({e}); retrying"),
+            }
+            // Keep retrying through a shutdown: the finished unit is worth delivering.
+            let never = AtomicBool::new(false);
+            backoff(attempt + 1, if attempt < 3 { &never } else { shutdown });
+        }
+        tracing::error!(lease, "giving up on uploading; the lease will expire and the unit be redone");
+    }
+
+    fn release(&self, lease: u64, failed: bool, reason: &str) {
+        let body = ReleaseRequest { failed, reason: reason.chars().take(2000).collect() };
+        let r = self.auth(self.http.post(self.url(&format!("/leases/{lease}/release"))).json(&body)).send();
+        if let Err(e) = r {
+            tracing::warn!(lease, "release failed ({e}); the lease will expire");
+        }
+    }
+
+    /// The renderer for the grant's job: reused across units of a job; the scene is downloaded
+    /// once per scene id (disk cache) and parsed once per scene.
+    fn renderer_for(&mut self, grant: &LeaseGrant) -> anyhow::Result<Arc<Renderer>> {
+        if let Some((job, r)) = &self.renderer
+            && *job == grant.job_id
+            && r.settings() == &grant.settings
+        {
+            return Ok(r.clone());
+        }
+        self.renderer = None;
+        let scene = self.scene_for(&grant.scene_id)?;
+        let renderer = Arc::new(Renderer::new(&scene, &grant.settings)?);
+        self.renderer = Some((grant.job_id, renderer.clone()));
+        Ok(renderer)
+    }
+
+    fn scene_for(&mut self, id: &str) -> anyhow::Result<Arc<Scene>> {
+        if !is_scene_id(id) {
+            bail!("scene id {id:?} is not a SHA-256");
+        }
+        if let Some((cached, s)) = &self.scene
+            && cached == id
+        {
+            return Ok(s.clone());
+        }
+        let bundle_path = self.cfg.cache_dir.join(format!("{id}.bundle"));
+        let bytes = match std::fs::read(&bundle_path) {
+            Ok(b) if scene_id(&b) == id => b,
+            _ => {
+                let resp = self.auth(self.http.get(self.url(&format!("/scenes/{id}")))).send()?;
+                if !resp.status().is_success() {
+                    let status = resp.status();
+                    bail!("downloading scene {id}: {status} {}", text(resp));
+                }
+                let b = resp.bytes()?.to_vec();
+                if scene_id(&b) != id {
+                    bail!("downloaded scene does not hash to {id}");
+                }
+                pathfarm_common::film::write_atomic(&bundle_path, &b)?;
+                b
+            }
+        };
+        let dir = self.cfg.cache_dir.join(id);
+        let scene = Arc::new(load_bundle(&bytes, &dir, &LoadOptions::default())?);
+        self.scene = Some((id.to_string(), scene.clone()));
+        Ok(scene)
+    }
+}
+
+fn text(resp: Response) -> String {
+    resp.text().unwrap_or_default().chars().take(500).collect()
 }

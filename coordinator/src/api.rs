@@ -1,0 +1,439 @@
+//! The REST API (axum): clients' routes, workers' routes, images, health and metrics.
+//!
+//! Every error is JSON `{"error": {"code", "message"}}` with a 4xx/5xx status; a panic inside a
+//! handler becomes a 500 and the server keeps serving.
+
+use crate::farm::FarmError;
+use crate::server::{AppState, now_ms};
+use axum::body::Bytes;
+use axum::extract::{DefaultBodyLimit, Path, Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post, put};
+use axum::{Json, Router};
+use pathfarm_common::protocol::{
+    API, ErrorBody, ErrorDetail, JobCreated, JobId, JobRequest, LeaseId, RegisterRequest, Registered, ReleaseRequest,
+    ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
+};
+use pathfarm_common::scene::bundle::{is_scene_id, scene_id};
+use serde::Deserialize;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// An error response.
+#[derive(Debug)]
+pub struct ApiError {
+    pub status: StatusCode,
+    pub code: &'static str,
+    pub message: String,
+}
+
+impl ApiError {
+    pub fn new(status: StatusCode, code: &'static str, message: impl Into<String>) -> Self {
+        Self { status, code, message: message.into() }
+    }
+    pub fn not_found(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::NOT_FOUND, "not_found", message)
+    }
+    pub fn unprocessable(code: &'static str, message: impl Into<String>) -> Self {
+        Self::new(StatusCode::UNPROCESSABLE_ENTITY, code, message)
+    }
+    pub fn internal(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal", message)
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let body = ErrorBody { error: ErrorDetail { code: self.code.into(), message: self.message } };
+        (self.status, Json(body)).into_response()
+    }
+}
+
+impl From<FarmError> for ApiError {
+    fn from(e: FarmError) -> Self {
+        let (status, code) = match &e {
+            FarmError::NoJob(_) => (StatusCode::NOT_FOUND, "not_found"),
+            FarmError::NoWorker(_) => (StatusCode::NOT_FOUND, "unknown_worker"),
+            FarmError::LeaseLost(_) => (StatusCode::CONFLICT, "lease_lost"),
+            FarmError::ResultMismatch { .. } => (StatusCode::UNPROCESSABLE_ENTITY, "result_mismatch"),
+            FarmError::BadState { .. } => (StatusCode::CONFLICT, "bad_state"),
+            FarmError::InvalidJob(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid_job"),
+        };
+        ApiError::new(status, code, e.to_string())
+    }
+}
+
+type ApiResult<T> = Result<T, ApiError>;
+
+fn parse_id(kind: &str, raw: &str) -> ApiResult<u64> {
+    raw.parse()
+        .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, "bad_id", format!("{kind} id {raw:?} is not a number")))
+}
+
+/// Who a token belongs to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    Client,
+    Worker,
+}
+
+fn token_matches(given: &str, expected: &str) -> bool {
+    use subtle::ConstantTimeEq;
+    given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
+}
+
+/// Checks the bearer token for a route that `allowed` roles may use.
+fn authorize(state: &AppState, headers: &HeaderMap, allowed: &[Role]) -> ApiResult<()> {
+    let auth = &state.auth;
+    if auth.client.is_none() && auth.worker.is_none() {
+        return Ok(());
+    }
+    let token = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
+    let role = if auth.client.as_deref().is_some_and(|t| token_matches(token, t)) {
+        Role::Client
+    } else if auth.worker.as_deref().is_some_and(|t| token_matches(token, t)) {
+        Role::Worker
+    } else {
+        return Err(ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "invalid token"));
+    };
+    if allowed.contains(&role) {
+        Ok(())
+    } else {
+        Err(ApiError::new(StatusCode::FORBIDDEN, "forbidden", format!("a {role:?} token may not use this route")))
+    }
+}
+
+async fn require_client(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+    match authorize(&state, req.headers(), &[Role::Client]) {
+        Ok(()) => next.run(req).await,
+        Err(e) => e.into_response(),
+    }
+}
+
+async fn require_worker(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+    match authorize(&state, req.headers(), &[Role::Worker]) {
+        Ok(()) => next.run(req).await,
+        Err(e) => e.into_response(),
+    }
+}
+
+async fn require_any(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+    match authorize(&state, req.headers(), &[Role::Client, Role::Worker]) {
+        Ok(()) => next.run(req).await,
+        Err(e) => e.into_response(),
+    }
+}
+
+/// The whole router.
+pub fn router(state: Arc<AppState>) -> Router {
+    let upload_limit = state.config.max_upload_bytes;
+    let client = Router::new()
+        .route("/scenes", post(upload_scene).layer(DefaultBodyLimit::max(upload_limit)))
+        .route("/jobs", post(create_job).get(list_jobs))
+        .route("/jobs/{id}", get(get_job).delete(delete_job))
+        .route("/jobs/{id}/cancel", post(cancel_job))
+        .route("/jobs/{id}/pause", post(pause_job))
+        .route("/jobs/{id}/resume", post(resume_job))
+        .route("/jobs/{id}/priority", put(set_priority))
+        .route("/jobs/{id}/log", get(job_log))
+        .route("/jobs/{id}/tiles", get(job_tiles))
+        .route("/jobs/{id}/image.exr", get(job_exr))
+        .route("/jobs/{id}/preview.png", get(job_png))
+        .route("/workers", get(list_workers))
+        .route_layer(middleware::from_fn_with_state(state.clone(), require_client));
+    let worker = Router::new()
+        .route("/workers/register", post(register))
+        .route("/workers/{id}/heartbeat", post(heartbeat))
+        .route("/workers/{id}/lease", post(lease))
+        .route("/leases/{id}/result", put(upload_result).layer(DefaultBodyLimit::max(upload_limit)))
+        .route("/leases/{id}/release", post(release))
+        .route_layer(middleware::from_fn_with_state(state.clone(), require_worker));
+    let shared = Router::new()
+        .route("/scenes/{id}", get(download_scene))
+        .route_layer(middleware::from_fn_with_state(state.clone(), require_any));
+    let api = Router::new().merge(client).merge(worker).merge(shared);
+    Router::new()
+        .nest(API, api)
+        .route("/healthz", get(|| async { "ok" }))
+        .route("/metrics", get(metrics))
+        .merge(crate::dashboard::routes())
+        .fallback(|| async { ApiError::not_found("no such route") })
+        .layer(tower_http::catch_panic::CatchPanicLayer::custom(|_: Box<dyn std::any::Any + Send>| {
+            ApiError::internal("the request handler panicked; the server keeps running").into_response()
+        }))
+        .with_state(state)
+}
+
+// ------------------------------------------------------------------------------------ scenes
+
+async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<SceneCreated>)> {
+    if body.is_empty() {
+        return Err(ApiError::unprocessable("invalid_scene", "empty body: send a .glb, a .gltf or a tar bundle"));
+    }
+    state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
+    let st = state.clone();
+    let created = tokio::task::spawn_blocking(move || st.scenes.add(&body, &st.load_options()))
+        .await
+        .map_err(|e| ApiError::internal(format!("scene task: {e}")))??;
+    Ok((StatusCode::CREATED, Json(created)))
+}
+
+async fn download_scene(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
+    if !is_scene_id(&id) {
+        return Err(ApiError::not_found(format!("scene {id:?} does not exist")));
+    }
+    let path = state.scenes.bundle_path(&id);
+    let bytes = tokio::fs::read(&path).await.map_err(|_| ApiError::not_found(format!("scene {id} does not exist")))?;
+    Ok(([(header::CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
+}
+
+// ------------------------------------------------------------------------------------ jobs
+
+async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<JobCreated>)> {
+    let value: serde_json::Value = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_json", format!("job body is not JSON: {e}")))?;
+    let req = JobRequest::from_json(value).map_err(|e| ApiError::unprocessable("invalid_job", e))?;
+    let meta = state.scenes.meta(&req.scene_id).ok_or_else(|| {
+        ApiError::unprocessable("unknown_scene", format!("scene_id {:?} has not been uploaded", req.scene_id))
+    })?;
+    if let Some(cam) = req.settings.camera
+        && cam >= meta.cameras
+    {
+        return Err(ApiError::unprocessable(
+            "invalid_job",
+            format!("camera {cam} does not exist (the scene has {} cameras)", meta.cameras),
+        ));
+    }
+    let id = {
+        let mut farm = state.farm.lock();
+        farm.submit(req.scene_id, req.name, req.priority, req.settings, now_ms())?
+    };
+    tracing::info!(job = id, "job submitted");
+    state.work_ready.notify_waiters();
+    state.publish("job", id);
+    Ok((StatusCode::CREATED, Json(JobCreated { id })))
+}
+
+async fn list_jobs(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    let farm = state.farm.lock();
+    let now = now_ms();
+    Json(farm.jobs().map(|j| j.info(now)).collect::<Vec<_>>())
+}
+
+async fn get_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    let id = parse_id("job", &id)?;
+    let farm = state.farm.lock();
+    Ok(Json(farm.job(id)?.info(now_ms())))
+}
+
+async fn job_log(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    let id = parse_id("job", &id)?;
+    let farm = state.farm.lock();
+    Ok(Json(farm.job(id)?.log.clone()))
+}
+
+async fn job_tiles(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    let id = parse_id("job", &id)?;
+    let farm = state.farm.lock();
+    let job = farm.job(id)?;
+    Ok(Json(serde_json::json!({
+        "tiles": job.plan.tiles,
+        "passes_merged": job.tile_passes(),
+        "passes_total": job.plan.passes.len(),
+    })))
+}
+
+async fn job_action(
+    state: Arc<AppState>,
+    id: String,
+    action: impl FnOnce(&mut crate::farm::Farm, JobId, u64) -> Result<(), FarmError>,
+) -> ApiResult<impl IntoResponse> {
+    let id = parse_id("job", &id)?;
+    let info = {
+        let mut farm = state.farm.lock();
+        action(&mut farm, id, now_ms())?;
+        farm.job(id)?.info(now_ms())
+    };
+    state.work_ready.notify_waiters();
+    state.publish("job", id);
+    Ok(Json(info))
+}
+
+async fn cancel_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    job_action(state, id, |f, id, now| f.cancel(id, now)).await
+}
+
+async fn pause_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    job_action(state, id, |f, id, now| f.pause(id, now)).await
+}
+
+async fn resume_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
+    job_action(state, id, |f, id, now| f.resume(id, now)).await
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PriorityBody {
+    priority: i32,
+}
+
+async fn set_priority(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> ApiResult<impl IntoResponse> {
+    let p: PriorityBody = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::unprocessable("invalid_body", format!("expected {{\"priority\": N}}: {e}")))?;
+    job_action(state, id, move |f, id, _| f.set_priority(id, p.priority)).await
+}
+
+async fn delete_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    let id = parse_id("job", &id)?;
+    state.farm.lock().delete(id)?;
+    state.delete_job_files(id);
+    state.publish("job", id);
+    Ok(StatusCode::NO_CONTENT)
+}
+
+fn resolve_job(state: &AppState, id: &str) -> ApiResult<pathfarm_common::film::ImageLayers> {
+    let id = parse_id("job", id)?;
+    let farm = state.farm.lock();
+    Ok(farm.job(id)?.film.resolve())
+}
+
+async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
+    let layers = resolve_job(&state, &id)?;
+    let bytes = tokio::task::spawn_blocking(move || layers.encode_exr())
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))?;
+    Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response())
+}
+
+async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
+    let layers = resolve_job(&state, &id)?;
+    let bytes = tokio::task::spawn_blocking(move || layers.encode_png(0.0))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+    let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
+    resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    Ok(resp)
+}
+
+// ------------------------------------------------------------------------------------ workers
+
+async fn list_workers(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    Json(state.farm.lock().workers(now_ms()))
+}
+
+async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<Json<Registered>> {
+    let req: RegisterRequest = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::unprocessable("invalid_body", format!("register body: {e}")))?;
+    let mut farm = state.farm.lock();
+    let worker_id = farm.register(req.name, req.threads, now_ms());
+    Ok(Json(Registered { worker_id, heartbeat_ms: farm.cfg.heartbeat_ms, lease_timeout_ms: farm.cfg.lease_timeout_ms }))
+}
+
+async fn heartbeat(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    let id: WorkerId = parse_id("worker", &id)?;
+    state.farm.lock().heartbeat(id, now_ms())?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+#[derive(Deserialize)]
+struct LeaseQuery {
+    wait_ms: Option<u64>,
+}
+
+async fn lease(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    Query(q): Query<LeaseQuery>,
+) -> ApiResult<Response> {
+    let worker: WorkerId = parse_id("worker", &id)?;
+    let wait = Duration::from_millis(q.wait_ms.unwrap_or(0).min(60_000));
+    let start = Instant::now();
+    loop {
+        let notified = state.work_ready.notified();
+        tokio::pin!(notified);
+        notified.as_mut().enable();
+        let t0 = Instant::now();
+        let grant = state.farm.lock().lease(worker, now_ms())?;
+        state.metrics.observe_lease(t0.elapsed());
+        if let Some(g) = grant {
+            state.publish("worker", worker);
+            return Ok(Json(g).into_response());
+        }
+        let left = wait.saturating_sub(start.elapsed());
+        if left.is_zero() {
+            return Ok(StatusCode::NO_CONTENT.into_response());
+        }
+        let _ = tokio::time::timeout(left, notified).await;
+    }
+}
+
+async fn upload_result(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> ApiResult<Json<ResultAccepted>> {
+    let lease_id: LeaseId = parse_id("lease", &id)?;
+    state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
+    let t0 = Instant::now();
+    let frame = UnitResultFrame::decode(&body).map_err(|e| {
+        state.farm.lock().counters.results_rejected += 1;
+        ApiError::unprocessable("bad_result", e.to_string())
+    })?;
+    let job_id = frame.job_id;
+    let outcome = {
+        let mut farm = state.farm.lock();
+        let r = farm.accept(lease_id, frame, now_ms());
+        if r.is_err() {
+            farm.counters.results_rejected += 1;
+        }
+        r
+    };
+    let outcome = match outcome {
+        Ok(o) => o,
+        Err(e) => {
+            // A refused result may have sent its unit back to pending.
+            state.work_ready.notify_waiters();
+            return Err(e.into());
+        }
+    };
+    state.metrics.observe_merge(t0.elapsed());
+    if !outcome.passes_completed.is_empty() || outcome.job_completed {
+        state.output_ready.notify_one();
+    }
+    state.publish("job", job_id);
+    Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
+}
+
+async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {
+    let lease_id: LeaseId = parse_id("lease", &id)?;
+    let req: ReleaseRequest = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::unprocessable("invalid_body", format!("release body: {e}")))?;
+    state.farm.lock().release(lease_id, req.failed, &req.reason, now_ms())?;
+    state.work_ready.notify_waiters();
+    Ok(StatusCode::NO_CONTENT)
+}
+
+// ------------------------------------------------------------------------------------ metrics
+
+async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    let text = state.metrics_text();
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text)
+}
+
+/// Scene ids are computed the same way on both sides.
+pub fn bundle_id(bytes: &[u8]) -> String {
+    scene_id(bytes)
+}

@@ -1,0 +1,104 @@
+//! A blocking client of the REST API, used by the `pathfarm` CLI, the demo and the tests.
+
+use anyhow::{Context, bail};
+use pathfarm_common::protocol::{API, ErrorBody, JobCreated, JobId, JobInfo, JobRequest, JobState, SceneCreated};
+use reqwest::blocking::{Client as Http, RequestBuilder, Response};
+use std::time::Duration;
+
+pub struct Client {
+    base: String,
+    token: Option<String>,
+    http: Http,
+}
+
+fn check(resp: Response) -> anyhow::Result<Response> {
+    if resp.status().is_success() {
+        return Ok(resp);
+    }
+    let status = resp.status();
+    let text = resp.text().unwrap_or_default();
+    match serde_json::from_str::<ErrorBody>(&text) {
+        Ok(e) => bail!("{status}: {} ({})", e.error.message, e.error.code),
+        Err(_) => bail!("{status}: {text}"),
+    }
+}
+
+impl Client {
+    pub fn new(base: &str, token: Option<String>) -> anyhow::Result<Self> {
+        let http = Http::builder().timeout(Duration::from_secs(300)).build()?;
+        Ok(Self { base: base.trim_end_matches('/').to_string(), token, http })
+    }
+
+    fn req(&self, rb: RequestBuilder) -> anyhow::Result<Response> {
+        let rb = match &self.token {
+            Some(t) => rb.bearer_auth(t),
+            None => rb,
+        };
+        check(rb.send().with_context(|| format!("cannot reach the coordinator at {}", self.base))?)
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{API}{path}", self.base)
+    }
+
+    pub fn upload_scene(&self, bytes: Vec<u8>) -> anyhow::Result<SceneCreated> {
+        Ok(self.req(self.http.post(self.url("/scenes")).body(bytes))?.json()?)
+    }
+
+    pub fn submit(&self, job: &JobRequest) -> anyhow::Result<JobId> {
+        let created: JobCreated = self.req(self.http.post(self.url("/jobs")).json(&job.to_json()))?.json()?;
+        Ok(created.id)
+    }
+
+    pub fn job(&self, id: JobId) -> anyhow::Result<JobInfo> {
+        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}"))))?.json()?)
+    }
+
+    pub fn jobs(&self) -> anyhow::Result<Vec<JobInfo>> {
+        Ok(self.req(self.http.get(self.url("/jobs")))?.json()?)
+    }
+
+    pub fn cancel(&self, id: JobId) -> anyhow::Result<JobInfo> {
+        Ok(self.req(self.http.post(self.url(&format!("/jobs/{id}/cancel"))))?.json()?)
+    }
+
+    pub fn image_exr(&self, id: JobId) -> anyhow::Result<Vec<u8>> {
+        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/image.exr"))))?.bytes()?.to_vec())
+    }
+
+    pub fn preview_png(&self, id: JobId) -> anyhow::Result<Vec<u8>> {
+        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/preview.png"))))?.bytes()?.to_vec())
+    }
+
+    /// Polls until the job ends, showing a progress bar on a terminal.
+    pub fn wait(&self, id: JobId, show_progress: bool) -> anyhow::Result<JobInfo> {
+        let bar = indicatif::ProgressBar::new(1000);
+        if show_progress {
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {percent}% {msg}")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+        } else {
+            bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+        }
+        loop {
+            let info = self.job(id)?;
+            bar.set_position((info.progress * 1000.0) as u64);
+            bar.set_message(format!(
+                "{} spp {}/{}  {:.2} Msamples/s",
+                info.state.as_str(),
+                info.spp_done,
+                info.settings.spp,
+                info.samples_per_sec / 1e6
+            ));
+            if info.state.is_finished() {
+                bar.finish();
+                if info.state == JobState::Failed {
+                    bail!("job {id} failed: {}", info.error.unwrap_or_default());
+                }
+                return Ok(info);
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+}

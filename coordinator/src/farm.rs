@@ -1,0 +1,878 @@
+//! The farm's state machine: jobs, units, workers and leases, in one place.
+//!
+//! Pure and synchronous: every operation takes the current time in milliseconds, so tests drive a
+//! manual clock. The HTTP layer holds a [`Farm`] behind a mutex and calls these methods.
+//!
+//! Job: queued -> running -> paused <-> running -> completed | failed | cancelled.
+//! Unit: pending -> leased(lease) -> received -> merged; an expired or released lease sends the
+//! unit back to pending. A result is accepted only from the lease that holds the unit, so each
+//! unit is merged exactly once.
+//!
+//! Merge order: a tile folds pass p before pass p+1 (results that arrive early wait in
+//! `waiting`); splats of pass p fold into the film when pass p is complete for every tile. The
+//! film's sums are exact integers, so this order is not needed for the bits; it makes every
+//! progressive image a prefix of the final one (each pixel holds sample indices `[0, s)`).
+
+use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
+use pathfarm_common::job::{Limits, Plan, RenderSettings, UnitKey};
+use pathfarm_common::protocol::{
+    JobId, JobInfo, JobState, LeaseGrant, LeaseId, UnitResultFrame, WorkerId, WorkerInfo, WorkerState,
+};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+/// Tunables of the state machine.
+#[derive(Clone, Debug)]
+pub struct FarmConfig {
+    /// A lease that is not renewed by a heartbeat for this long expires.
+    pub lease_timeout_ms: u64,
+    /// Workers are asked to heartbeat this often.
+    pub heartbeat_ms: u64,
+    /// A unit that failed this many times fails its job.
+    pub max_unit_failures: u32,
+    /// A worker that failed this many units of a job is blocklisted for it.
+    pub blocklist_after: u32,
+    pub limits: Limits,
+}
+
+impl Default for FarmConfig {
+    fn default() -> Self {
+        Self {
+            lease_timeout_ms: 10_000,
+            heartbeat_ms: 2_000,
+            max_unit_failures: 3,
+            blocklist_after: 2,
+            limits: Limits::default(),
+        }
+    }
+}
+
+/// Errors of farm operations; the API maps each to a status code.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FarmError {
+    #[error("job {0} does not exist")]
+    NoJob(JobId),
+    #[error("worker {0} is not registered (register again)")]
+    NoWorker(WorkerId),
+    #[error("lease {0} is not held (expired, released, already delivered, or its job ended)")]
+    LeaseLost(LeaseId),
+    #[error("result does not match lease {lease}: {reason}")]
+    ResultMismatch { lease: LeaseId, reason: String },
+    #[error("job {id} is {state}; {action} is not possible")]
+    BadState { id: JobId, state: &'static str, action: &'static str },
+    #[error("invalid job: {0}")]
+    InvalidJob(String),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum UnitState {
+    Pending,
+    Leased(LeaseId),
+    /// Result held in `waiting` until the tile's earlier passes are merged.
+    Received,
+    Merged,
+}
+
+#[derive(Clone, Debug)]
+struct Lease {
+    job: JobId,
+    unit: usize,
+    worker: WorkerId,
+    deadline_ms: u64,
+}
+
+/// A job and its units.
+#[derive(Debug)]
+pub struct Job {
+    pub id: JobId,
+    pub name: String,
+    pub scene_id: String,
+    pub priority: i32,
+    pub settings: RenderSettings,
+    pub plan: Plan,
+    pub state: JobState,
+    units: Vec<UnitState>,
+    /// Every unit at or after `cursor` is pending; pending units before it are in `requeued`.
+    cursor: usize,
+    requeued: BTreeSet<usize>,
+    /// Per tile: the next pass to fold.
+    next_pass: Vec<u32>,
+    waiting: HashMap<usize, (TileAccum, Option<SplatBuffer>)>,
+    /// Splats of passes not yet complete.
+    pending_splats: BTreeMap<u32, SplatBuffer>,
+    /// Tiles merged, per pass.
+    pass_merged: Vec<u32>,
+    pub film: Film,
+    pub passes_done: u32,
+    pub units_merged: u64,
+    pub samples_done: u64,
+    samples_total: u64,
+    leased: u32,
+    /// Units handed out so far (fair share among equal priorities).
+    served: u64,
+    unit_failures: HashMap<usize, u32>,
+    worker_failures: HashMap<WorkerId, u32>,
+    pub blocklist: BTreeSet<WorkerId>,
+    pub created_ms: u64,
+    started_ms: Option<u64>,
+    /// Time spent running before the last pause.
+    run_ms_before: u64,
+    pub finished_ms: Option<u64>,
+    pub error: Option<String>,
+    /// Human-readable events (retries, failures, blocklists), newest last.
+    pub log: Vec<String>,
+    /// Output should be written (a pass completed or the job ended).
+    pub output_dirty: bool,
+}
+
+impl Job {
+    fn unit_key(&self, index: usize) -> UnitKey {
+        let tiles = self.plan.tiles.len();
+        UnitKey { pass: (index / tiles) as u32, tile: (index % tiles) as u32 }
+    }
+
+    fn unit_index(&self, key: UnitKey) -> usize {
+        key.pass as usize * self.plan.tiles.len() + key.tile as usize
+    }
+
+    fn has_pending(&self) -> bool {
+        !self.requeued.is_empty() || self.cursor < self.units.len()
+    }
+
+    fn take_pending(&mut self) -> Option<usize> {
+        if let Some(i) = self.requeued.pop_first() {
+            return Some(i);
+        }
+        if self.cursor < self.units.len() {
+            self.cursor += 1;
+            return Some(self.cursor - 1);
+        }
+        None
+    }
+
+    fn requeue(&mut self, index: usize) {
+        self.units[index] = UnitState::Pending;
+        self.requeued.insert(index);
+    }
+
+    fn accepts_work(&self) -> bool {
+        matches!(self.state, JobState::Queued | JobState::Running)
+    }
+
+    fn running_ms(&self, now_ms: u64) -> u64 {
+        let current = match (self.state, self.started_ms) {
+            (JobState::Running, Some(s)) => now_ms.saturating_sub(s),
+            _ => 0,
+        };
+        self.run_ms_before + current
+    }
+
+    fn stop_clock(&mut self, now_ms: u64) {
+        if let (JobState::Running, Some(s)) = (self.state, self.started_ms) {
+            self.run_ms_before += now_ms.saturating_sub(s);
+        }
+        self.started_ms = None;
+    }
+
+    fn log(&mut self, line: String) {
+        tracing::info!(job = self.id, "{line}");
+        if self.log.len() < 10_000 {
+            self.log.push(line);
+        }
+    }
+
+    /// Per tile, the passes merged (the tile progress map).
+    pub fn tile_passes(&self) -> &[u32] {
+        &self.next_pass
+    }
+
+    pub fn info(&self, now_ms: u64) -> JobInfo {
+        let elapsed_ms = self.running_ms(now_ms);
+        let secs = elapsed_ms as f64 / 1000.0;
+        let rate = if secs > 0.0 { self.samples_done as f64 / secs } else { 0.0 };
+        let left = self.samples_total.saturating_sub(self.samples_done) as f64;
+        let eta = match self.state {
+            JobState::Completed => Some(0.0),
+            _ if rate > 0.0 && !self.state.is_finished() => Some(left / rate),
+            _ => None,
+        };
+        JobInfo {
+            id: self.id,
+            name: self.name.clone(),
+            scene_id: self.scene_id.clone(),
+            state: self.state,
+            priority: self.priority,
+            settings: self.settings.clone(),
+            tiles: self.plan.tiles.len() as u32,
+            passes_total: self.plan.passes.len() as u32,
+            passes_done: self.passes_done,
+            units_total: self.units.len() as u64,
+            units_merged: self.units_merged,
+            spp_done: self.film.splat_spp,
+            samples_done: self.samples_done,
+            samples_total: self.samples_total,
+            progress: if self.samples_total > 0 { self.samples_done as f64 / self.samples_total as f64 } else { 1.0 },
+            samples_per_sec: rate,
+            eta_secs: eta,
+            elapsed_secs: secs,
+            created_ms: self.created_ms,
+            finished_ms: self.finished_ms,
+            error: self.error.clone(),
+            blocklist: self.blocklist.iter().copied().collect(),
+        }
+    }
+}
+
+#[derive(Debug)]
+struct Worker {
+    name: String,
+    threads: u32,
+    leases: BTreeSet<LeaseId>,
+    last_seen_ms: u64,
+    registered_ms: u64,
+    units_done: u64,
+    samples_done: u64,
+    offline: bool,
+}
+
+/// What merging a result did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct MergeOutcome {
+    /// Units folded into the film by this result (0 if it waits for an earlier pass).
+    pub folded: u32,
+    /// Passes that became complete.
+    pub passes_completed: Vec<u32>,
+    pub job_completed: bool,
+}
+
+/// Counters for `/metrics`.
+#[derive(Clone, Debug, Default)]
+pub struct Counters {
+    pub units_leased: u64,
+    pub units_merged: u64,
+    pub units_failed: u64,
+    pub leases_expired: u64,
+    pub results_rejected: u64,
+    pub samples_merged: u64,
+}
+
+/// All jobs, workers and leases.
+#[derive(Debug)]
+pub struct Farm {
+    pub cfg: FarmConfig,
+    jobs: BTreeMap<JobId, Job>,
+    workers: BTreeMap<WorkerId, Worker>,
+    leases: HashMap<LeaseId, Lease>,
+    next_job: JobId,
+    next_worker: WorkerId,
+    next_lease: LeaseId,
+    pub counters: Counters,
+}
+
+impl Farm {
+    pub fn new(cfg: FarmConfig) -> Self {
+        Self {
+            cfg,
+            jobs: BTreeMap::new(),
+            workers: BTreeMap::new(),
+            leases: HashMap::new(),
+            next_job: 1,
+            next_worker: 1,
+            next_lease: 1,
+            counters: Counters::default(),
+        }
+    }
+
+    // ----------------------------------------------------------------- jobs
+
+    /// Adds a job; settings are validated against the configured limits.
+    pub fn submit(
+        &mut self,
+        scene_id: String,
+        name: Option<String>,
+        priority: i32,
+        settings: RenderSettings,
+        now_ms: u64,
+    ) -> Result<JobId, FarmError> {
+        settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
+        let id = self.next_job;
+        self.next_job += 1;
+        let plan = settings.plan();
+        let units = plan.unit_count();
+        let samples_total = u64::from(settings.width) * u64::from(settings.height) * u64::from(settings.spp);
+        let job = Job {
+            id,
+            name: name.unwrap_or_else(|| format!("job {id}")),
+            scene_id,
+            priority,
+            film: Film::new(settings.width, settings.height),
+            units: vec![UnitState::Pending; units],
+            cursor: 0,
+            requeued: BTreeSet::new(),
+            next_pass: vec![0; plan.tiles.len()],
+            waiting: HashMap::new(),
+            pending_splats: BTreeMap::new(),
+            pass_merged: vec![0; plan.passes.len()],
+            plan,
+            settings,
+            state: JobState::Queued,
+            passes_done: 0,
+            units_merged: 0,
+            samples_done: 0,
+            samples_total,
+            leased: 0,
+            served: 0,
+            unit_failures: HashMap::new(),
+            worker_failures: HashMap::new(),
+            blocklist: BTreeSet::new(),
+            created_ms: now_ms,
+            started_ms: None,
+            run_ms_before: 0,
+            finished_ms: None,
+            error: None,
+            log: Vec::new(),
+            output_dirty: false,
+        };
+        self.jobs.insert(id, job);
+        Ok(id)
+    }
+
+    pub fn job(&self, id: JobId) -> Result<&Job, FarmError> {
+        self.jobs.get(&id).ok_or(FarmError::NoJob(id))
+    }
+
+    pub fn job_mut(&mut self, id: JobId) -> Result<&mut Job, FarmError> {
+        self.jobs.get_mut(&id).ok_or(FarmError::NoJob(id))
+    }
+
+    pub fn jobs(&self) -> impl Iterator<Item = &Job> {
+        self.jobs.values()
+    }
+
+    pub fn jobs_mut(&mut self) -> impl Iterator<Item = &mut Job> {
+        self.jobs.values_mut()
+    }
+
+    /// Ends a job's leases; their results will be refused.
+    fn drop_leases_of(&mut self, id: JobId) {
+        let held: Vec<LeaseId> = self.leases.iter().filter(|(_, l)| l.job == id).map(|(k, _)| *k).collect();
+        for lease_id in held {
+            if let Some(l) = self.leases.remove(&lease_id) {
+                if let Some(w) = self.workers.get_mut(&l.worker) {
+                    w.leases.remove(&lease_id);
+                }
+                if let Some(job) = self.jobs.get_mut(&l.job) {
+                    job.leased = job.leased.saturating_sub(1);
+                    job.requeue(l.unit);
+                }
+            }
+        }
+    }
+
+    fn finish(&mut self, id: JobId, state: JobState, error: Option<String>, now_ms: u64) {
+        self.drop_leases_of(id);
+        if let Some(job) = self.jobs.get_mut(&id) {
+            job.stop_clock(now_ms);
+            job.state = state;
+            job.finished_ms = Some(now_ms);
+            job.error = error;
+            job.output_dirty = true;
+            job.waiting.clear();
+        }
+    }
+
+    pub fn cancel(&mut self, id: JobId, now_ms: u64) -> Result<(), FarmError> {
+        let job = self.job(id)?;
+        if job.state.is_finished() {
+            return Err(FarmError::BadState { id, state: job.state.as_str(), action: "cancel" });
+        }
+        self.finish(id, JobState::Cancelled, None, now_ms);
+        if let Some(job) = self.jobs.get_mut(&id) {
+            job.log("cancelled".into());
+        }
+        Ok(())
+    }
+
+    /// Stops handing out the job's units; units in flight still merge.
+    pub fn pause(&mut self, id: JobId, now_ms: u64) -> Result<(), FarmError> {
+        let job = self.job_mut(id)?;
+        if !matches!(job.state, JobState::Queued | JobState::Running) {
+            return Err(FarmError::BadState { id, state: job.state.as_str(), action: "pause" });
+        }
+        job.stop_clock(now_ms);
+        job.state = JobState::Paused;
+        job.log("paused".into());
+        Ok(())
+    }
+
+    pub fn resume(&mut self, id: JobId, _now_ms: u64) -> Result<(), FarmError> {
+        let job = self.job_mut(id)?;
+        if job.state != JobState::Paused {
+            return Err(FarmError::BadState { id, state: job.state.as_str(), action: "resume" });
+        }
+        job.state = if job.units_merged > 0 || job.leased > 0 { JobState::Running } else { JobState::Queued };
+        if job.state == JobState::Running {
+            job.started_ms = Some(_now_ms);
+        }
+        job.log("resumed".into());
+        Ok(())
+    }
+
+    pub fn set_priority(&mut self, id: JobId, priority: i32) -> Result<(), FarmError> {
+        self.job_mut(id)?.priority = priority;
+        Ok(())
+    }
+
+    /// Removes a finished job.
+    pub fn delete(&mut self, id: JobId) -> Result<Job, FarmError> {
+        let job = self.job(id)?;
+        if !job.state.is_finished() {
+            return Err(FarmError::BadState { id, state: job.state.as_str(), action: "delete (cancel it first)" });
+        }
+        self.jobs.remove(&id).ok_or(FarmError::NoJob(id))
+    }
+
+    // ----------------------------------------------------------------- workers
+
+    pub fn register(&mut self, name: String, threads: u32, now_ms: u64) -> WorkerId {
+        let id = self.next_worker;
+        self.next_worker += 1;
+        tracing::info!(worker = id, %name, threads, "worker registered");
+        self.workers.insert(
+            id,
+            Worker {
+                name,
+                threads,
+                leases: BTreeSet::new(),
+                last_seen_ms: now_ms,
+                registered_ms: now_ms,
+                units_done: 0,
+                samples_done: 0,
+                offline: false,
+            },
+        );
+        id
+    }
+
+    /// Marks the worker alive and extends its leases.
+    pub fn heartbeat(&mut self, worker: WorkerId, now_ms: u64) -> Result<(), FarmError> {
+        let w = self.workers.get_mut(&worker).ok_or(FarmError::NoWorker(worker))?;
+        w.last_seen_ms = now_ms;
+        w.offline = false;
+        let deadline = now_ms + self.cfg.lease_timeout_ms;
+        for id in &w.leases {
+            if let Some(l) = self.leases.get_mut(id) {
+                l.deadline_ms = deadline;
+            }
+        }
+        Ok(())
+    }
+
+    pub fn workers(&self, now_ms: u64) -> Vec<WorkerInfo> {
+        self.workers
+            .iter()
+            .map(|(&id, w)| {
+                let current = w
+                    .leases
+                    .iter()
+                    .next()
+                    .and_then(|l| self.leases.get(l))
+                    .and_then(|l| self.jobs.get(&l.job).map(|j| (l.job, j.unit_key(l.unit))));
+                let secs = now_ms.saturating_sub(w.registered_ms) as f64 / 1000.0;
+                WorkerInfo {
+                    id,
+                    name: w.name.clone(),
+                    threads: w.threads,
+                    state: if w.offline {
+                        WorkerState::Offline
+                    } else if w.leases.is_empty() {
+                        WorkerState::Idle
+                    } else {
+                        WorkerState::Busy
+                    },
+                    current,
+                    units_done: w.units_done,
+                    samples_done: w.samples_done,
+                    samples_per_sec: if secs > 0.0 { w.samples_done as f64 / secs } else { 0.0 },
+                    last_seen_ms: w.last_seen_ms,
+                }
+            })
+            .collect()
+    }
+
+    // ----------------------------------------------------------------- leases
+
+    /// Hands the worker the next unit: highest priority first; among equal priorities the job
+    /// with the fewest units in flight (then the fewest served) - a fair share; inside a job,
+    /// canonical (pass-major) order, returned units first.
+    pub fn lease(&mut self, worker: WorkerId, now_ms: u64) -> Result<Option<LeaseGrant>, FarmError> {
+        let w = self.workers.get_mut(&worker).ok_or(FarmError::NoWorker(worker))?;
+        w.last_seen_ms = now_ms;
+        w.offline = false;
+        let pick = self
+            .jobs
+            .values()
+            .filter(|j| j.accepts_work() && j.has_pending() && !j.blocklist.contains(&worker))
+            .min_by_key(|j| (std::cmp::Reverse(j.priority), j.leased, j.served, j.id))
+            .map(|j| j.id);
+        let Some(job_id) = pick else { return Ok(None) };
+        let lease_id = self.next_lease;
+        self.next_lease += 1;
+        let Some(job) = self.jobs.get_mut(&job_id) else { return Ok(None) };
+        let Some(unit) = job.take_pending() else { return Ok(None) };
+        job.units[unit] = UnitState::Leased(lease_id);
+        job.leased += 1;
+        job.served += 1;
+        if job.state == JobState::Queued {
+            job.state = JobState::Running;
+            job.started_ms = Some(now_ms);
+        }
+        let key = job.unit_key(unit);
+        let grant = LeaseGrant {
+            lease_id,
+            job_id,
+            scene_id: job.scene_id.clone(),
+            settings: job.settings.clone(),
+            unit: key,
+            tile: job.plan.tiles[key.tile as usize],
+            pass: job.plan.passes[key.pass as usize],
+        };
+        self.leases
+            .insert(lease_id, Lease { job: job_id, unit, worker, deadline_ms: now_ms + self.cfg.lease_timeout_ms });
+        if let Some(w) = self.workers.get_mut(&worker) {
+            w.leases.insert(lease_id);
+        }
+        self.counters.units_leased += 1;
+        Ok(Some(grant))
+    }
+
+    fn take_lease(&mut self, lease_id: LeaseId) -> Option<Lease> {
+        let l = self.leases.remove(&lease_id)?;
+        if let Some(w) = self.workers.get_mut(&l.worker) {
+            w.leases.remove(&lease_id);
+        }
+        if let Some(job) = self.jobs.get_mut(&l.job) {
+            job.leased = job.leased.saturating_sub(1);
+        }
+        Some(l)
+    }
+
+    /// Sends units of expired leases back to pending and marks silent workers offline.
+    /// Returns the number of leases that expired.
+    pub fn expire(&mut self, now_ms: u64) -> usize {
+        let expired: Vec<LeaseId> =
+            self.leases.iter().filter(|(_, l)| l.deadline_ms < now_ms).map(|(id, _)| *id).collect();
+        for &id in &expired {
+            if let Some(l) = self.take_lease(id) {
+                if let Some(job) = self.jobs.get_mut(&l.job) {
+                    job.requeue(l.unit);
+                    let key = job.unit_key(l.unit);
+                    job.log(format!(
+                        "lease {id} of worker {} expired: unit pass {} tile {} is pending again",
+                        l.worker, key.pass, key.tile
+                    ));
+                }
+                self.counters.leases_expired += 1;
+            }
+        }
+        for w in self.workers.values_mut() {
+            if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
+                w.offline = true;
+            }
+        }
+        expired.len()
+    }
+
+    /// A worker gives a unit back: on shutdown (`failed = false`) or because rendering failed.
+    pub fn release(&mut self, lease_id: LeaseId, failed: bool, reason: &str, now_ms: u64) -> Result<(), FarmError> {
+        let l = self.take_lease(lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
+        let (max_failures, blocklist_after) = (self.cfg.max_unit_failures, self.cfg.blocklist_after);
+        let Some(job) = self.jobs.get_mut(&l.job) else { return Ok(()) };
+        job.requeue(l.unit);
+        if !failed {
+            return Ok(());
+        }
+        self.counters.units_failed += 1;
+        let key = job.unit_key(l.unit);
+        job.log(format!("worker {} failed unit pass {} tile {}: {reason}", l.worker, key.pass, key.tile));
+        let unit_failures = job.unit_failures.entry(l.unit).or_insert(0);
+        *unit_failures += 1;
+        let unit_failures = *unit_failures;
+        let worker_failures = job.worker_failures.entry(l.worker).or_insert(0);
+        *worker_failures += 1;
+        if *worker_failures >= blocklist_after && job.blocklist.insert(l.worker) {
+            job.log(format!("worker {} is blocklisted for this job after {blocklist_after} failures", l.worker));
+        }
+        if unit_failures >= max_failures {
+            let msg =
+                format!("unit pass {} tile {} failed {unit_failures} times; last error: {reason}", key.pass, key.tile);
+            let id = job.id;
+            job.log(format!("job failed: {msg}"));
+            self.finish(id, JobState::Failed, Some(msg), now_ms);
+        }
+        Ok(())
+    }
+
+    /// Accepts a unit's result from the worker holding its lease and merges it.
+    pub fn accept(
+        &mut self,
+        lease_id: LeaseId,
+        frame: UnitResultFrame,
+        now_ms: u64,
+    ) -> Result<MergeOutcome, FarmError> {
+        let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
+        let job = self.jobs.get(&l.job).ok_or(FarmError::LeaseLost(lease_id))?;
+        let key = job.unit_key(l.unit);
+        let rect = job.plan.tiles[key.tile as usize];
+        let mismatch = if frame.lease_id != lease_id {
+            Some(format!("frame is for lease {}", frame.lease_id))
+        } else if frame.job_id != l.job || frame.unit != key {
+            Some(format!(
+                "frame is for job {} unit {:?}, lease holds job {} unit {key:?}",
+                frame.job_id, frame.unit, l.job
+            ))
+        } else if frame.accum.rect != rect {
+            Some(format!("tile {:?}, expected {rect:?}", frame.accum.rect))
+        } else if frame.splats.as_ref().is_some_and(|s| (s.width, s.height) != (job.film.width, job.film.height)) {
+            Some("splat buffer size differs from the image".into())
+        } else {
+            None
+        };
+        if let Some(reason) = mismatch {
+            // The worker holds the lease but sent something else: give the unit to someone else.
+            self.counters.results_rejected += 1;
+            self.take_lease(lease_id);
+            if let Some(job) = self.jobs.get_mut(&l.job) {
+                job.requeue(l.unit);
+                job.log(format!("refused a result of worker {}: {reason}", l.worker));
+            }
+            return Err(FarmError::ResultMismatch { lease: lease_id, reason });
+        }
+        let spp = u64::from(job.plan.passes[key.pass as usize].spp());
+        self.take_lease(lease_id);
+        let pixels = rect.pixel_count() as u64;
+        if let Some(w) = self.workers.get_mut(&l.worker) {
+            w.units_done += 1;
+            w.samples_done += pixels * spp;
+            w.last_seen_ms = now_ms;
+        }
+        let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
+        job.units[l.unit] = UnitState::Received;
+        job.waiting.insert(l.unit, (frame.accum, frame.splats));
+        let mut out = MergeOutcome::default();
+        let tile = key.tile as usize;
+        let tiles = job.plan.tiles.len() as u32;
+        loop {
+            let next = job.next_pass[tile];
+            if next as usize >= job.plan.passes.len() {
+                break;
+            }
+            let index = job.unit_index(UnitKey { pass: next, tile: key.tile });
+            let Some((accum, splats)) = job.waiting.remove(&index) else { break };
+            job.film.add_tile(&accum);
+            if let Some(s) = splats {
+                match job.pending_splats.get_mut(&next) {
+                    Some(buf) => buf.merge(&s),
+                    None => {
+                        job.pending_splats.insert(next, s);
+                    }
+                }
+            }
+            job.units[index] = UnitState::Merged;
+            job.next_pass[tile] += 1;
+            job.units_merged += 1;
+            let samples = accum.rect.pixel_count() as u64 * u64::from(job.plan.passes[next as usize].spp());
+            job.samples_done += samples;
+            self.counters.units_merged += 1;
+            self.counters.samples_merged += samples;
+            out.folded += 1;
+            job.pass_merged[next as usize] += 1;
+        }
+        // Passes complete in order, because every tile folds its passes in order.
+        while (job.passes_done as usize) < job.plan.passes.len() && job.pass_merged[job.passes_done as usize] == tiles {
+            let p = job.passes_done;
+            if let Some(s) = job.pending_splats.remove(&p) {
+                job.film.splats.merge(&s);
+            }
+            job.film.splat_spp = job.plan.passes[p as usize].s1;
+            job.passes_done += 1;
+            job.output_dirty = true;
+            out.passes_completed.push(p);
+        }
+        if job.units_merged == job.units.len() as u64 {
+            let id = job.id;
+            job.log("completed".into());
+            self.finish(id, JobState::Completed, None, now_ms);
+            out.job_completed = true;
+        }
+        Ok(out)
+    }
+
+    /// Leases held right now.
+    pub fn leases_held(&self) -> usize {
+        self.leases.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pathfarm_common::film::SampleValue;
+    use pathfarm_common::job::PassSchedule;
+
+    fn settings() -> RenderSettings {
+        let mut s = RenderSettings::new(20, 12, 7);
+        s.tile_size = 8;
+        s.passes = PassSchedule::Doubling { first: 1, max: 4 };
+        s
+    }
+
+    /// A fake render: every sample of every pixel adds (x, y, pass) so the result depends on the unit.
+    fn fake_result(g: &LeaseGrant) -> UnitResultFrame {
+        let mut accum = TileAccum::new(g.tile);
+        for y in g.tile.y0..g.tile.y1 {
+            for x in g.tile.x0..g.tile.x1 {
+                for s in g.pass.samples() {
+                    let v = SampleValue { radiance: [x as f32, y as f32, s as f32], ..Default::default() };
+                    pathfarm_common::film::add_sample(accum.pixel_mut(x - g.tile.x0, y - g.tile.y0), &v);
+                }
+            }
+        }
+        UnitResultFrame { lease_id: g.lease_id, job_id: g.job_id, unit: g.unit, accum, splats: None }
+    }
+
+    fn reference_film(s: &RenderSettings) -> Film {
+        let plan = s.plan();
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        for _ in 0..plan.unit_count() {
+            let g = farm.lease(w, 0).expect("lease").expect("work");
+            farm.accept(g.lease_id, fake_result(&g), 0).expect("accept");
+        }
+        assert_eq!(farm.job(id).expect("job").state, JobState::Completed);
+        farm.job(id).expect("job").film.clone()
+    }
+
+    #[test]
+    fn out_of_order_results_merge_to_the_same_film() {
+        let s = settings();
+        let reference = reference_film(&s);
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let mut grants = Vec::new();
+        while let Some(g) = farm.lease(w, 0).expect("lease") {
+            grants.push(g);
+        }
+        assert_eq!(grants.len(), s.plan().unit_count());
+        // Deliver in reverse: everything waits until pass 0 of each tile arrives.
+        grants.reverse();
+        let mut completed = Vec::new();
+        for g in &grants {
+            let out = farm.accept(g.lease_id, fake_result(g), 0).expect("accept");
+            completed.extend(out.passes_completed);
+        }
+        assert_eq!(completed, (0..s.plan().passes.len() as u32).collect::<Vec<_>>());
+        let job = farm.job(id).expect("job");
+        assert_eq!(job.state, JobState::Completed);
+        assert_eq!(job.film, reference);
+    }
+
+    #[test]
+    fn duplicate_and_expired_results_are_refused() {
+        let s = settings();
+        let mut farm = Farm::new(FarmConfig { lease_timeout_ms: 100, ..FarmConfig::default() });
+        let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        farm.accept(g.lease_id, fake_result(&g), 10).expect("first");
+        assert_eq!(farm.accept(g.lease_id, fake_result(&g), 10), Err(FarmError::LeaseLost(g.lease_id)));
+        // A lease renewed by heartbeats survives; an abandoned one expires.
+        let g2 = farm.lease(w, 20).expect("lease").expect("work");
+        farm.heartbeat(w, 90).expect("hb");
+        assert_eq!(farm.expire(150), 0);
+        assert_eq!(farm.expire(191), 1);
+        assert_eq!(farm.accept(g2.lease_id, fake_result(&g2), 200), Err(FarmError::LeaseLost(g2.lease_id)));
+        // The unit is handed out again, first, and merges once.
+        let w2 = farm.register("w2".into(), 1, 200);
+        let g3 = farm.lease(w2, 200).expect("lease").expect("work");
+        assert_eq!((g3.unit, g3.tile), (g2.unit, g2.tile));
+        farm.accept(g3.lease_id, fake_result(&g3), 200).expect("accept");
+        assert_eq!(farm.job(id).expect("job").units_merged, 2);
+    }
+
+    #[test]
+    fn mismatched_result_is_refused_and_requeued() {
+        let s = settings();
+        let mut farm = Farm::new(FarmConfig::default());
+        farm.submit("x".into(), None, 0, s, 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        let g2 = farm.lease(w, 0).expect("lease").expect("work");
+        let mut wrong = fake_result(&g2);
+        wrong.lease_id = g.lease_id;
+        assert!(matches!(farm.accept(g.lease_id, wrong, 0), Err(FarmError::ResultMismatch { .. })));
+        let again = farm.lease(w, 0).expect("lease").expect("work");
+        assert_eq!(again.unit, g.unit);
+    }
+
+    #[test]
+    fn higher_priority_first_and_fair_share_among_equals() {
+        let s = settings();
+        let mut farm = Farm::new(FarmConfig::default());
+        let low = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let low2 = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let high = farm.submit("x".into(), None, 5, s.clone(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let units = s.plan().unit_count();
+        for _ in 0..units {
+            assert_eq!(farm.lease(w, 0).expect("lease").expect("work").job_id, high);
+        }
+        let mut counts = HashMap::new();
+        for _ in 0..10 {
+            *counts.entry(farm.lease(w, 0).expect("lease").expect("work").job_id).or_insert(0) += 1;
+        }
+        assert_eq!(counts.get(&low), Some(&5));
+        assert_eq!(counts.get(&low2), Some(&5));
+    }
+
+    #[test]
+    fn repeated_failures_blocklist_the_worker_and_fail_the_job() {
+        let s = settings();
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, s, 0).expect("submit");
+        let a = farm.register("a".into(), 1, 0);
+        let b = farm.register("b".into(), 1, 0);
+        for _ in 0..2 {
+            let g = farm.lease(a, 0).expect("lease").expect("work");
+            farm.release(g.lease_id, true, "boom", 0).expect("release");
+        }
+        assert!(farm.job(id).expect("job").blocklist.contains(&a));
+        assert_eq!(farm.lease(a, 0).expect("lease"), None);
+        let g = farm.lease(b, 0).expect("lease").expect("work");
+        farm.release(g.lease_id, true, "boom again", 0).expect("release");
+        let job = farm.job(id).expect("job");
+        assert_eq!(job.state, JobState::Failed);
+        assert!(job.error.as_deref().is_some_and(|e| e.contains("boom again")), "{:?}", job.error);
+    }
+
+    #[test]
+    fn cancel_pause_resume() {
+        let s = settings();
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, s, 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        farm.pause(id, 1).expect("pause");
+        assert_eq!(farm.lease(w, 1).expect("lease"), None);
+        // In-flight work still merges while paused.
+        farm.accept(g.lease_id, fake_result(&g), 2).expect("accept");
+        farm.resume(id, 3).expect("resume");
+        let g = farm.lease(w, 3).expect("lease").expect("work");
+        farm.cancel(id, 4).expect("cancel");
+        assert_eq!(farm.accept(g.lease_id, fake_result(&g), 5), Err(FarmError::LeaseLost(g.lease_id)));
+        assert!(farm.cancel(id, 6).is_err());
+        farm.delete(id).expect("delete");
+        assert_eq!(farm.job(id).err(), Some(FarmError::NoJob(id)));
+    }
+}

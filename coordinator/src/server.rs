@@ -1,0 +1,420 @@
+//! The coordinator service: shared state, the background loops (lease expiry, progressive
+//! output) and `serve`.
+
+use crate::api::ApiError;
+use crate::farm::{Farm, FarmConfig};
+use axum::http::StatusCode;
+use pathfarm_common::film::{ImageLayers, write_atomic};
+use pathfarm_common::protocol::{JobId, JobState, SceneCreated};
+use pathfarm_common::scene::LoadOptions;
+use pathfarm_common::scene::bundle::{is_scene_id, load_bundle, scene_id};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tokio::sync::{Notify, broadcast};
+
+/// Unix time in milliseconds: the farm's clock.
+pub fn now_ms() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Service configuration.
+#[derive(Clone, Debug)]
+pub struct ServerConfig {
+    pub listen: SocketAddr,
+    pub data_dir: PathBuf,
+    pub farm: FarmConfig,
+    pub max_upload_bytes: usize,
+    pub max_triangles: usize,
+    pub max_texture_pixels: u64,
+    /// Minimum time between two progressive writes of a job's images.
+    pub output_interval: Duration,
+    pub auth: Auth,
+}
+
+impl ServerConfig {
+    pub fn new(listen: SocketAddr, data_dir: PathBuf) -> Self {
+        Self {
+            listen,
+            data_dir,
+            farm: FarmConfig::default(),
+            max_upload_bytes: 512 << 20,
+            max_triangles: 20_000_000,
+            max_texture_pixels: 16384 * 16384,
+            output_interval: Duration::from_secs(2),
+            auth: Auth::default(),
+        }
+    }
+}
+
+/// Bearer tokens; with neither set, the API is open.
+#[derive(Clone, Debug, Default)]
+pub struct Auth {
+    pub client: Option<String>,
+    pub worker: Option<String>,
+}
+
+/// A mutex that survives a panicking holder (the state machine keeps no half-done updates
+/// across a panic point that matters more than serving on).
+pub struct FarmLock(Mutex<Farm>);
+
+impl FarmLock {
+    pub fn lock(&self) -> MutexGuard<'_, Farm> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// What the scene store remembers about a bundle.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SceneMeta {
+    pub triangles: usize,
+    pub cameras: usize,
+    pub warnings: Vec<String>,
+}
+
+/// Content-addressed scene bundles under `data_dir/scenes`.
+pub struct SceneStore {
+    dir: PathBuf,
+    meta: Mutex<HashMap<String, SceneMeta>>,
+}
+
+impl SceneStore {
+    fn open(dir: PathBuf) -> std::io::Result<Self> {
+        std::fs::create_dir_all(&dir)?;
+        let mut meta = HashMap::new();
+        for entry in std::fs::read_dir(&dir)? {
+            let path = entry?.path();
+            let Some(id) = path.file_stem().and_then(|s| s.to_str()) else { continue };
+            if path.extension().is_some_and(|e| e == "json")
+                && is_scene_id(id)
+                && let Some(m) = std::fs::read(&path).ok().and_then(|b| serde_json::from_slice(&b).ok())
+            {
+                meta.insert(id.to_string(), m);
+            }
+        }
+        Ok(Self { dir, meta: Mutex::new(meta) })
+    }
+
+    pub fn bundle_path(&self, id: &str) -> PathBuf {
+        self.dir.join(format!("{id}.bundle"))
+    }
+
+    pub fn meta(&self, id: &str) -> Option<SceneMeta> {
+        self.meta.lock().unwrap_or_else(|e| e.into_inner()).get(id).cloned()
+    }
+
+    /// Validates (by loading) and stores a bundle; idempotent for the same bytes.
+    pub fn add(&self, bytes: &[u8], opts: &LoadOptions) -> Result<SceneCreated, ApiError> {
+        let id = scene_id(bytes);
+        if let Some(m) = self.meta(&id) {
+            return Ok(SceneCreated { scene_id: id, triangles: m.triangles, warnings: m.warnings });
+        }
+        let scratch = self.dir.join(format!("unpack-{id}-{}", std::process::id()));
+        let loaded = load_bundle(bytes, &scratch, opts);
+        let _ = std::fs::remove_dir_all(&scratch);
+        let scene = loaded.map_err(|e| {
+            use pathfarm_common::scene::SceneError;
+            match e {
+                SceneError::LimitExceeded { .. } => {
+                    ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "limit_exceeded", e.to_string())
+                }
+                SceneError::ForbiddenUri { .. } => ApiError::unprocessable("forbidden_uri", e.to_string()),
+                _ => ApiError::unprocessable("invalid_scene", e.to_string()),
+            }
+        })?;
+        let meta =
+            SceneMeta { triangles: scene.triangle_count(), cameras: scene.cameras.len(), warnings: scene.warnings };
+        let io = |e: pathfarm_common::film::ImageError| ApiError::internal(format!("storing the scene: {e}"));
+        write_atomic(&self.bundle_path(&id), bytes).map_err(io)?;
+        let meta_json = serde_json::to_vec(&meta).map_err(|e| ApiError::internal(e.to_string()))?;
+        write_atomic(&self.dir.join(format!("{id}.json")), &meta_json).map_err(io)?;
+        tracing::info!(scene = %id, triangles = meta.triangles, "scene stored");
+        self.meta.lock().unwrap_or_else(|e| e.into_inner()).insert(id.clone(), meta.clone());
+        Ok(SceneCreated { scene_id: id, triangles: meta.triangles, warnings: meta.warnings })
+    }
+}
+
+/// Live event for dashboards: something about a job or a worker changed.
+#[derive(Clone, Debug, Serialize)]
+pub struct Event {
+    pub kind: &'static str,
+    pub id: u64,
+}
+
+/// Latency histogram buckets in seconds (Prometheus `le`).
+const BUCKETS: [f64; 10] = [0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1];
+
+#[derive(Default)]
+pub struct Histogram {
+    counts: [AtomicU64; BUCKETS.len() + 1],
+    sum_ns: AtomicU64,
+}
+
+impl Histogram {
+    pub fn observe(&self, d: Duration) {
+        let s = d.as_secs_f64();
+        let i = BUCKETS.iter().position(|&b| s <= b).unwrap_or(BUCKETS.len());
+        self.counts[i].fetch_add(1, Ordering::Relaxed);
+        self.sum_ns.fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
+    }
+
+    fn render(&self, name: &str, help: &str, out: &mut String) {
+        use std::fmt::Write;
+        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} histogram");
+        let mut cum = 0;
+        for (i, b) in BUCKETS.iter().enumerate() {
+            cum += self.counts[i].load(Ordering::Relaxed);
+            let _ = writeln!(out, "{name}_bucket{{le=\"{b}\"}} {cum}");
+        }
+        cum += self.counts[BUCKETS.len()].load(Ordering::Relaxed);
+        let _ = writeln!(out, "{name}_bucket{{le=\"+Inf\"}} {cum}");
+        let _ = writeln!(out, "{name}_sum {}", self.sum_ns.load(Ordering::Relaxed) as f64 * 1e-9);
+        let _ = writeln!(out, "{name}_count {cum}");
+    }
+}
+
+#[derive(Default)]
+pub struct Metrics {
+    pub bytes_received: AtomicU64,
+    pub merge_latency: Histogram,
+    pub lease_latency: Histogram,
+}
+
+impl Metrics {
+    pub fn observe_merge(&self, d: Duration) {
+        self.merge_latency.observe(d);
+    }
+    pub fn observe_lease(&self, d: Duration) {
+        self.lease_latency.observe(d);
+    }
+}
+
+/// Everything the handlers share.
+pub struct AppState {
+    pub config: ServerConfig,
+    pub farm: FarmLock,
+    pub scenes: SceneStore,
+    pub auth: Auth,
+    /// Woken when units may have become available (job submitted, resumed, unit requeued).
+    pub work_ready: Notify,
+    /// Woken when a pass or a job completed (progressive output).
+    pub output_ready: Notify,
+    pub events: broadcast::Sender<Event>,
+    pub metrics: Metrics,
+    pub started: Instant,
+}
+
+impl AppState {
+    pub fn new(config: ServerConfig) -> std::io::Result<Self> {
+        std::fs::create_dir_all(config.data_dir.join("jobs"))?;
+        let scenes = SceneStore::open(config.data_dir.join("scenes"))?;
+        let (events, _) = broadcast::channel(1024);
+        Ok(Self {
+            farm: FarmLock(Mutex::new(Farm::new(config.farm.clone()))),
+            scenes,
+            auth: config.auth.clone(),
+            work_ready: Notify::new(),
+            output_ready: Notify::new(),
+            events,
+            metrics: Metrics::default(),
+            started: Instant::now(),
+            config,
+        })
+    }
+
+    pub fn load_options(&self) -> LoadOptions {
+        LoadOptions {
+            max_triangles: Some(self.config.max_triangles),
+            max_texture_pixels: Some(self.config.max_texture_pixels),
+        }
+    }
+
+    pub fn publish(&self, kind: &'static str, id: u64) {
+        let _ = self.events.send(Event { kind, id });
+    }
+
+    pub fn job_dir(&self, id: JobId) -> PathBuf {
+        self.config.data_dir.join("jobs").join(id.to_string())
+    }
+
+    pub fn delete_job_files(&self, id: JobId) {
+        let _ = std::fs::remove_dir_all(self.job_dir(id));
+    }
+
+    /// Prometheus text exposition.
+    pub fn metrics_text(&self) -> String {
+        use std::fmt::Write;
+        let mut out = String::new();
+        let (states, workers, c, leases) = {
+            let farm = self.farm.lock();
+            let mut states: HashMap<&'static str, u64> = HashMap::new();
+            for j in farm.jobs() {
+                *states.entry(j.state.as_str()).or_default() += 1;
+            }
+            let mut workers: HashMap<&'static str, u64> = HashMap::new();
+            for w in farm.workers(now_ms()) {
+                let s = match w.state {
+                    pathfarm_common::protocol::WorkerState::Idle => "idle",
+                    pathfarm_common::protocol::WorkerState::Busy => "busy",
+                    pathfarm_common::protocol::WorkerState::Offline => "offline",
+                };
+                *workers.entry(s).or_default() += 1;
+            }
+            (states, workers, farm.counters.clone(), farm.leases_held())
+        };
+        let _ = writeln!(out, "# HELP pathfarm_jobs Jobs by state.\n# TYPE pathfarm_jobs gauge");
+        for s in ["queued", "running", "paused", "completed", "failed", "cancelled"] {
+            let _ = writeln!(out, "pathfarm_jobs{{state=\"{s}\"}} {}", states.get(s).copied().unwrap_or(0));
+        }
+        let _ = writeln!(out, "# HELP pathfarm_workers Workers by state.\n# TYPE pathfarm_workers gauge");
+        for s in ["idle", "busy", "offline"] {
+            let _ = writeln!(out, "pathfarm_workers{{state=\"{s}\"}} {}", workers.get(s).copied().unwrap_or(0));
+        }
+        let counters = [
+            ("pathfarm_units_leased_total", "Units handed out.", c.units_leased),
+            ("pathfarm_units_merged_total", "Units merged into films.", c.units_merged),
+            ("pathfarm_units_failed_total", "Units reported failed by workers.", c.units_failed),
+            ("pathfarm_leases_expired_total", "Leases that expired.", c.leases_expired),
+            (
+                "pathfarm_results_rejected_total",
+                "Results refused (lost lease, corrupt, mismatched).",
+                c.results_rejected,
+            ),
+            ("pathfarm_samples_total", "Pixel samples merged.", c.samples_merged),
+            (
+                "pathfarm_bytes_received_total",
+                "Request body bytes received (scenes and results).",
+                self.metrics.bytes_received.load(Ordering::Relaxed),
+            ),
+        ];
+        for (name, help, v) in counters {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+        }
+        let _ = writeln!(
+            out,
+            "# HELP pathfarm_leases_held Leases currently held.\n# TYPE pathfarm_leases_held gauge\npathfarm_leases_held {leases}"
+        );
+        self.metrics.merge_latency.render("pathfarm_merge_seconds", "Time to decode and merge a result.", &mut out);
+        self.metrics.lease_latency.render("pathfarm_lease_seconds", "Time to pick a unit for a lease.", &mut out);
+        out
+    }
+}
+
+/// Writes `image.exr` and `preview.png` of a job atomically.
+pub fn write_outputs(dir: &Path, layers: &ImageLayers) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    write_atomic(&dir.join("image.exr"), &layers.encode_exr()?)?;
+    write_atomic(&dir.join("preview.png"), &layers.encode_png(0.0)?)?;
+    Ok(())
+}
+
+/// Expires leases every quarter second and wakes lease waiters when units came back.
+async fn maintenance_loop(state: Arc<AppState>) {
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    loop {
+        tick.tick().await;
+        let expired = state.farm.lock().expire(now_ms());
+        if expired > 0 {
+            tracing::warn!(expired, "leases expired; units are pending again");
+            state.work_ready.notify_waiters();
+        }
+    }
+}
+
+/// Writes each job's EXR and PNG after a pass completes, at most every `output_interval` per
+/// running job, and always when the job ends.
+async fn output_loop(state: Arc<AppState>) {
+    let mut last: HashMap<JobId, Instant> = HashMap::new();
+    loop {
+        let _ = tokio::time::timeout(Duration::from_millis(500), state.output_ready.notified()).await;
+        let due: Vec<(JobId, JobState, ImageLayers)> = {
+            let mut farm = state.farm.lock();
+            farm.jobs_mut()
+                .filter(|j| j.output_dirty)
+                .filter(|j| {
+                    j.state.is_finished() || last.get(&j.id).is_none_or(|t| t.elapsed() >= state.config.output_interval)
+                })
+                .map(|j| {
+                    j.output_dirty = false;
+                    (j.id, j.state, j.film.resolve())
+                })
+                .collect()
+        };
+        for (id, job_state, layers) in due {
+            last.insert(id, Instant::now());
+            let dir = state.job_dir(id);
+            let r = tokio::task::spawn_blocking(move || write_outputs(&dir, &layers)).await;
+            match r {
+                Ok(Ok(())) => tracing::debug!(job = id, state = job_state.as_str(), "images written"),
+                Ok(Err(e)) => tracing::error!(job = id, "writing images failed: {e:#}"),
+                Err(e) => tracing::error!(job = id, "image writer panicked: {e}"),
+            }
+            state.publish("image", id);
+        }
+    }
+}
+
+/// A running coordinator.
+pub struct Server {
+    pub addr: SocketAddr,
+    pub state: Arc<AppState>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Server {
+    /// Binds, starts the background loops and serves until dropped or the task ends.
+    pub async fn start(config: ServerConfig) -> anyhow::Result<Self> {
+        let state = Arc::new(AppState::new(config.clone())?);
+        let listener = tokio::net::TcpListener::bind(config.listen).await?;
+        let addr = listener.local_addr()?;
+        write_atomic(&config.data_dir.join("coordinator.addr"), addr.to_string().as_bytes())?;
+        tokio::spawn(maintenance_loop(state.clone()));
+        tokio::spawn(output_loop(state.clone()));
+        let app = crate::api::router(state.clone());
+        let task = tokio::spawn(async move {
+            if let Err(e) = axum::serve(listener, app).await {
+                tracing::error!("server stopped: {e}");
+            }
+        });
+        tracing::info!(%addr, data_dir = %config.data_dir.display(), "coordinator listening");
+        Ok(Self { addr, state, task })
+    }
+
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// Serves until the process gets SIGINT or SIGTERM.
+    pub async fn run_until_signal(self) -> anyhow::Result<()> {
+        shutdown_signal().await;
+        tracing::info!("shutting down");
+        self.task.abort();
+        Ok(())
+    }
+}
+
+/// Resolves on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+}
