@@ -1,0 +1,200 @@
+//! The farm end to end: a real coordinator and real worker processes on 127.0.0.1, talking HTTP.
+//! Every test compares the farm's EXR with a local render of the same job, bit for bit.
+
+mod support;
+
+use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings};
+use pathfarm_common::protocol::{API, JobId, JobRequest, JobState, LeaseGrant, Registered, UnitResultFrame};
+use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_coordinator::client::Client;
+use std::time::Duration;
+use support::*;
+
+fn settings(width: u32, height: u32, spp: u32, tile: u32) -> RenderSettings {
+    let mut s = RenderSettings::new(width, height, spp);
+    s.tile_size = tile;
+    s.seed = 7;
+    s.integrator = IntegratorSettings::Path {
+        max_depth: 6,
+        rr_depth: 3,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    s
+}
+
+fn submit(client: &Client, scene: &[u8], s: &RenderSettings, priority: i32, name: &str) -> JobId {
+    let created = client.upload_scene(scene.to_vec()).expect("upload");
+    let req = JobRequest { scene_id: created.scene_id, name: Some(name.into()), priority, settings: s.clone() };
+    client.submit(&req).expect("submit")
+}
+
+fn wait_done(client: &Client, id: JobId, timeout: Duration) -> pathfarm_common::protocol::JobInfo {
+    wait_for(&format!("job {id} to complete"), timeout, || {
+        let info = client.job(id).expect("job");
+        assert_ne!(info.state, JobState::Failed, "job failed: {:?}", info.error);
+        (info.state == JobState::Completed).then_some(info)
+    })
+}
+
+#[test]
+fn three_workers_render_the_same_bits_as_a_local_render() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let workers: Vec<Proc> = (0..3)
+        .map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("cache{i}")), &[]))
+        .collect();
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let s = settings(64, 48, 24, 16);
+    let id = submit(&client, &scene, &s, 0, "bits");
+    let info = wait_done(&client, id, Duration::from_secs(120));
+    assert_eq!(info.units_merged, info.units_total);
+    assert_eq!(info.spp_done, 24);
+    let farm = client.image_exr(id).expect("exr");
+    assert!(farm == local_exr(&scene, &s), "the farm's EXR differs from the local render");
+    // Every worker took part (units are small and plenty).
+    let per_worker: Vec<u64> = reqwest::blocking::get(format!("{}{API}/workers", coord.url))
+        .expect("workers")
+        .json::<Vec<pathfarm_common::protocol::WorkerInfo>>()
+        .expect("json")
+        .iter()
+        .map(|w| w.units_done)
+        .collect();
+    assert_eq!(per_worker.iter().sum::<u64>(), info.units_total, "{per_worker:?}");
+    // The progressive output on disk is the final image once the job is done.
+    let on_disk = wait_for("image.exr on disk", Duration::from_secs(10), || {
+        let b = std::fs::read(coord.data_dir.join("jobs").join(id.to_string()).join("image.exr")).ok()?;
+        (b == farm).then_some(b)
+    });
+    assert!(!on_disk.is_empty());
+    drop(workers);
+}
+
+#[test]
+fn a_worker_killed_mid_unit_loses_nothing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &["--lease-timeout-ms", "1500", "--heartbeat-ms", "300"]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    // Big units (one 64x64 tile, 16 spp per pass) so the kill lands inside a render.
+    let mut s = settings(128, 64, 48, 64);
+    s.passes = PassSchedule::Fixed { spp: 16 };
+    let id = submit(&client, &scene, &s, 0, "kill");
+    let mut victim = start_worker(&coord.url, "victim", &dir.path().join("c1"), &[]);
+    // Wait until the victim holds a lease, then SIGKILL it in the middle of rendering.
+    wait_for("the victim to hold a unit", Duration::from_secs(60), || {
+        let ws: Vec<pathfarm_common::protocol::WorkerInfo> =
+            reqwest::blocking::get(format!("{}{API}/workers", coord.url)).ok()?.json().ok()?;
+        ws.iter().any(|w| w.name == "victim" && w.current.is_some()).then_some(())
+    });
+    std::thread::sleep(Duration::from_millis(100));
+    victim.kill();
+    let _survivor = start_worker(&coord.url, "survivor", &dir.path().join("c2"), &[]);
+    let info = wait_done(&client, id, Duration::from_secs(180));
+    assert_eq!(info.units_merged, info.units_total);
+    let log: Vec<String> =
+        reqwest::blocking::get(format!("{}{API}/jobs/{id}/log", coord.url)).expect("log").json().expect("json");
+    assert!(log.iter().any(|l| l.contains("expired")), "the victim's lease should have expired: {log:?}");
+    assert!(client.image_exr(id).expect("exr") == local_exr(&scene, &s), "image differs after a worker death");
+}
+
+#[test]
+fn the_higher_priority_job_finishes_first() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let s = settings(64, 64, 16, 16);
+    let low = submit(&client, &scene, &s, 0, "low");
+    let high = submit(&client, &scene, &s, 10, "high");
+    let _workers: Vec<Proc> =
+        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let high_info = wait_done(&client, high, Duration::from_secs(120));
+    let low_now = client.job(low).expect("low");
+    assert_ne!(low_now.state, JobState::Completed, "the low-priority job finished first");
+    let low_info = wait_done(&client, low, Duration::from_secs(120));
+    assert!(high_info.finished_ms <= low_info.finished_ms);
+    assert!(client.image_exr(high).expect("exr") == local_exr(&scene, &s));
+    assert!(client.image_exr(low).expect("exr") == client.image_exr(high).expect("exr"));
+}
+
+#[test]
+fn a_result_replayed_after_its_lease_expired_is_refused_and_not_merged() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &["--lease-timeout-ms", "800", "--heartbeat-ms", "200"]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let s = settings(32, 32, 8, 16);
+    let id = submit(&client, &scene, &s, 0, "replay");
+    // Play a worker by hand: register, lease a unit, render it correctly, then stay silent.
+    let http = reqwest::blocking::Client::new();
+    let reg: Registered = http
+        .post(format!("{}{API}/workers/register", coord.url))
+        .json(&serde_json::json!({"name": "slow", "threads": 1}))
+        .send()
+        .expect("register")
+        .json()
+        .expect("json");
+    let grant: LeaseGrant = http
+        .post(format!("{}{API}/workers/{}/lease?wait_ms=5000", coord.url, reg.worker_id))
+        .send()
+        .expect("lease")
+        .json()
+        .expect("grant");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let loaded = pathfarm_common::scene::bundle::load_bundle(&scene, tmp.path(), &Default::default()).expect("scene");
+    let renderer = pathfarm_worker::render::Renderer::new(&loaded, &grant.settings).expect("renderer");
+    let r = renderer.render_unit(grant.tile, grant.pass);
+    let body = UnitResultFrame {
+        lease_id: grant.lease_id,
+        job_id: grant.job_id,
+        unit: grant.unit,
+        accum: r.accum,
+        splats: r.splats,
+    }
+    .encode();
+    // Let the lease expire (no heartbeats), then deliver: 409, not merged.
+    std::thread::sleep(Duration::from_millis(1500));
+    let resp = http
+        .put(format!("{}{API}/leases/{}/result", coord.url, grant.lease_id))
+        .body(body.clone())
+        .send()
+        .expect("upload");
+    assert_eq!(resp.status().as_u16(), 409, "{}", resp.text().unwrap_or_default());
+    assert_eq!(client.job(id).expect("job").units_merged, 0);
+    // A real worker finishes the job; the replay again after completion is refused too.
+    let _w = start_worker(&coord.url, "w", &dir.path().join("c"), &[]);
+    wait_done(&client, id, Duration::from_secs(120));
+    let resp =
+        http.put(format!("{}{API}/leases/{}/result", coord.url, grant.lease_id)).body(body).send().expect("upload");
+    assert_eq!(resp.status().as_u16(), 409);
+    let info = client.job(id).expect("job");
+    assert_eq!(info.units_merged, info.units_total);
+    assert!(client.image_exr(id).expect("exr") == local_exr(&scene, &s), "image differs after a replay");
+}
+
+#[test]
+fn a_sigtermed_worker_finishes_its_unit_and_exits() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let mut s = settings(64, 64, 32, 64);
+    s.passes = PassSchedule::Fixed { spp: 16 };
+    let id = submit(&client, &scene, &s, 0, "drain");
+    let mut w = start_worker(&coord.url, "drainer", &dir.path().join("c"), &[]);
+    wait_for("a merged unit or a held lease", Duration::from_secs(60), || {
+        let ws: Vec<pathfarm_common::protocol::WorkerInfo> =
+            reqwest::blocking::get(format!("{}{API}/workers", coord.url)).ok()?.json().ok()?;
+        ws.iter().any(|w| w.current.is_some()).then_some(())
+    });
+    let status = w.terminate(Duration::from_secs(60)).expect("the worker exits after SIGTERM");
+    assert!(status.success(), "{status:?}");
+    // Its unit was delivered (not left to expire): nothing is leased any more.
+    let info = client.job(id).expect("job");
+    assert!(info.units_merged >= 1, "the unit in progress should have been uploaded");
+    let ws: Vec<pathfarm_common::protocol::WorkerInfo> =
+        reqwest::blocking::get(format!("{}{API}/workers", coord.url)).expect("workers").json().expect("json");
+    assert!(ws.iter().all(|w| w.current.is_none()), "{ws:?}");
+}
