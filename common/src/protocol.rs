@@ -280,7 +280,8 @@ fn fixed_to_bytes(values: &[Fixed]) -> Vec<u8> {
     out
 }
 
-fn bytes_to_fixed(bytes: &[u8], expected: usize, section: &'static str) -> Result<Vec<Fixed>, DecodeError> {
+/// Parses little-endian i128 values; `expected` is the count.
+pub fn bytes_to_fixed(bytes: &[u8], expected: usize, section: &'static str) -> Result<Vec<Fixed>, DecodeError> {
     if bytes.len() != expected * 16 {
         return Err(DecodeError::Section {
             section,
@@ -297,7 +298,8 @@ fn bytes_to_fixed(bytes: &[u8], expected: usize, section: &'static str) -> Resul
         .collect())
 }
 
-fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
+/// Appends a section: u64 length + size-prefixed lz4 block of little-endian i128 values.
+pub fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
     let packed = lz4_flex::compress_prepend_size(&fixed_to_bytes(values));
     out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
     out.extend_from_slice(&packed);
@@ -306,7 +308,8 @@ fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
 /// Upper bound on a decompressed section (a 16k x 16k splat buffer is 12 GB; refuse above 4 GB).
 const MAX_SECTION_BYTES: usize = 1 << 32;
 
-fn read_section(rest: &mut &[u8], section: &'static str) -> Result<Vec<u8>, DecodeError> {
+/// Reads a section written by [`push_section`] and returns its decompressed bytes.
+pub fn read_section(rest: &mut &[u8], section: &'static str) -> Result<Vec<u8>, DecodeError> {
     let err = |message: String| DecodeError::Section { section, message };
     if rest.len() < 8 {
         return Err(err("missing length".into()));

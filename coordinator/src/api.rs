@@ -216,6 +216,7 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
         farm.submit(req.scene_id, req.name, req.priority, req.settings, now_ms())?
     };
     tracing::info!(job = id, "job submitted");
+    state.persist_job(id);
     state.work_ready.notify_waiters();
     state.publish("job", id);
     Ok((StatusCode::CREATED, Json(JobCreated { id })))
@@ -261,6 +262,7 @@ async fn job_action(
         action(&mut farm, id, now_ms())?;
         farm.job(id)?.info(now_ms())
     };
+    state.persist_job(id);
     state.work_ready.notify_waiters();
     state.publish("job", id);
     Ok(Json(info))
@@ -297,6 +299,7 @@ async fn set_priority(
 async fn delete_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id = parse_id("job", &id)?;
     state.farm.lock().delete(id)?;
+    state.forget_job(id);
     state.delete_job_files(id);
     state.publish("job", id);
     Ok(StatusCode::NO_CONTENT)

@@ -91,8 +91,9 @@ pub struct Job {
     pub plan: Plan,
     pub state: JobState,
     units: Vec<UnitState>,
-    /// Every unit at or after `cursor` is pending; pending units before it are in `requeued`.
+    /// Pending units before `cursor` are in `requeued`; at or after it, units are scanned.
     cursor: usize,
+    pending: usize,
     requeued: BTreeSet<usize>,
     /// Per tile: the next pass to fold.
     next_pass: Vec<u32>,
@@ -135,23 +136,36 @@ impl Job {
     }
 
     fn has_pending(&self) -> bool {
-        !self.requeued.is_empty() || self.cursor < self.units.len()
+        self.pending > 0
     }
 
+    /// The first pending unit in canonical order (returned units come first: they are earlier).
     fn take_pending(&mut self) -> Option<usize> {
-        if let Some(i) = self.requeued.pop_first() {
-            return Some(i);
-        }
-        if self.cursor < self.units.len() {
-            self.cursor += 1;
-            return Some(self.cursor - 1);
-        }
-        None
+        let i = match self.requeued.pop_first() {
+            Some(i) => i,
+            None => {
+                while self.cursor < self.units.len() && self.units[self.cursor] != UnitState::Pending {
+                    self.cursor += 1;
+                }
+                if self.cursor == self.units.len() {
+                    return None;
+                }
+                self.cursor += 1;
+                self.cursor - 1
+            }
+        };
+        self.pending -= 1;
+        Some(i)
     }
 
     fn requeue(&mut self, index: usize) {
-        self.units[index] = UnitState::Pending;
-        self.requeued.insert(index);
+        if self.units[index] != UnitState::Pending {
+            self.units[index] = UnitState::Pending;
+            self.pending += 1;
+            if index < self.cursor {
+                self.requeued.insert(index);
+            }
+        }
     }
 
     fn accepts_work(&self) -> bool {
@@ -222,6 +236,106 @@ impl Job {
     }
 }
 
+impl Job {
+    fn new(
+        id: JobId,
+        scene_id: String,
+        name: Option<String>,
+        priority: i32,
+        settings: RenderSettings,
+        now_ms: u64,
+    ) -> Self {
+        let plan = settings.plan();
+        let units = plan.unit_count();
+        let samples_total = u64::from(settings.width) * u64::from(settings.height) * u64::from(settings.spp);
+        Job {
+            id,
+            name: name.unwrap_or_else(|| format!("job {id}")),
+            scene_id,
+            priority,
+            film: Film::new(settings.width, settings.height),
+            units: vec![UnitState::Pending; units],
+            cursor: 0,
+            pending: units,
+            requeued: BTreeSet::new(),
+            next_pass: vec![0; plan.tiles.len()],
+            waiting: HashMap::new(),
+            pending_splats: BTreeMap::new(),
+            pass_merged: vec![0; plan.passes.len()],
+            plan,
+            settings,
+            state: JobState::Queued,
+            passes_done: 0,
+            units_merged: 0,
+            samples_done: 0,
+            samples_total,
+            leased: 0,
+            served: 0,
+            unit_failures: HashMap::new(),
+            worker_failures: HashMap::new(),
+            blocklist: BTreeSet::new(),
+            created_ms: now_ms,
+            started_ms: None,
+            run_ms_before: 0,
+            finished_ms: None,
+            error: None,
+            log: Vec::new(),
+            output_dirty: false,
+        }
+    }
+
+    /// The film and the set of merged units (per tile: passes folded), for a checkpoint.
+    pub fn checkpoint(&self) -> Checkpoint {
+        Checkpoint {
+            job_id: self.id,
+            next_pass: self.next_pass.clone(),
+            film: self.film.clone(),
+            pending_splats: self.pending_splats.clone(),
+        }
+    }
+
+    /// What the store keeps of a job besides its checkpoint.
+    pub fn record(&self, now_ms: u64) -> JobRecord {
+        JobRecord {
+            id: self.id,
+            name: self.name.clone(),
+            scene_id: self.scene_id.clone(),
+            priority: self.priority,
+            settings: self.settings.clone(),
+            state: self.state,
+            created_ms: self.created_ms,
+            finished_ms: self.finished_ms,
+            error: self.error.clone(),
+            run_ms: self.running_ms(now_ms),
+        }
+    }
+}
+
+/// A job's durable fields (one SQLite row).
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobRecord {
+    pub id: JobId,
+    pub name: String,
+    pub scene_id: String,
+    pub priority: i32,
+    pub settings: RenderSettings,
+    pub state: JobState,
+    pub created_ms: u64,
+    pub finished_ms: Option<u64>,
+    pub error: Option<String>,
+    pub run_ms: u64,
+}
+
+/// A job's merged sums and which units they hold. Because each tile folds its passes in order,
+/// the merged set is one number per tile: the passes folded.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Checkpoint {
+    pub job_id: JobId,
+    pub next_pass: Vec<u32>,
+    pub film: Film,
+    pub pending_splats: BTreeMap<u32, SplatBuffer>,
+}
+
 #[derive(Debug)]
 struct Worker {
     name: String,
@@ -270,16 +384,76 @@ pub struct Farm {
 
 impl Farm {
     pub fn new(cfg: FarmConfig) -> Self {
+        Self::with_epoch(cfg, 0)
+    }
+
+    /// A farm whose worker and lease ids carry `epoch` (the coordinator's start count) in their
+    /// high bits, so ids handed out before a restart never match ids handed out after it.
+    pub fn with_epoch(cfg: FarmConfig, epoch: u64) -> Self {
         Self {
             cfg,
             jobs: BTreeMap::new(),
             workers: BTreeMap::new(),
             leases: HashMap::new(),
             next_job: 1,
-            next_worker: 1,
-            next_lease: 1,
+            next_worker: (epoch << 32) + 1,
+            next_lease: (epoch << 40) + 1,
             counters: Counters::default(),
         }
+    }
+
+    /// Brings back a job from the store: units merged by the checkpoint stay merged, every
+    /// other unit is pending again.
+    pub fn restore(&mut self, rec: JobRecord, cp: Option<Checkpoint>, now_ms: u64) -> Result<(), String> {
+        let mut job = Job::new(rec.id, rec.scene_id, Some(rec.name), rec.priority, rec.settings, rec.created_ms);
+        job.finished_ms = rec.finished_ms;
+        job.error = rec.error;
+        job.run_ms_before = rec.run_ms;
+        if let Some(cp) = cp {
+            if cp.job_id != rec.id
+                || cp.next_pass.len() != job.plan.tiles.len()
+                || (cp.film.width, cp.film.height) != (job.film.width, job.film.height)
+                || cp.next_pass.iter().any(|&p| p as usize > job.plan.passes.len())
+            {
+                return Err(format!("checkpoint of job {} does not match its settings", rec.id));
+            }
+            let tiles = job.plan.tiles.len();
+            for (tile, &np) in cp.next_pass.iter().enumerate() {
+                for pass in 0..np as usize {
+                    job.units[pass * tiles + tile] = UnitState::Merged;
+                    job.pending -= 1;
+                    job.units_merged += 1;
+                    job.pass_merged[pass] += 1;
+                    job.samples_done +=
+                        job.plan.tiles[tile].pixel_count() as u64 * u64::from(job.plan.passes[pass].spp());
+                }
+            }
+            job.next_pass = cp.next_pass;
+            job.film = cp.film;
+            job.pending_splats = cp.pending_splats;
+            while (job.passes_done as usize) < job.plan.passes.len()
+                && job.pass_merged[job.passes_done as usize] == tiles as u32
+            {
+                job.passes_done += 1;
+            }
+        }
+        job.state = match rec.state {
+            s if s.is_finished() => s,
+            _ if job.units_merged == job.units.len() as u64 => JobState::Completed,
+            JobState::Paused => JobState::Paused,
+            JobState::Running => {
+                job.started_ms = Some(now_ms);
+                JobState::Running
+            }
+            _ => JobState::Queued,
+        };
+        if job.state == JobState::Completed && job.finished_ms.is_none() {
+            job.finished_ms = Some(now_ms);
+        }
+        job.log(format!("restored: {} of {} units merged", job.units_merged, job.units.len()));
+        self.next_job = self.next_job.max(rec.id + 1);
+        self.jobs.insert(rec.id, job);
+        Ok(())
     }
 
     // ----------------------------------------------------------------- jobs
@@ -296,42 +470,7 @@ impl Farm {
         settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
         let id = self.next_job;
         self.next_job += 1;
-        let plan = settings.plan();
-        let units = plan.unit_count();
-        let samples_total = u64::from(settings.width) * u64::from(settings.height) * u64::from(settings.spp);
-        let job = Job {
-            id,
-            name: name.unwrap_or_else(|| format!("job {id}")),
-            scene_id,
-            priority,
-            film: Film::new(settings.width, settings.height),
-            units: vec![UnitState::Pending; units],
-            cursor: 0,
-            requeued: BTreeSet::new(),
-            next_pass: vec![0; plan.tiles.len()],
-            waiting: HashMap::new(),
-            pending_splats: BTreeMap::new(),
-            pass_merged: vec![0; plan.passes.len()],
-            plan,
-            settings,
-            state: JobState::Queued,
-            passes_done: 0,
-            units_merged: 0,
-            samples_done: 0,
-            samples_total,
-            leased: 0,
-            served: 0,
-            unit_failures: HashMap::new(),
-            worker_failures: HashMap::new(),
-            blocklist: BTreeSet::new(),
-            created_ms: now_ms,
-            started_ms: None,
-            run_ms_before: 0,
-            finished_ms: None,
-            error: None,
-            log: Vec::new(),
-            output_dirty: false,
-        };
+        let job = Job::new(id, scene_id, name, priority, settings, now_ms);
         self.jobs.insert(id, job);
         Ok(id)
     }

@@ -8,3 +8,4 @@ pub mod demo;
 pub mod farm;
 pub mod local;
 pub mod server;
+pub mod store;

@@ -38,6 +38,9 @@ struct ServeArgs {
     /// Bearer token for workers.
     #[arg(long, env = "PATHFARM_WORKER_TOKEN", hide_env_values = true)]
     worker_token: Option<String>,
+    /// Run without authentication (only allowed on a loopback address).
+    #[arg(long)]
+    no_auth: bool,
     /// A unit whose worker stops heartbeating for this long is handed out again.
     #[arg(long, default_value_t = 10_000)]
     lease_timeout_ms: u64,
@@ -59,13 +62,59 @@ fn main() -> anyhow::Result<()> {
     let mut cfg = ServerConfig::new(a.listen, a.data_dir.clone());
     cfg.farm.lease_timeout_ms = a.lease_timeout_ms;
     cfg.farm.heartbeat_ms = a.heartbeat_ms;
-    cfg.auth = Auth { client: a.client_token, worker: a.worker_token.clone() };
+    cfg.auth = auth(&a)?;
+    let worker_token = cfg.auth.worker.clone();
     let rt = tokio::runtime::Runtime::new()?;
     let server = rt.block_on(Server::start(cfg))?;
     let _workers = if a.local_workers > 0 {
-        Some(LocalWorkers::start(&server.url(), a.worker_token, a.local_workers, &a.data_dir.join("worker-cache"))?)
+        Some(LocalWorkers::start(&server.url(), worker_token, a.local_workers, &a.data_dir.join("worker-cache"))?)
     } else {
         None
     };
     rt.block_on(server.run_until_signal())
+}
+
+/// Tokens from flags or the environment; else `--no-auth` (loopback only); else tokens made on
+/// the first start and kept in DATA_DIR/tokens.json.
+fn auth(a: &ServeArgs) -> anyhow::Result<Auth> {
+    if a.no_auth {
+        if !a.listen.ip().is_loopback() {
+            anyhow::bail!("--no-auth is refused on {}: without tokens, listen on a loopback address only", a.listen);
+        }
+        return Ok(Auth::default());
+    }
+    if a.client_token.is_some() || a.worker_token.is_some() {
+        return Ok(Auth { client: a.client_token.clone(), worker: a.worker_token.clone() });
+    }
+    let path = a.data_dir.join("tokens.json");
+    if let Ok(bytes) = std::fs::read(&path) {
+        let t: serde_json::Value = serde_json::from_slice(&bytes)?;
+        let get = |k: &str| t.get(k).and_then(|v| v.as_str()).map(str::to_string);
+        tracing::info!(path = %path.display(), "using the tokens made on the first start");
+        return Ok(Auth { client: get("client_token"), worker: get("worker_token") });
+    }
+    let tokens = Auth { client: Some(random_token()?), worker: Some(random_token()?) };
+    std::fs::create_dir_all(&a.data_dir)?;
+    let json = serde_json::json!({"client_token": tokens.client, "worker_token": tokens.worker});
+    pathfarm_common::film::write_atomic(&path, serde_json::to_string_pretty(&json)?.as_bytes())?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600))?;
+    }
+    eprintln!(
+        "pathfarm-coordinator: generated tokens (kept in {}):\n  client token: {}\n  worker token: {}",
+        path.display(),
+        tokens.client.as_deref().unwrap_or_default(),
+        tokens.worker.as_deref().unwrap_or_default()
+    );
+    Ok(tokens)
+}
+
+/// 192 random bits from the OS, hex-encoded.
+fn random_token() -> anyhow::Result<String> {
+    use std::io::Read;
+    let mut buf = [0u8; 24];
+    std::fs::File::open("/dev/urandom")?.read_exact(&mut buf)?;
+    Ok(hex::encode(buf))
 }

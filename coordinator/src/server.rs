@@ -3,6 +3,7 @@
 
 use crate::api::ApiError;
 use crate::farm::{Farm, FarmConfig};
+use crate::store::{Store, read_checkpoint, write_checkpoint};
 use axum::http::StatusCode;
 use pathfarm_common::film::{ImageLayers, write_atomic};
 use pathfarm_common::protocol::{JobId, JobState, SceneCreated};
@@ -33,6 +34,8 @@ pub struct ServerConfig {
     pub max_texture_pixels: u64,
     /// Minimum time between two progressive writes of a job's images.
     pub output_interval: Duration,
+    /// How often changed jobs are checkpointed.
+    pub checkpoint_interval: Duration,
     pub auth: Auth,
 }
 
@@ -46,6 +49,7 @@ impl ServerConfig {
             max_triangles: 20_000_000,
             max_texture_pixels: 16384 * 16384,
             output_interval: Duration::from_secs(2),
+            checkpoint_interval: Duration::from_secs(1),
             auth: Auth::default(),
         }
     }
@@ -206,15 +210,32 @@ pub struct AppState {
     pub events: broadcast::Sender<Event>,
     pub metrics: Metrics,
     pub started: Instant,
+    /// SQLite and checkpoints.
+    pub store: Mutex<Store>,
 }
 
 impl AppState {
-    pub fn new(config: ServerConfig) -> std::io::Result<Self> {
+    /// Opens the data dir and restores every job from the store.
+    pub fn new(config: ServerConfig) -> anyhow::Result<Self> {
         std::fs::create_dir_all(config.data_dir.join("jobs"))?;
         let scenes = SceneStore::open(config.data_dir.join("scenes"))?;
         let (events, _) = broadcast::channel(1024);
+        let store = Store::open(&config.data_dir)?;
+        let epoch = store.next_epoch()?;
+        let mut farm = Farm::with_epoch(config.farm.clone(), epoch);
+        let now = now_ms();
+        for rec in store.jobs()? {
+            let id = rec.id;
+            let cp = read_checkpoint(&store.checkpoint_path(id));
+            if let Err(e) = farm.restore(rec.clone(), cp, now) {
+                tracing::error!(job = id, "{e}; restarting the job from zero");
+                farm.restore(rec, None, now).map_err(anyhow::Error::msg)?;
+            }
+        }
+        tracing::info!(epoch, jobs = farm.jobs().count(), "state restored");
         Ok(Self {
-            farm: FarmLock(Mutex::new(Farm::new(config.farm.clone()))),
+            store: Mutex::new(store),
+            farm: FarmLock(Mutex::new(farm)),
             scenes,
             auth: config.auth.clone(),
             work_ready: Notify::new(),
@@ -230,6 +251,33 @@ impl AppState {
         LoadOptions {
             max_triangles: Some(self.config.max_triangles),
             max_texture_pixels: Some(self.config.max_texture_pixels),
+        }
+    }
+
+    fn store(&self) -> MutexGuard<'_, Store> {
+        self.store.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Writes a job's row (state, priority, times) now; used by API actions that must be
+    /// durable before they are acknowledged.
+    pub fn persist_job(&self, id: JobId) {
+        let rec = self.farm.lock().job(id).ok().map(|j| j.record(now_ms()));
+        if let Some(rec) = rec
+            && let Err(e) = self.store().put_job(&rec)
+        {
+            tracing::error!(job = id, "persisting the job failed: {e:#}");
+        }
+    }
+
+    pub fn persist_worker(&self, id: u64, name: &str, threads: u32) {
+        if let Err(e) = self.store().put_worker(id, name, threads, now_ms()) {
+            tracing::error!(worker = id, "persisting the worker failed: {e:#}");
+        }
+    }
+
+    pub fn forget_job(&self, id: JobId) {
+        if let Err(e) = self.store().delete_job(id) {
+            tracing::error!(job = id, "deleting the job row failed: {e:#}");
         }
     }
 
@@ -358,6 +406,41 @@ async fn output_loop(state: Arc<AppState>) {
     }
 }
 
+/// Checkpoints every job whose merged units or state changed: the film with its merged set
+/// (atomically, one file), then the job's row.
+async fn checkpoint_loop(state: Arc<AppState>) {
+    let mut seen: HashMap<JobId, (u64, JobState, i32)> = HashMap::new();
+    loop {
+        tokio::time::sleep(state.config.checkpoint_interval).await;
+        let now = now_ms();
+        let due: Vec<_> = {
+            let farm = state.farm.lock();
+            farm.jobs()
+                .filter(|j| seen.get(&j.id) != Some(&(j.units_merged, j.state, j.priority)))
+                .map(|j| ((j.units_merged, j.state, j.priority), j.record(now), j.checkpoint()))
+                .collect()
+        };
+        for (key, rec, cp) in due {
+            let st = state.clone();
+            let id = rec.id;
+            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+                let path = st.store().checkpoint_path(id);
+                write_checkpoint(&path, &cp)?;
+                st.store().put_job(&rec)?;
+                Ok(())
+            })
+            .await;
+            match r {
+                Ok(Ok(())) => {
+                    seen.insert(id, key);
+                }
+                Ok(Err(e)) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
+                Err(e) => tracing::error!(job = id, "checkpoint task failed: {e}"),
+            }
+        }
+    }
+}
+
 /// A running coordinator.
 pub struct Server {
     pub addr: SocketAddr,
@@ -374,6 +457,7 @@ impl Server {
         write_atomic(&config.data_dir.join("coordinator.addr"), addr.to_string().as_bytes())?;
         tokio::spawn(maintenance_loop(state.clone()));
         tokio::spawn(output_loop(state.clone()));
+        tokio::spawn(checkpoint_loop(state.clone()));
         let app = crate::api::router(state.clone());
         let task = tokio::spawn(async move {
             if let Err(e) = axum::serve(listener, app).await {

@@ -66,13 +66,18 @@ pub struct Coordinator {
 }
 
 pub fn start_coordinator(data_dir: &Path, extra: &[&str]) -> Coordinator {
+    start_coordinator_at(data_dir, "127.0.0.1:0", extra)
+}
+
+/// A coordinator process listening on `listen`.
+pub fn start_coordinator_at(data_dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
     std::fs::create_dir_all(data_dir).expect("data dir");
     let addr_file = data_dir.join("coordinator.addr");
     let _ = std::fs::remove_file(&addr_file);
     let log =
         std::fs::OpenOptions::new().create(true).append(true).open(data_dir.join("coordinator.log")).expect("log file");
     let child = Command::new(bin("pathfarm-coordinator"))
-        .args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .args(["--listen", listen, "--no-auth", "--data-dir"])
         .arg(data_dir)
         .args(extra)
         .env("RUST_LOG", "info")
@@ -88,7 +93,10 @@ pub fn start_coordinator(data_dir: &Path, extra: &[&str]) -> Coordinator {
         {
             return Coordinator { proc, url: format!("http://{addr}"), data_dir: data_dir.to_path_buf() };
         }
-        assert!(t0.elapsed() < Duration::from_secs(30), "coordinator did not start; see {}", data_dir.display());
+        if t0.elapsed() > Duration::from_secs(30) {
+            let log = std::fs::read_to_string(data_dir.join("coordinator.log")).unwrap_or_default();
+            panic!("coordinator did not start; its log:\n{log}");
+        }
         std::thread::sleep(Duration::from_millis(25));
     }
 }

@@ -1,0 +1,305 @@
+//! Durable state under `--data-dir`: SQLite (WAL) for jobs and workers, and per-job checkpoint
+//! files holding the film together with the set of merged units.
+//!
+//! A checkpoint is one file written atomically (temp file + rename) with a CRC-32, so a crash
+//! leaves either the old or the new checkpoint, never a torn one. On start the coordinator
+//! restores every job from its row and last checkpoint; units merged after that checkpoint are
+//! pending again and will be rendered and merged once more, into a film that does not hold them.
+
+use crate::farm::{Checkpoint, JobRecord};
+use anyhow::{Context, bail};
+use pathfarm_common::film::{Film, SplatBuffer, ch, write_atomic};
+use pathfarm_common::job::RenderSettings;
+use pathfarm_common::protocol::{JobId, JobState, bytes_to_fixed, push_section, read_section};
+use rusqlite::{Connection, OptionalExtension, params};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+const CHECKPOINT_MAGIC: &[u8; 4] = b"PFC1";
+
+/// The SQLite database and the checkpoint folder.
+pub struct Store {
+    conn: Connection,
+    jobs_dir: PathBuf,
+}
+
+fn state_from_str(s: &str) -> anyhow::Result<JobState> {
+    Ok(match s {
+        "queued" => JobState::Queued,
+        "running" => JobState::Running,
+        "paused" => JobState::Paused,
+        "completed" => JobState::Completed,
+        "failed" => JobState::Failed,
+        "cancelled" => JobState::Cancelled,
+        other => bail!("unknown job state {other:?} in the database"),
+    })
+}
+
+impl Store {
+    /// Opens (creating if needed) `data_dir/pathfarm.db`.
+    pub fn open(data_dir: &Path) -> anyhow::Result<Self> {
+        let path = data_dir.join("pathfarm.db");
+        let conn = Connection::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        conn.pragma_update(None, "journal_mode", "WAL")?;
+        conn.pragma_update(None, "synchronous", "NORMAL")?;
+        conn.execute_batch(
+            "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+             CREATE TABLE IF NOT EXISTS jobs (
+                 id INTEGER PRIMARY KEY,
+                 name TEXT NOT NULL,
+                 scene_id TEXT NOT NULL,
+                 priority INTEGER NOT NULL,
+                 settings TEXT NOT NULL,
+                 state TEXT NOT NULL,
+                 created_ms INTEGER NOT NULL,
+                 finished_ms INTEGER,
+                 error TEXT,
+                 run_ms INTEGER NOT NULL DEFAULT 0
+             );
+             CREATE TABLE IF NOT EXISTS workers (
+                 id INTEGER PRIMARY KEY,
+                 name TEXT NOT NULL,
+                 threads INTEGER NOT NULL,
+                 registered_ms INTEGER NOT NULL
+             );",
+        )?;
+        let jobs_dir = data_dir.join("jobs");
+        std::fs::create_dir_all(&jobs_dir)?;
+        Ok(Self { conn, jobs_dir })
+    }
+
+    /// Counts this start and returns the new epoch (1 on the first start).
+    pub fn next_epoch(&self) -> anyhow::Result<u64> {
+        let old: Option<i64> =
+            self.conn.query_row("SELECT value FROM meta WHERE key = 'epoch'", [], |r| r.get(0)).optional()?;
+        let epoch = old.unwrap_or(0) + 1;
+        self.conn.execute(
+            "INSERT INTO meta (key, value) VALUES ('epoch', ?1) ON CONFLICT(key) DO UPDATE SET value = ?1",
+            params![epoch],
+        )?;
+        Ok(epoch as u64)
+    }
+
+    pub fn put_job(&self, r: &JobRecord) -> anyhow::Result<()> {
+        self.conn.execute(
+            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)
+             ON CONFLICT(id) DO UPDATE SET name = ?2, priority = ?4, state = ?6, finished_ms = ?8, error = ?9, run_ms = ?10",
+            params![
+                r.id as i64,
+                r.name,
+                r.scene_id,
+                r.priority,
+                serde_json::to_string(&r.settings)?,
+                r.state.as_str(),
+                r.created_ms as i64,
+                r.finished_ms.map(|v| v as i64),
+                r.error,
+                r.run_ms as i64,
+            ],
+        )?;
+        Ok(())
+    }
+
+    pub fn delete_job(&self, id: JobId) -> anyhow::Result<()> {
+        self.conn.execute("DELETE FROM jobs WHERE id = ?1", params![id as i64])?;
+        Ok(())
+    }
+
+    pub fn jobs(&self) -> anyhow::Result<Vec<JobRecord>> {
+        let mut stmt = self.conn.prepare(
+            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms FROM jobs ORDER BY id",
+        )?;
+        let rows = stmt.query_map([], |r| {
+            Ok((
+                r.get::<_, i64>(0)?,
+                r.get::<_, String>(1)?,
+                r.get::<_, String>(2)?,
+                r.get::<_, i32>(3)?,
+                r.get::<_, String>(4)?,
+                r.get::<_, String>(5)?,
+                r.get::<_, i64>(6)?,
+                r.get::<_, Option<i64>>(7)?,
+                r.get::<_, Option<String>>(8)?,
+                r.get::<_, i64>(9)?,
+            ))
+        })?;
+        let mut out = Vec::new();
+        for row in rows {
+            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms) = row?;
+            let settings: RenderSettings =
+                serde_json::from_str(&settings).with_context(|| format!("settings of job {id}"))?;
+            out.push(JobRecord {
+                id: id as u64,
+                name,
+                scene_id,
+                priority,
+                settings,
+                state: state_from_str(&state)?,
+                created_ms: created as u64,
+                finished_ms: finished.map(|v| v as u64),
+                error,
+                run_ms: run_ms as u64,
+            });
+        }
+        Ok(out)
+    }
+
+    pub fn put_worker(&self, id: u64, name: &str, threads: u32, registered_ms: u64) -> anyhow::Result<()> {
+        self.conn.execute(
+            "INSERT OR REPLACE INTO workers (id, name, threads, registered_ms) VALUES (?1, ?2, ?3, ?4)",
+            params![id as i64, name, threads, registered_ms as i64],
+        )?;
+        Ok(())
+    }
+
+    pub fn checkpoint_path(&self, id: JobId) -> PathBuf {
+        self.jobs_dir.join(id.to_string()).join("checkpoint.bin")
+    }
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CheckpointHeader {
+    job_id: JobId,
+    width: u32,
+    height: u32,
+    splat_spp: u32,
+    next_pass: Vec<u32>,
+    pending_splat_passes: Vec<u32>,
+}
+
+/// Encodes a checkpoint: magic, JSON header, film sums, film splats, pending splats, CRC-32.
+pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
+    let header = CheckpointHeader {
+        job_id: cp.job_id,
+        width: cp.film.width,
+        height: cp.film.height,
+        splat_spp: cp.film.splat_spp,
+        next_pass: cp.next_pass.clone(),
+        pending_splat_passes: cp.pending_splats.keys().copied().collect(),
+    };
+    let header = serde_json::to_vec(&header).unwrap_or_default();
+    let mut out = Vec::new();
+    out.extend_from_slice(CHECKPOINT_MAGIC);
+    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    out.extend_from_slice(&header);
+    push_section(&mut out, &cp.film.sums);
+    push_section(&mut out, &cp.film.splats.sums);
+    for s in cp.pending_splats.values() {
+        push_section(&mut out, &s.sums);
+    }
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
+
+/// Decodes and verifies a checkpoint.
+pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
+    if bytes.len() < 12 || &bytes[..4] != CHECKPOINT_MAGIC {
+        bail!("not a checkpoint");
+    }
+    let (body, crc) = bytes.split_at(bytes.len() - 4);
+    let expected = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
+    if crc32fast::hash(body) != expected {
+        bail!("checkpoint checksum mismatch");
+    }
+    let hlen = u32::from_le_bytes([body[4], body[5], body[6], body[7]]) as usize;
+    if 8 + hlen > body.len() {
+        bail!("checkpoint header truncated");
+    }
+    let h: CheckpointHeader = serde_json::from_slice(&body[8..8 + hlen])?;
+    let mut rest = &body[8 + hlen..];
+    let n = h.width as usize * h.height as usize;
+    let mut film = Film::new(h.width, h.height);
+    film.sums = bytes_to_fixed(&read_section(&mut rest, "film")?, n * ch::COUNT, "film")?;
+    film.splats.sums = bytes_to_fixed(&read_section(&mut rest, "splats")?, n * 3, "splats")?;
+    film.splat_spp = h.splat_spp;
+    let mut pending_splats = BTreeMap::new();
+    for p in h.pending_splat_passes {
+        let sums = bytes_to_fixed(&read_section(&mut rest, "pending splats")?, n * 3, "pending splats")?;
+        pending_splats.insert(p, SplatBuffer { width: h.width, height: h.height, sums });
+    }
+    if !rest.is_empty() {
+        bail!("checkpoint has {} trailing bytes", rest.len());
+    }
+    Ok(Checkpoint { job_id: h.job_id, next_pass: h.next_pass, film, pending_splats })
+}
+
+/// Writes a checkpoint atomically.
+pub fn write_checkpoint(path: &Path, cp: &Checkpoint) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    write_atomic(path, &encode_checkpoint(cp))?;
+    Ok(())
+}
+
+/// Reads a checkpoint if there is one; a damaged one is reported and ignored (the job restarts
+/// from zero rather than from wrong sums).
+pub fn read_checkpoint(path: &Path) -> Option<Checkpoint> {
+    let bytes = std::fs::read(path).ok()?;
+    match decode_checkpoint(&bytes) {
+        Ok(cp) => Some(cp),
+        Err(e) => {
+            tracing::error!(path = %path.display(), "ignoring a damaged checkpoint: {e:#}");
+            None
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checkpoint_roundtrip_and_corruption() {
+        let mut film = Film::new(5, 3);
+        film.sums[7] = 123_456_789_012_345;
+        film.splats.sums[2] = -5;
+        film.splat_spp = 4;
+        let mut pending = BTreeMap::new();
+        let mut s = SplatBuffer::new(5, 3);
+        s.sums[1] = 9;
+        pending.insert(3, s);
+        let cp = Checkpoint { job_id: 4, next_pass: vec![1, 2], film, pending_splats: pending };
+        let bytes = encode_checkpoint(&cp);
+        assert_eq!(decode_checkpoint(&bytes).expect("decode"), cp);
+        let mut bad = bytes.clone();
+        bad[20] ^= 1;
+        assert!(decode_checkpoint(&bad).is_err());
+        assert!(decode_checkpoint(&bytes[..bytes.len() - 1]).is_err());
+    }
+
+    #[test]
+    fn jobs_survive_reopening_and_epochs_count_up() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let rec = JobRecord {
+            id: 3,
+            name: "n".into(),
+            scene_id: "s".into(),
+            priority: 2,
+            settings: RenderSettings::new(8, 8, 4),
+            state: JobState::Running,
+            created_ms: 10,
+            finished_ms: None,
+            error: None,
+            run_ms: 77,
+        };
+        {
+            let store = Store::open(dir.path()).expect("open");
+            assert_eq!(store.next_epoch().expect("epoch"), 1);
+            store.put_job(&rec).expect("put");
+            let mut r2 = rec.clone();
+            r2.state = JobState::Paused;
+            store.put_job(&r2).expect("update");
+        }
+        let store = Store::open(dir.path()).expect("reopen");
+        assert_eq!(store.next_epoch().expect("epoch"), 2);
+        let jobs = store.jobs().expect("jobs");
+        assert_eq!(jobs.len(), 1);
+        assert_eq!(jobs[0].state, JobState::Paused);
+        assert_eq!(jobs[0].settings, rec.settings);
+    }
+}

@@ -1,0 +1,78 @@
+//! Nothing lost across coordinator crashes: SIGKILL the coordinator at several points of a job,
+//! restart it on the same data dir and port each time; the workers ride it out, and the job's
+//! EXR is still bit-identical to a local render.
+
+mod support;
+
+use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings};
+use pathfarm_common::protocol::{API, JobRequest, JobState};
+use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_coordinator::client::Client;
+use std::time::{Duration, Instant};
+use support::*;
+
+#[test]
+fn a_job_survives_repeated_coordinator_kills() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let flags = ["--lease-timeout-ms", "1500", "--heartbeat-ms", "300"];
+    let mut coord = start_coordinator(&data, &flags);
+    let addr = coord.url.trim_start_matches("http://").to_string();
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let mut s = RenderSettings::new(96, 96, 192);
+    s.seed = 3;
+    s.tile_size = 32;
+    s.passes = PassSchedule::Fixed { spp: 16 };
+    s.integrator = IntegratorSettings::Path {
+        max_depth: 5,
+        rr_depth: 3,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    let created = client.upload_scene(scene.clone()).expect("upload");
+    let id = client
+        .submit(&JobRequest {
+            scene_id: created.scene_id,
+            name: Some("crash".into()),
+            priority: 0,
+            settings: s.clone(),
+        })
+        .expect("submit");
+    let _workers: Vec<Proc> =
+        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    // Kill points: after these fractions of the job's units are merged (a fixed pseudo-random
+    // choice, so the test is repeatable).
+    let mut kills = 0;
+    for fraction in [0.15, 0.4, 0.7] {
+        let reached = wait_for("progress before the kill", Duration::from_secs(120), || {
+            let info = client.job(id).ok()?;
+            (info.state == JobState::Completed || info.progress >= fraction).then_some(info.state)
+        });
+        if reached == JobState::Completed {
+            break;
+        }
+        // Land between checkpoints: the units merged since the last one must be redone.
+        std::thread::sleep(Duration::from_millis(150 + 200 * kills));
+        coord.proc.kill();
+        kills += 1;
+        coord = start_coordinator_at(&data, &addr, &flags);
+        assert_eq!(coord.url, format!("http://{addr}"));
+    }
+    assert!(kills >= 2, "the job finished before the coordinator could be killed twice; make it longer");
+    let t0 = Instant::now();
+    let info = wait_for("the job to complete after the restarts", Duration::from_secs(180), || {
+        let info = client.job(id).ok()?;
+        assert_ne!(info.state, JobState::Failed, "{:?}", info.error);
+        (info.state == JobState::Completed).then_some(info)
+    });
+    assert_eq!(info.units_merged, info.units_total);
+    let log: Vec<String> =
+        reqwest::blocking::get(format!("{}{API}/jobs/{id}/log", coord.url)).expect("log").json().expect("json");
+    assert!(log.iter().any(|l| l.starts_with("restored")), "{log:?}");
+    assert!(
+        client.image_exr(id).expect("exr") == local_exr(&scene, &s),
+        "the image differs from the local render after {kills} coordinator kills"
+    );
+    eprintln!("{kills} coordinator kills; completed {:.1} s after the last restart", t0.elapsed().as_secs_f64());
+}
