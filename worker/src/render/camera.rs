@@ -125,6 +125,76 @@ impl Camera {
     }
 }
 
+/// An importance sample toward the camera from a reference point (pbrt's `CameraWiSample`).
+#[derive(Clone, Copy, Debug)]
+pub struct CameraWiSample {
+    /// Importance `We` of the ray from the camera toward the point, normalized so that the sum
+    /// of all splats divided by the samples per pixel estimates each pixel's mean radiance
+    /// when every camera sample of every pixel traces one light path.
+    pub we: f32,
+    /// Unit direction from the reference point to the camera.
+    pub wi: Vec3A,
+    /// Density of the camera position per unit solid angle at the reference point.
+    pub pdf: f32,
+    /// The camera position and the raster position the point lands on.
+    pub p_camera: Vec3A,
+    pub raster: Vec2,
+}
+
+impl Camera {
+    /// Whether light paths can be connected to the camera ([`Camera::sample_wi`] works): only
+    /// the pinhole perspective camera.
+    pub fn is_pinhole(&self) -> bool {
+        matches!(self.kind, Kind::Perspective { .. })
+    }
+
+    /// pbrt-v4 `PerspectiveCamera::We`: `1 / (A cos^4)` with `A` the whole image plane's area at
+    /// distance 1 ([`Camera::importance`] without its per-pixel factor). With one light path per
+    /// camera sample of every pixel, splats divided by the samples per pixel estimate each
+    /// pixel's mean radiance. Zero off the image.
+    pub fn we(&self, w: Vec3A) -> f32 {
+        let c = self.position() + w;
+        if self.raster(c).is_none() {
+            return 0.0;
+        }
+        let pixels = self.width as f32 * self.height as f32;
+        self.importance(w).map_or(0.0, |(we, _)| we / pixels)
+    }
+
+    /// Densities (position, direction) of a camera ray with direction `w` (pbrt's `PDF_We`):
+    /// the pinhole's position is a delta (1); the direction is uniform on the image plane.
+    pub fn pdf_we(&self, w: Vec3A) -> f32 {
+        if self.raster(self.position() + w).is_none() {
+            return 0.0;
+        }
+        self.importance(w).map_or(0.0, |(_, pdf)| pdf)
+    }
+
+    /// Samples the camera as seen from `p` (pbrt's `SampleWi` for a pinhole).
+    pub fn sample_wi(&self, p: Vec3A) -> Option<CameraWiSample> {
+        let p_camera = self.position();
+        let d = p_camera - p;
+        let dist2 = d.length_squared();
+        if !(dist2 > 0.0) {
+            return None;
+        }
+        let wi = d / dist2.sqrt();
+        let raster = self.raster(p)?;
+        let w_out = -wi;
+        let we = self.we(w_out);
+        if !(we > 0.0) {
+            return None;
+        }
+        // Forward axis of the camera: the pinhole's "lens normal".
+        let forward = self.world_from_camera.transform_vector3a(-Vec3A::Z).normalize();
+        let cos = forward.dot(w_out);
+        if !(cos > 0.0) {
+            return None;
+        }
+        Some(CameraWiSample { we, wi, pdf: dist2 / cos, p_camera, raster })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
