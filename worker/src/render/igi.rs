@@ -1,11 +1,16 @@
 //! Instant global illumination (Keller 1997) with virtual point lights, the clamped geometry
 //! term and Kollig and Keller's bias compensation (2004).
 //!
-//! Per pass, `vpl_sets` independent sets of `vpls` light paths are traced; every non-specular
-//! surface vertex of a light path becomes a virtual point light (VPL) carrying the path's
-//! throughput divided by the number of paths of its set. The VPLs depend only on (job seed,
-//! pass index), so every tile of a pass sees the same ones and tiles join without seams. A
-//! camera sample uses the set `(sample index + x + 2 y) mod vpl_sets` (interleaved sampling).
+//! For every sample index, `vpl_sets` independent sets of `vpls` light paths are traced; every
+//! non-specular surface vertex of a light path becomes a virtual point light (VPL) carrying the
+//! path's throughput divided by the number of paths of its set. Pixel `(x, y)` uses set
+//! `(x + 2 y) mod vpl_sets` of its sample index (interleaved sampling, Keller and Heidrich 2001),
+//! so neighbouring pixels see different VPLs and the structured error becomes noise. The VPLs
+//! depend only on (job seed, sample index), not on the tile or on how samples are cut into
+//! passes: every tile sees the same ones (no seams), and a render split into units is
+//! bit-identical to one rendered whole. Each unit builds the sets of its samples once
+//! ([`VplCache`]); tracing them costs `spp x vpl_sets x vpls` light paths per job, little
+//! beside the shading.
 //!
 //! At the first non-specular camera hit `x`, radiance is direct lighting (one light sample,
 //! the `direct` estimator's light-sampling half) plus the sum over VPLs of
@@ -49,8 +54,8 @@ const UNLIMITED_VERTICES: usize = 256;
 const MAX_SPECULAR_CHAIN: u32 = 64;
 /// Separates the VPL sampler's seed from the camera sampler's.
 const VPL_SEED_TAG: u64 = 0x1617_0001;
-/// Passes whose VPLs stay cached.
-const CACHED_PASSES: usize = 8;
+/// Sample indices whose VPLs stay cached (units arrive pass by pass).
+const CACHED_SAMPLES: usize = 256;
 
 /// A virtual point light: a light-path vertex on a non-specular surface.
 #[derive(Clone, Debug)]
@@ -70,18 +75,19 @@ pub struct Vpl {
     segments: u32,
 }
 
-/// The VPL sets of one pass.
+/// The VPL sets of one sample index.
 #[derive(Clone, Debug, Default)]
 pub struct VplSets {
     pub sets: Vec<Vec<Vpl>>,
 }
 
-/// VPL sets by pass index, built on first use; tiles of a pass share them.
+/// VPL sets by sample index, built on first use; the tiles of a pass share them.
 #[derive(Default)]
 pub struct VplCache(Mutex<BTreeMap<u32, Arc<VplSets>>>);
 
 impl VplCache {
-    /// The VPLs of `pass` (a pure function of the settings and the pass index).
+    /// The VPL sets of each sample of `pass`, in sample order (a pure function of the
+    /// settings and the sample index).
     pub fn get(
         &self,
         scene: &RenderScene,
@@ -89,26 +95,30 @@ impl VplCache {
         sampler: SamplerKind,
         seed: u64,
         pass: Pass,
-    ) -> Arc<VplSets> {
-        if let Some(v) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(&pass.index) {
-            return v.clone();
-        }
-        let built = Arc::new(trace_vpls(scene, params, sampler, seed, pass.index));
-        let mut map = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        while map.len() >= CACHED_PASSES {
-            map.pop_first();
-        }
-        map.entry(pass.index).or_insert(built).clone()
+    ) -> Vec<Arc<VplSets>> {
+        pass.samples()
+            .map(|s| {
+                if let Some(v) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(&s) {
+                    return v.clone();
+                }
+                let built = Arc::new(trace_vpls(scene, params, sampler, seed, s));
+                let mut map = self.0.lock().unwrap_or_else(|e| e.into_inner());
+                while map.len() >= CACHED_SAMPLES {
+                    map.pop_first();
+                }
+                map.entry(s).or_insert(built).clone()
+            })
+            .collect()
     }
 }
 
-/// Traces the VPL sets of pass `pass_index`.
+/// Traces the VPL sets of sample index `sample_index`.
 pub fn trace_vpls(
     scene: &RenderScene,
     params: &IgiParams,
     sampler_kind: SamplerKind,
     seed: u64,
-    pass_index: u32,
+    sample_index: u32,
 ) -> VplSets {
     // A VPL at light vertex k (k segments from the light) lights a camera hit at c >= 1
     // segments through c + 1 + k segments: k <= max_depth - 2.
@@ -121,7 +131,7 @@ pub fn trace_vpls(
         .map(|set| {
             let mut vpls = Vec::new();
             for k in 0..params.vpls {
-                sampler.start_pixel_sample(UVec2::new(set, pass_index), k, 0);
+                sampler.start_pixel_sample(UVec2::new(set, sample_index), k, 0);
                 light_subpath(scene, max_vertices, RR_DEPTH, &mut sampler, paths.light_mut());
                 for (segments, v) in paths.light_mut().iter().enumerate().skip(1) {
                     let Some(bsdf) = v.bsdf else { continue };
@@ -146,12 +156,12 @@ pub fn trace_vpls(
     VplSets { sets }
 }
 
-/// Traces one IGI camera sample through `pixel` (the sampler positioned at dimension 0).
+/// Traces one IGI camera sample through `pixel` (the sampler positioned at dimension 0) with
+/// the VPL sets of its sample index.
 pub fn li_igi(
     scene: &RenderScene,
     camera: &Camera,
     pixel: UVec2,
-    sample_index: u32,
     sampler: &mut impl Sampler,
     params: &IgiParams,
     vpls: &VplSets,
@@ -161,7 +171,7 @@ pub fn li_igi(
     let set = if vpls.sets.is_empty() {
         &empty
     } else {
-        let k = (sample_index as u64 + u64::from(pixel.x) + 2 * u64::from(pixel.y)) % vpls.sets.len() as u64;
+        let k = (u64::from(pixel.x) + 2 * u64::from(pixel.y)) % vpls.sets.len() as u64;
         &vpls.sets[k as usize]
     };
     let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());

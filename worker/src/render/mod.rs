@@ -61,7 +61,7 @@ pub struct Renderer {
     scene: RenderScene,
     camera: Camera,
     integrator: Integrator,
-    /// IGI: the virtual point lights of each pass, built on first use.
+    /// IGI: the virtual point lights of each sample index, built on first use.
     vpls: VplCache,
 }
 
@@ -199,10 +199,8 @@ impl Renderer {
                             ),
                             Integrator::Igi(params) => {
                                 sampler.start_pixel_sample(pixel, s, 0);
-                                match &vpls {
-                                    Some(vpls) => {
-                                        li_igi(&self.scene, &self.camera, pixel, s, &mut sampler, params, vpls)
-                                    }
+                                match vpls.as_ref().and_then(|v| v.get((s - pass.s0) as usize)) {
+                                    Some(vpls) => li_igi(&self.scene, &self.camera, pixel, &mut sampler, params, vpls),
                                     None => film::SampleValue::default(),
                                 }
                             }

@@ -1,0 +1,420 @@
+//! Bidirectional path tracing and instant global illumination against analytic answers, the
+//! Mitsuba reference, the path tracer, and themselves split into units.
+//!
+//! Statistical tests fix their seeds. BDPT's light-tracing splats are not in the film's variance
+//! layer, and IGI's error is correlated across pixels through the shared VPLs, so their noise is
+//! measured from independent renders (different seeds): the variance of a pixel's mean is the
+//! sample variance over the renders divided by their number, and a block's variance is the sum
+//! of its pixels' variances over the squared pixel count (neighbouring pixels' covariance is
+//! neglected). Bounds are in those sigmas.
+
+mod common;
+
+use common::{file_scene, glb_scene, luminance, mean_rgb, shared};
+use pathfarm_common::film::{Film, ImageLayers};
+use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings};
+use pathfarm_common::scene::Scene;
+use pathfarm_common::scene::demo::{caustics_glb, cornell_demo_glb, furnace_glb, point_furnace_glb};
+use pathfarm_worker::render::{Renderer, render_local};
+use std::sync::OnceLock;
+use std::time::Instant;
+
+fn path(max_depth: u32) -> IntegratorSettings {
+    IntegratorSettings::Path {
+        max_depth,
+        rr_depth: 5,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    }
+}
+
+fn bdpt(max_depth: u32) -> IntegratorSettings {
+    IntegratorSettings::Bdpt { max_depth, mis: MisHeuristic::Power, rr_depth: 5, strategy: None }
+}
+
+fn igi(g_limit: f32, bias_compensation: bool) -> IntegratorSettings {
+    IntegratorSettings::Igi { vpls: 64, vpl_sets: 4, g_limit, bias_compensation, max_depth: 8 }
+}
+
+fn settings(w: u32, spp: u32, integrator: IntegratorSettings, seed: u64) -> RenderSettings {
+    let mut s = RenderSettings::new(w, w, spp);
+    s.integrator = integrator;
+    s.seed = seed;
+    s
+}
+
+fn film(scene: &Scene, s: &RenderSettings) -> Film {
+    render_local(&Renderer::new(scene, s).expect("renderer"), |_, _| {})
+}
+
+fn render(scene: &Scene, s: &RenderSettings) -> ImageLayers {
+    film(scene, s).resolve()
+}
+
+fn lum(p: [f32; 3]) -> f64 {
+    luminance([p[0].into(), p[1].into(), p[2].into()])
+}
+
+/// The mean of renders with `seeds` and the variance of each pixel's luminance in that mean.
+struct Estimate {
+    rgb: Vec<[f64; 3]>,
+    var: Vec<f64>,
+}
+
+impl Estimate {
+    fn from_seeds(scene: &Scene, base: &RenderSettings, seeds: &[u64]) -> Self {
+        let imgs: Vec<ImageLayers> = seeds
+            .iter()
+            .map(|&seed| {
+                let mut s = base.clone();
+                s.seed = seed;
+                render(scene, &s)
+            })
+            .collect();
+        let k = imgs.len() as f64;
+        let n = imgs[0].rgb.len();
+        let mut rgb = vec![[0.0; 3]; n];
+        let mut var = vec![0.0; n];
+        for i in 0..n {
+            for img in &imgs {
+                for (sum, v) in rgb[i].iter_mut().zip(img.rgb[i]) {
+                    *sum += f64::from(v) / k;
+                }
+            }
+            let m = luminance(rgb[i]);
+            let ss: f64 = imgs.iter().map(|img| (lum(img.rgb[i]) - m).powi(2)).sum();
+            var[i] = ss / (k - 1.0) / k;
+        }
+        Self { rgb, var }
+    }
+
+    /// A single render with its variance layer (valid for camera-only estimators).
+    fn from_image(img: &ImageLayers) -> Self {
+        Self {
+            rgb: img.rgb.iter().map(|p| [p[0].into(), p[1].into(), p[2].into()]).collect(),
+            var: img.variance.iter().map(|&v| f64::from(v)).collect(),
+        }
+    }
+
+    fn lum(&self) -> Vec<f64> {
+        self.rgb.iter().map(|&p| luminance(p)).collect()
+    }
+
+    fn mean_rgb(&self) -> [f64; 3] {
+        let n = self.rgb.len() as f64;
+        let mut m = [0.0; 3];
+        for p in &self.rgb {
+            for c in 0..3 {
+                m[c] += p[c] / n;
+            }
+        }
+        m
+    }
+}
+
+/// Largest |a - b| / sigma over `block x block` pixel blocks of two `w x w` luminance images;
+/// `var_a`, `var_b` are per-pixel variances, `floor` an absolute sigma added in quadrature.
+fn worst_block_z(w: usize, block: usize, a: &[f64], var_a: &[f64], b: &[f64], var_b: &[f64], floor: f64) -> f64 {
+    let mut worst = 0.0f64;
+    let n = (block * block) as f64;
+    for by in 0..w / block {
+        for bx in 0..w / block {
+            let (mut ma, mut mb, mut v) = (0.0, 0.0, 0.0);
+            for y in by * block..(by + 1) * block {
+                for x in bx * block..(bx + 1) * block {
+                    let i = y * w + x;
+                    ma += a[i] / n;
+                    mb += b[i] / n;
+                    v += (var_a[i] + var_b[i]) / (n * n);
+                }
+            }
+            let z = (ma - mb).abs() / (v + floor * floor).sqrt();
+            worst = worst.max(z);
+        }
+    }
+    worst
+}
+
+/// The Mitsuba Cornell reference box-downsampled to `w x w` (our box-filtered pixel at `w` is the
+/// mean of the reference pixels it covers): per-pixel RGB.
+fn mitsuba_reference(w: usize) -> Vec<[f64; 3]> {
+    let reference = pathfarm_common::film::read_exr(&shared().join("reference/cornell_mitsuba_box_16384spp.exr"))
+        .expect("reference exr");
+    assert_eq!((reference.width, reference.height), (256, 256));
+    let ch: Vec<&[f32]> = ["R", "G", "B"].iter().map(|c| reference.get(c).expect("channel")).collect();
+    let f = 256 / w;
+    let mut out = vec![[0.0; 3]; w * w];
+    for y in 0..256 {
+        for x in 0..256 {
+            for c in 0..3 {
+                out[(y / f) * w + x / f][c] += f64::from(ch[c][y * 256 + x]) / (f * f) as f64;
+            }
+        }
+    }
+    out
+}
+
+/// The white furnace (L = Le / (1 - rho)) and pbrt's point light in a sphere
+/// (L = rho / pi * I / R^2 / (1 - rho)), no depth limit: the image mean is within 1% of the
+/// answer (16 x 16 x 64 spp, seeds 1 and 2; the deviations seen are 0.05% to 0.2%, so 1% is
+/// several standard errors while a missing strategy or a wrong weight is off by far more).
+#[test]
+fn bdpt_furnaces_match_analytic_answers() {
+    let t0 = Instant::now();
+    for rho in [0.5f32, 0.9] {
+        let t = Instant::now();
+        let scene = glb_scene(&furnace_glb(1.0, rho));
+        let img = render(&scene, &settings(16, 64, bdpt(0), 1));
+        let expected = f64::from(1.0 / (1.0 - rho));
+        eprintln!("furnace rho {rho}: {:?} vs {expected} ({:.1} s)", mean_rgb(&img), t.elapsed().as_secs_f64());
+        for (c, m) in mean_rgb(&img).into_iter().enumerate() {
+            let rel = (m - expected).abs() / expected;
+            assert!(rel < 0.01, "rho {rho} channel {c}: mean {m:.5}, expected {expected:.5} ({:.2}% off)", rel * 100.0);
+        }
+    }
+    let (i, r, rho) = (3.0f32, 2.0f32, 0.5f32);
+    let scene = glb_scene(&point_furnace_glb(i, rho, r));
+    let img = render(&scene, &settings(16, 64, bdpt(0), 2));
+    let expected = f64::from(rho / std::f32::consts::PI * i / (r * r) / (1.0 - rho));
+    let m = mean_rgb(&img)[1];
+    eprintln!("point furnace: {m} vs {expected}");
+    let rel = (m - expected).abs() / expected;
+    assert!(rel < 0.01, "point light: mean {m:.5}, expected {expected:.5} ({:.2}% off)", rel * 100.0);
+    eprintln!("furnaces: {:.1} s", t0.elapsed().as_secs_f64());
+}
+
+/// The strategies of one path length sum to the full estimator: rendering each `(s, t)` of
+/// lengths 1 to 3 segments alone (same seed, so the same subpaths) and adding the images gives
+/// the max-depth-3 render to rounding (1e-4 relative on the mean), and `(1, 1)` is empty.
+#[test]
+fn bdpt_strategies_sum_to_the_whole() {
+    let scene = glb_scene(&cornell_demo_glb());
+    let whole = mean_rgb(&render(&scene, &settings(32, 4, bdpt(3), 3)));
+    let mut sum = [0.0f64; 3];
+    for len in 2..=4u32 {
+        for s in 0..len {
+            let t = len - s;
+            let i = IntegratorSettings::Bdpt {
+                max_depth: 3,
+                mis: MisHeuristic::Power,
+                rr_depth: 5,
+                strategy: Some([s, t]),
+            };
+            let m = mean_rgb(&render(&scene, &settings(32, 4, i, 3)));
+            if (s, t) == (1, 1) {
+                assert_eq!(m, [0.0; 3], "strategy (1, 1) is not used");
+            }
+            for c in 0..3 {
+                sum[c] += m[c];
+            }
+        }
+    }
+    for c in 0..3 {
+        assert!(
+            (sum[c] - whole[c]).abs() <= 1e-4 * whole[c],
+            "channel {c}: strategies sum to {}, whole {}",
+            sum[c],
+            whole[c]
+        );
+    }
+}
+
+/// The Cornell box against Mitsuba 3 (16,384 spp, path, max_depth 8), at 128 x 128 (the
+/// reference box-downsampled 2 x 2): 4 seeds x 16 spp of bdpt (max_depth 8). Per-channel image
+/// means within 0.5%; every 8 x 8 block within 5 sigma (sigma from the seeds, plus 0.06% of the
+/// image mean for the reference's own noise as in `integrators.rs`); 256 blocks at 5 sigma:
+/// false alarm below 1e-4 for Gaussian errors.
+#[test]
+fn bdpt_cornell_box_matches_mitsuba_reference() {
+    let t0 = Instant::now();
+    let scene = file_scene(&shared().join("reference/cornell_mitsuba.glb"));
+    let w = 128;
+    let ours = Estimate::from_seeds(&scene, &settings(w as u32, 16, bdpt(8), 0), &[9, 10, 11, 12]);
+    let reference = mitsuba_reference(w);
+    let om = ours.mean_rgb();
+    for c in 0..3 {
+        let r = reference.iter().map(|p| p[c]).sum::<f64>() / (w * w) as f64;
+        let rel = (om[c] - r).abs() / r;
+        assert!(rel < 0.005, "channel {c}: bdpt {:.5}, Mitsuba {r:.5} ({:.3}% off)", om[c], rel * 100.0);
+    }
+    let ref_lum: Vec<f64> = reference.iter().map(|&p| luminance(p)).collect();
+    let zeros = vec![0.0; w * w];
+    let z = worst_block_z(w, 8, &ours.lum(), &ours.var, &ref_lum, &zeros, 0.0006 * luminance(om));
+    eprintln!("bdpt vs Mitsuba: worst block {z:.2} sigma ({:.1} s)", t0.elapsed().as_secs_f64());
+    assert!(z < 5.0, "a block is {z:.1} sigma off the reference");
+}
+
+/// Side of the caustics renders.
+const CAUSTICS_SIZE: u32 = 32;
+
+/// A long BDPT render of the caustics scene: 32 x 32, 4 seeds x 256 spp (shared by the tests).
+fn caustics_reference() -> &'static (Scene, Estimate) {
+    static REFERENCE: OnceLock<(Scene, Estimate)> = OnceLock::new();
+    REFERENCE.get_or_init(|| {
+        let scene = glb_scene(&caustics_glb());
+        let est = Estimate::from_seeds(&scene, &settings(CAUSTICS_SIZE, 256, bdpt(8), 0), &[101, 102, 103, 104]);
+        (scene, est)
+    })
+}
+
+/// Caustics (glass sphere, small bright light): path tracing (32 x 32 x 4096 spp, seed 7, its
+/// variance layer) and the long BDPT reference agree on each 16 x 16 quarter of the image and
+/// on the whole image within 5 sigma (5 comparisons: false alarm about 3e-6 for Gaussian errors).
+/// The blocks are large because the path tracer finds light reflected and refracted by the glass
+/// only when a BSDF sample hits the small light: with fewer than about a million samples per
+/// block its block means are heavy-tailed (mostly low, with rare fireflies), and 8 x 8 blocks of
+/// a 64 x 64 x 1024 render differed by up to 18 sigma of its own (underestimated) variance.
+#[test]
+fn bdpt_and_path_agree_on_caustics() {
+    let t0 = Instant::now();
+    let (scene, reference) = caustics_reference();
+    let w = CAUSTICS_SIZE as usize;
+    let p = Estimate::from_image(&render(scene, &settings(CAUSTICS_SIZE, 4096, path(8), 7)));
+    let quarters = worst_block_z(w, w / 2, &p.lum(), &p.var, &reference.lum(), &reference.var, 0.0);
+    let whole = worst_block_z(w, w, &p.lum(), &p.var, &reference.lum(), &reference.var, 0.0);
+    let z = quarters.max(whole);
+    eprintln!(
+        "caustics: image mean path {:.5}, bdpt {:.5}; worst block {z:.2} sigma ({:.1} s)",
+        luminance(p.mean_rgb()),
+        luminance(reference.mean_rgb()),
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(z < 5.0, "path and bdpt differ by {z:.1} sigma on a block");
+}
+
+fn rmse(img: &ImageLayers, reference: &[f64]) -> f64 {
+    let n = reference.len() as f64;
+    (img.rgb.iter().zip(reference).map(|(&p, &r)| (lum(p) - r).powi(2)).sum::<f64>() / n).sqrt()
+}
+
+/// Wall time of `f` on one thread (the minimum of two runs, so that other tests sharing the
+/// cores disturb it less).
+fn single_thread_time<T: Send>(f: impl Fn() -> T + Send + Sync) -> (T, f64) {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+    pool.install(|| {
+        let t = Instant::now();
+        let _ = f();
+        let first = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let out = f();
+        (out, first.min(t.elapsed().as_secs_f64()))
+    })
+}
+
+/// At equal render time, BDPT has a lower luminance RMSE than path tracing against the long
+/// BDPT reference on the caustics scene: BDPT renders 32 spp, path tracing as many samples as
+/// fit in the same single-threaded time (measured from a 32-spp path render). The reference's
+/// own noise adds equally to both. Measured: bdpt's RMSE is about half of path's.
+#[test]
+fn bdpt_beats_path_at_equal_time_on_caustics() {
+    let (scene, reference) = caustics_reference();
+    let ref_lum = reference.lum();
+    let (b, t_bdpt) = single_thread_time(|| render(scene, &settings(CAUSTICS_SIZE, 32, bdpt(8), 21)));
+    let (_, t_path32) = single_thread_time(|| render(scene, &settings(CAUSTICS_SIZE, 32, path(8), 22)));
+    let path_spp = ((32.0 * t_bdpt / t_path32).round() as u32).max(1);
+    let t = Instant::now();
+    let p = render(scene, &settings(CAUSTICS_SIZE, path_spp, path(8), 23));
+    let t_path = t.elapsed().as_secs_f64();
+    let (eb, ep) = (rmse(&b, &ref_lum), rmse(&p, &ref_lum));
+    eprintln!(
+        "caustics at equal time: bdpt 32 spp {t_bdpt:.2} s (1 thread) RMSE {eb:.4}; path {path_spp} spp \
+         ({:.2} s per 32 spp, {t_path:.2} s all threads) RMSE {ep:.4}",
+        t_path32
+    );
+    assert!(eb < ep, "bdpt RMSE {eb:.4} not below path's {ep:.4}");
+}
+
+/// IGI with bias compensation agrees with the Mitsuba reference on the Cornell box: 64 x 64
+/// (reference downsampled 4 x 4), 4 seeds x 16 spp, every 16 x 16 block within 5 sigma (16
+/// blocks, false alarm about 1e-5 for Gaussian errors) and the image mean within 0.5%. The clamped
+/// estimator (same seeds, g_limit 1) must fail the same check: the test can tell.
+#[test]
+fn igi_with_compensation_matches_reference() {
+    let t0 = Instant::now();
+    let scene = file_scene(&shared().join("reference/cornell_mitsuba.glb"));
+    let w = 64;
+    let reference = mitsuba_reference(w);
+    let ref_lum: Vec<f64> = reference.iter().map(|&p| luminance(p)).collect();
+    let ref_mean = ref_lum.iter().sum::<f64>() / (w * w) as f64;
+    let zeros = vec![0.0; w * w];
+    let check = |bias_compensation: bool| {
+        let est = Estimate::from_seeds(&scene, &settings(w as u32, 16, igi(1.0, bias_compensation), 0), &[1, 2, 3, 4]);
+        let mean = luminance(est.mean_rgb());
+        let z = worst_block_z(w, 16, &est.lum(), &est.var, &ref_lum, &zeros, 0.0006 * ref_mean);
+        (mean / ref_mean - 1.0, z)
+    };
+    let (rel, z) = check(true);
+    let (rel_clamped, z_clamped) = check(false);
+    eprintln!(
+        "igi vs Mitsuba (g_limit 1): compensated {:+.3}%, worst block {z:.2} sigma; clamped {:+.3}%, worst block \
+         {z_clamped:.2} sigma ({:.1} s)",
+        rel * 100.0,
+        rel_clamped * 100.0,
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(rel.abs() < 0.005 && z < 5.0, "compensated igi is {:+.3}% / {z:.1} sigma off", rel * 100.0);
+    assert!(z_clamped > 5.0, "the clamped estimator should be detectably dark, got {z_clamped:.1} sigma");
+}
+
+/// Clamping the geometry term loses energy, less as the clamp rises: the Cornell box (64 x 64 x
+/// 8 spp, seed 5, the same random numbers for every g_limit, so the comparison is exact) without
+/// compensation, against the compensated render. The loss shrinks strictly as g_limit grows, is
+/// large (> 3%) at g_limit 0.25 and small (< 1%) at 64.
+#[test]
+fn igi_clamping_loses_less_energy_as_g_limit_grows() {
+    let scene = file_scene(&shared().join("reference/cornell_mitsuba.glb"));
+    let mean = |i| luminance(mean_rgb(&render(&scene, &settings(64, 8, i, 5))));
+    let full = mean(igi(1.0, true));
+    let mut losses = Vec::new();
+    for g in [0.25f32, 1.0, 4.0, 16.0, 64.0] {
+        let loss = 1.0 - mean(igi(g, false)) / full;
+        eprintln!("g_limit {g:>5}: energy lost {:.3}%", loss * 100.0);
+        losses.push(loss);
+    }
+    for w in losses.windows(2) {
+        assert!(w[1] < w[0], "loss did not shrink: {losses:?}");
+    }
+    assert!(losses[0] > 0.03 && losses[4] < 0.01, "{losses:?}");
+}
+
+/// Splitting a render into tiles and passes and merging gives the same bits as another split:
+/// tile size 8 with one-sample passes vs. tile size 32 with doubling passes, for every integrator
+/// (44 x 36 pixels, so tiles are partial; bdpt on the caustics scene, with splats).
+#[test]
+fn every_integrator_is_split_invariant() {
+    let cornell = glb_scene(&cornell_demo_glb());
+    let caustics = glb_scene(&caustics_glb());
+    let cases = [
+        (
+            "direct",
+            &cornell,
+            IntegratorSettings::Direct { mis: MisHeuristic::Power, light_sampling: LightSampling::SolidAngle },
+        ),
+        ("path", &cornell, path(8)),
+        ("bdpt", &caustics, bdpt(8)),
+        (
+            "igi",
+            &cornell,
+            IntegratorSettings::Igi { vpls: 8, vpl_sets: 3, g_limit: 1.0, bias_compensation: true, max_depth: 8 },
+        ),
+    ];
+    for (name, scene, integrator) in cases {
+        let mut a = RenderSettings::new(44, 36, 7);
+        a.integrator = integrator;
+        a.seed = 17;
+        a.tile_size = 8;
+        a.passes = PassSchedule::Fixed { spp: 1 };
+        let mut b = a.clone();
+        b.tile_size = 32;
+        b.passes = PassSchedule::Doubling { first: 1, max: 64 };
+        let (fa, fb) = (film(scene, &a), film(scene, &b));
+        assert!(fa.sums.iter().any(|&v| v != 0), "{name}: empty film");
+        if name == "bdpt" {
+            assert!(!fa.splats.is_empty(), "bdpt: no splats");
+        }
+        assert!(fa == fb, "{name}: the two splits differ");
+        let (ia, ib) = (fa.resolve(), fb.resolve());
+        let bits = |i: &ImageLayers| i.rgb.iter().flat_map(|p| p.map(f32::to_bits)).collect::<Vec<u32>>();
+        assert_eq!(bits(&ia), bits(&ib), "{name}: resolved images differ");
+    }
+}
