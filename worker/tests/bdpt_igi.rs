@@ -282,9 +282,20 @@ fn bdpt_and_path_agree_on_caustics() {
     assert!(z < 5.0, "path and bdpt differ by {z:.1} sigma on a block");
 }
 
+/// Pixels whose reference luminance exceeds this see the light itself; their error is the
+/// anti-aliasing of the light's edge, the same for every integrator, so the RMSE leaves them out.
+const EMITTER_LUMINANCE: f64 = 50.0;
+
+/// Luminance RMSE against `reference`, over the pixels that do not see a light directly.
 fn rmse(img: &ImageLayers, reference: &[f64]) -> f64 {
-    let n = reference.len() as f64;
-    (img.rgb.iter().zip(reference).map(|(&p, &r)| (lum(p) - r).powi(2)).sum::<f64>() / n).sqrt()
+    let (mut sum, mut n) = (0.0f64, 0.0f64);
+    for (&p, &r) in img.rgb.iter().zip(reference) {
+        if r <= EMITTER_LUMINANCE {
+            sum += (lum(p) - r).powi(2);
+            n += 1.0;
+        }
+    }
+    (sum / n.max(1.0)).sqrt()
 }
 
 /// Wall time of `f` on one thread (the minimum of two runs, so that other tests sharing the
@@ -304,7 +315,10 @@ fn single_thread_time<T: Send>(f: impl Fn() -> T + Send + Sync) -> (T, f64) {
 /// At equal render time, BDPT has a lower luminance RMSE than path tracing against the long
 /// BDPT reference on the caustics scene: BDPT renders 32 spp, path tracing as many samples as
 /// fit in the same single-threaded time (measured from a 32-spp path render). The reference's
-/// own noise adds equally to both. Measured: bdpt's RMSE is about half of path's.
+/// own noise adds equally to both; pixels that see the light are left out (their error is the
+/// light's anti-aliased edge, the same for both). Measured on an idle machine: bdpt 0.26, path
+/// (68 spp) 0.37. The path tracer's sample count depends on the measured time; its RMSE would
+/// have to drop by a third for the test to fail.
 #[test]
 fn bdpt_beats_path_at_equal_time_on_caustics() {
     let (scene, reference) = caustics_reference();
