@@ -159,9 +159,10 @@ impl Vertex {
         bsdf.f(self.wo, wi)
     }
 
-    /// Converts a solid-angle density at this vertex to an area density at `next`.
+    /// Converts a solid-angle density at this vertex to an area density at `next` (kept per
+    /// solid angle toward a light at infinity).
     fn convert_density(&self, scene: &RenderScene, pdf: f32, next: &Vertex) -> f32 {
-        if self.is_infinite_light(scene) {
+        if next.is_infinite_light(scene) {
             return pdf;
         }
         let w = next.p - self.p;
