@@ -347,6 +347,40 @@ mod tests {
     }
 
     #[test]
+    fn emitted_directions_match_pdf_le() {
+        // Chi-square of sample_le's directions against pdf_le for a one-sided and a two-sided
+        // triangle, a spot and a point light; Sidak-corrected alpha 0.01 over the four, fixed seeds.
+        let one = tri_light();
+        let Light::Triangle { prim, v, n, area, le, .. } = one else { unreachable!() };
+        let two = Light::Triangle { prim, v, n, area, le, two_sided: true };
+        let spot = Light::Spot {
+            p: Vec3A::ZERO,
+            i: Vec3A::ONE,
+            axis: Vec3A::new(0.3, -1.0, 0.2).normalize(),
+            cos_inner: 0.9,
+            cos_outer: 0.6,
+        };
+        let point = Light::Point { p: Vec3A::ZERO, i: Vec3A::ONE };
+        for (k, light) in [one, two, spot, point].into_iter().enumerate() {
+            let opts =
+                Chi2Options { samples: 400_000, res: (40, 80), tests: 4, seed: 40 + k as u64, ..Default::default() };
+            let result = test_sphere(
+                &format!("sample_le {k}"),
+                |u, _| {
+                    let s = light.sample_le(Vec2::new(0.3, 0.6), u, Vec3A::ZERO)?;
+                    let (pdf_pos, pdf_dir) = light.pdf_le(s.d);
+                    assert!((pdf_dir - s.pdf_dir).abs() <= 1e-3 * s.pdf_dir, "{pdf_dir} vs {}", s.pdf_dir);
+                    assert!((pdf_pos - s.pdf_pos).abs() <= 1e-6 * s.pdf_pos);
+                    Some(s.d)
+                },
+                |w| light.pdf_le(w).1,
+                &opts,
+            );
+            assert!(result.is_ok(), "{result:?}");
+        }
+    }
+
+    #[test]
     fn spot_falloff_and_point_inverse_square() {
         let ctx = LightSampleContext { p: Vec3A::ZERO, n: Vec3A::Y };
         let p = Light::Point { p: Vec3A::new(0.0, 2.0, 0.0), i: Vec3A::splat(8.0) };
