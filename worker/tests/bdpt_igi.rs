@@ -475,3 +475,33 @@ fn bdpt_matches_path_with_spot_and_directional_lights() {
     assert!(with > 1.5 * without, "the delta lights hardly light the scene ({without:.4} without, {with:.4} with)");
     assert!(blocks < 5.0 && whole < 5.0, "path and bdpt differ: blocks {blocks:.1}, image {whole:.1} sigma");
 }
+
+/// The CLI renders one BDPT strategy (`--bdpt-strategy s,t`) and the IGI flags, and rejects a
+/// strategy that does not exist or does not parse with a message naming it.
+#[test]
+fn cli_bdpt_strategy_and_igi_flags() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene_path = dir.path().join("demo.glb");
+    std::fs::write(&scene_path, cornell_demo_glb()).expect("write scene");
+    let run = |extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_pathfarm-worker"))
+            .arg("render")
+            .arg(&scene_path)
+            .args(["--width", "16", "--height", "16", "--spp", "2", "--quiet", "--threads", "1", "--out"])
+            .arg(dir.path().join("out.exr"))
+            .args(extra)
+            .output()
+            .expect("run pathfarm-worker")
+    };
+    let ok = run(&["--integrator", "bdpt", "--bdpt-strategy", "1,2"]);
+    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    let ok =
+        run(&["--integrator", "igi", "--vpls", "4", "--vpl-sets", "2", "--g-limit", "2", "--bias-compensation", "on"]);
+    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    for (bad, needle) in [("0,1", "strategy"), ("1;2", "s,t"), ("1,x", "\"x\"")] {
+        let out = run(&["--integrator", "bdpt", "--bdpt-strategy", bad]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(needle), "--bdpt-strategy {bad}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+}
