@@ -55,7 +55,7 @@ const MAX_SPECULAR_CHAIN: u32 = 64;
 /// Separates the VPL sampler's seed from the camera sampler's.
 const VPL_SEED_TAG: u64 = 0x1617_0001;
 /// Sample indices whose VPLs stay cached (units arrive pass by pass).
-const CACHED_SAMPLES: usize = 256;
+const CACHED_SAMPLES: usize = 128;
 
 /// A virtual point light: a light-path vertex on a non-specular surface.
 #[derive(Clone, Debug)]
