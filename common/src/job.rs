@@ -406,6 +406,25 @@ mod tests {
     }
 
     #[test]
+    fn bdpt_settings_default_and_validate() {
+        let p: RenderSettings =
+            serde_json::from_str(r#"{"width":4,"height":4,"spp":1,"integrator":{"type":"bdpt"}}"#).expect("parse");
+        assert_eq!(
+            p.integrator,
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None }
+        );
+        assert!(p.validate(&Limits::default()).is_ok());
+        let mut s = p.clone();
+        s.integrator =
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: Some([0, 1]) };
+        assert!(s.validate(&Limits::default()).expect_err("no (0, 1)").to_string().contains("strategy"));
+        s.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Light, rr_depth: 3, strategy: None };
+        assert!(s.validate(&Limits::default()).expect_err("light only").to_string().contains("mis"));
+        let json = serde_json::to_string(&p).expect("serialize");
+        assert!(!json.contains("strategy"), "{json}");
+    }
+
+    #[test]
     fn validate_names_the_limit() {
         let mut s = RenderSettings::new(100_000, 10, 1);
         let e = s.validate(&Limits::default()).expect_err("too wide");
