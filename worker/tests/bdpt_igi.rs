@@ -5,8 +5,9 @@
 //! layer, and IGI's error is correlated across pixels through the shared VPLs, so their noise is
 //! measured from independent renders (different seeds): the variance of a pixel's mean is the
 //! sample variance over the renders divided by their number, and a block's variance is the sum
-//! of its pixels' variances over the squared pixel count (neighbouring pixels' covariance is
-//! neglected). Bounds are in those sigmas.
+//! of its pixels' variances over the squared pixel count (for BDPT; the covariance that one light
+//! path's splats put between pixels is neglected). IGI's pixels share VPLs, so its block
+//! variances come from the spread of the seeds' block means instead. Bounds are in those sigmas.
 
 mod common;
 
