@@ -80,12 +80,19 @@ pub enum IntegratorSettings {
         #[serde(default)]
         light_sampling: LightSampling,
     },
-    /// Bidirectional path tracing.
+    /// Bidirectional path tracing. `mis` must be `balance` or `power`.
     Bdpt {
         #[serde(default = "default_max_depth")]
         max_depth: u32,
         #[serde(default)]
         mis: MisHeuristic,
+        /// Scatterings per subpath before Russian roulette starts.
+        #[serde(default = "default_rr_depth")]
+        rr_depth: u32,
+        /// Debugging and teaching: only the MIS-weighted contribution of strategy `[s, t]`
+        /// (`s` light vertices, `t` camera vertices).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        strategy: Option<[u32; 2]>,
     },
     /// Instant global illumination with virtual point lights.
     Igi {
@@ -229,6 +236,20 @@ impl RenderSettings {
                 at_most("integrator.max_depth", (*max_depth).into(), limits.max_depth.into())?;
             }
             IntegratorSettings::Direct { .. } => {}
+        }
+        if let IntegratorSettings::Bdpt { mis, strategy, .. } = &self.integrator {
+            if matches!(mis, MisHeuristic::Light | MisHeuristic::Bsdf) {
+                return Err(SettingsError::Invalid(format!(
+                    "integrator.mis must be balance or power for bdpt, got {mis:?}"
+                )));
+            }
+            if let Some([s, t]) = strategy
+                && (*t < 1 || s + t < 2)
+            {
+                return Err(SettingsError::Invalid(format!(
+                    "integrator.strategy [{s}, {t}] does not exist: t >= 1 and s + t >= 2"
+                )));
+            }
         }
         if let IntegratorSettings::Igi { vpls, vpl_sets, g_limit, .. } = &self.integrator {
             at_least("integrator.vpls", (*vpls).into(), 1)?;
@@ -382,6 +403,25 @@ mod tests {
             p.integrator,
             IntegratorSettings::Direct { mis: MisHeuristic::Balance, light_sampling: LightSampling::SolidAngle }
         );
+    }
+
+    #[test]
+    fn bdpt_settings_default_and_validate() {
+        let p: RenderSettings =
+            serde_json::from_str(r#"{"width":4,"height":4,"spp":1,"integrator":{"type":"bdpt"}}"#).expect("parse");
+        assert_eq!(
+            p.integrator,
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None }
+        );
+        assert!(p.validate(&Limits::default()).is_ok());
+        let mut s = p.clone();
+        s.integrator =
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: Some([0, 1]) };
+        assert!(s.validate(&Limits::default()).expect_err("no (0, 1)").to_string().contains("strategy"));
+        s.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Light, rr_depth: 3, strategy: None };
+        assert!(s.validate(&Limits::default()).expect_err("light only").to_string().contains("mis"));
+        let json = serde_json::to_string(&p).expect("serialize");
+        assert!(!json.contains("strategy"), "{json}");
     }
 
     #[test]

@@ -90,6 +90,16 @@ pub struct SettingsArgs {
     /// IGI: add back the clamped-away energy by BSDF sampling.
     #[arg(long, value_enum, default_value = "off")]
     pub bias_compensation: OnOff,
+    /// BDPT: render only the MIS-weighted strategy `s,t` (s light vertices, t camera vertices).
+    #[arg(long, value_parser = parse_strategy)]
+    pub bdpt_strategy: Option<[u32; 2]>,
+}
+
+/// Parses `s,t` for `--bdpt-strategy`.
+fn parse_strategy(v: &str) -> Result<[u32; 2], String> {
+    let (s, t) = v.split_once(',').ok_or_else(|| format!("expected s,t (e.g. 1,2), got {v:?}"))?;
+    let parse = |x: &str| x.trim().parse::<u32>().map_err(|e| format!("{x:?} in {v:?}: {e}"));
+    Ok([parse(s)?, parse(t)?])
 }
 
 impl SettingsArgs {
@@ -109,7 +119,12 @@ impl SettingsArgs {
             IntegratorArg::Path => {
                 IntegratorSettings::Path { max_depth: self.max_depth, rr_depth: self.rr_depth, mis, light_sampling }
             }
-            IntegratorArg::Bdpt => IntegratorSettings::Bdpt { max_depth: self.max_depth, mis },
+            IntegratorArg::Bdpt => IntegratorSettings::Bdpt {
+                max_depth: self.max_depth,
+                mis,
+                rr_depth: self.rr_depth,
+                strategy: self.bdpt_strategy,
+            },
             IntegratorArg::Igi => IntegratorSettings::Igi {
                 vpls: self.vpls,
                 vpl_sets: self.vpl_sets,

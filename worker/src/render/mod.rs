@@ -2,11 +2,13 @@
 //! function of (scene, settings, tile, sample range).
 
 pub mod accel;
+pub mod bdpt;
 pub mod bsdf;
 pub mod camera;
 #[cfg(test)]
 pub mod chi2;
 pub mod geometry;
+pub mod igi;
 pub mod integrator;
 pub mod light;
 pub mod material;
@@ -15,11 +17,13 @@ pub mod sampler;
 pub mod sampling;
 pub mod scene;
 
+use bdpt::{BdptParams, Subpaths, li_bdpt};
 use camera::Camera;
-use glam::UVec2;
+use glam::{UVec2, Vec2, Vec3A};
+use igi::{IgiParams, VplCache, li_igi};
 use integrator::{PathParams, li_path};
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
-use pathfarm_common::job::{IntegratorSettings, Pass, RenderSettings, TileRect};
+use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
 use pathfarm_common::scene::Scene;
 use rayon::prelude::*;
 use sampler::{AnySampler, Sampler};
@@ -42,13 +46,27 @@ pub struct UnitResult {
     pub splats: Option<SplatBuffer>,
 }
 
+/// The integrator of a job with its parameters (one match per sample; the sampler is the
+/// monomorphized part).
+#[derive(Clone, Copy, Debug)]
+enum Integrator {
+    Path(PathParams),
+    Bdpt(BdptParams),
+    Igi(IgiParams),
+}
+
 /// A scene prepared for rendering (BVH, lights, materials, camera) with fixed settings.
 pub struct Renderer {
     settings: RenderSettings,
     scene: RenderScene,
     camera: Camera,
-    params: PathParams,
+    integrator: Integrator,
+    /// IGI: the virtual point lights of each sample index, built on first use.
+    vpls: VplCache,
 }
+
+/// A light-tracing contribution at a raster position.
+type Splat = (Vec2, Vec3A);
 
 impl Renderer {
     /// Prepares `scene` for rendering with `settings` (builds the BVH: do it once per job).
@@ -68,21 +86,48 @@ impl Renderer {
                 None => Camera::framing(scene.bounds(), settings.width, settings.height),
             },
         };
-        let params = match settings.integrator {
+        let integrator = match settings.integrator {
             IntegratorSettings::Direct { mis, light_sampling } => {
-                PathParams { max_depth: 2, rr_depth: u32::MAX, mis, light_sampling }
+                Integrator::Path(PathParams { max_depth: 2, rr_depth: u32::MAX, mis, light_sampling })
             }
             IntegratorSettings::Path { max_depth, rr_depth, mis, light_sampling } => {
-                PathParams { max_depth, rr_depth, mis, light_sampling }
+                Integrator::Path(PathParams { max_depth, rr_depth, mis, light_sampling })
             }
-            ref other => {
-                return Err(RenderError::Settings(format!(
-                    "integrator {:?} is not available yet in this build",
-                    serde_json::to_value(other).ok().and_then(|v| v.get("type").cloned()).unwrap_or_default()
-                )));
+            IntegratorSettings::Bdpt { max_depth, mis, rr_depth, strategy } => {
+                if !camera.is_pinhole() {
+                    return Err(RenderError::Settings(
+                        "bdpt needs a perspective (pinhole) camera: light paths cannot be connected to an \
+                         orthographic one"
+                            .into(),
+                    ));
+                }
+                let mis_exponent = match mis {
+                    MisHeuristic::Balance => 1,
+                    MisHeuristic::Power => 2,
+                    other => {
+                        return Err(RenderError::Settings(format!(
+                            "bdpt weighs its strategies with mis balance or power, not {other:?}"
+                        )));
+                    }
+                };
+                Integrator::Bdpt(BdptParams {
+                    max_depth,
+                    rr_depth,
+                    mis_exponent,
+                    strategy: strategy.map(|[s, t]| (s, t)),
+                })
+            }
+            IntegratorSettings::Igi { vpls, vpl_sets, g_limit, bias_compensation, max_depth } => {
+                Integrator::Igi(IgiParams { vpls, vpl_sets, g_limit, bias_compensation, max_depth })
             }
         };
-        Ok(Self { settings: settings.clone(), scene: RenderScene::new(scene), camera, params })
+        Ok(Self {
+            settings: settings.clone(),
+            scene: RenderScene::new(scene),
+            camera,
+            integrator,
+            vpls: VplCache::default(),
+        })
     }
 
     pub fn settings(&self) -> &RenderSettings {
@@ -98,37 +143,81 @@ impl Renderer {
     pub fn render_unit(&self, tile: TileRect, pass: Pass) -> UnitResult {
         // One match per unit: the per-sample loop is monomorphized for the concrete sampler.
         let seed = self.settings.seed;
-        let accum = match AnySampler::new(self.settings.sampler, seed) {
+        let (accum, splats) = match AnySampler::new(self.settings.sampler, seed) {
             AnySampler::Sobol(_) => self.render_tile(tile, pass, || sampler::SobolSampler::new(seed)),
             AnySampler::Independent(_) => self.render_tile(tile, pass, || sampler::IndependentSampler::new(seed)),
         };
-        UnitResult { accum, splats: None }
+        let splats = matches!(self.integrator, Integrator::Bdpt(_)).then(|| {
+            let mut buf = SplatBuffer::new(self.settings.width, self.settings.height);
+            for (raster, v) in splats {
+                let p = raster.floor();
+                if p.x >= 0.0 && p.y >= 0.0 {
+                    buf.add(p.x as u32, p.y as u32, v.to_array());
+                }
+            }
+            buf
+        });
+        UnitResult { accum, splats }
     }
 
-    fn render_tile<S: Sampler>(&self, tile: TileRect, pass: Pass, new_sampler: impl Fn() -> S + Sync) -> TileAccum {
+    fn render_tile<S: Sampler>(
+        &self,
+        tile: TileRect,
+        pass: Pass,
+        new_sampler: impl Fn() -> S + Sync,
+    ) -> (TileAccum, Vec<Splat>) {
+        let vpls = match self.integrator {
+            Integrator::Igi(p) => Some(self.vpls.get(&self.scene, &p, self.settings.sampler, self.settings.seed, pass)),
+            _ => None,
+        };
         let row_len = tile.width() as usize * film::ch::COUNT;
-        let rows: Vec<Vec<film::Fixed>> = (tile.y0..tile.y1)
+        let rows: Vec<(Vec<film::Fixed>, Vec<Splat>)> = (tile.y0..tile.y1)
             .into_par_iter()
             .map(|y| {
                 let mut sampler = new_sampler();
                 let mut row = vec![0; row_len];
+                let mut splats = Vec::new();
+                let mut paths = Subpaths::default();
                 for x in tile.x0..tile.x1 {
                     let i = (x - tile.x0) as usize * film::ch::COUNT;
                     let pixel = UVec2::new(x, y);
                     for s in pass.samples() {
-                        sampler.start_pixel_sample(pixel, s, 0);
-                        let v = li_path(&self.scene, &self.camera, pixel, &mut sampler, &self.params);
+                        let v = match &self.integrator {
+                            Integrator::Path(params) => {
+                                sampler.start_pixel_sample(pixel, s, 0);
+                                li_path(&self.scene, &self.camera, pixel, &mut sampler, params)
+                            }
+                            Integrator::Bdpt(params) => li_bdpt(
+                                &self.scene,
+                                &self.camera,
+                                pixel,
+                                s,
+                                &mut sampler,
+                                params,
+                                &mut paths,
+                                &mut |raster, v| splats.push((raster, v)),
+                            ),
+                            Integrator::Igi(params) => {
+                                sampler.start_pixel_sample(pixel, s, 0);
+                                match vpls.as_ref().and_then(|v| v.get((s - pass.s0) as usize)) {
+                                    Some(vpls) => li_igi(&self.scene, &self.camera, pixel, &mut sampler, params, vpls),
+                                    None => film::SampleValue::default(),
+                                }
+                            }
+                        };
                         film::add_sample(&mut row[i..i + film::ch::COUNT], &v);
                     }
                 }
-                row
+                (row, splats)
             })
             .collect();
         let mut accum = TileAccum::new(tile);
-        for (dst, src) in accum.sums.chunks_mut(row_len).zip(rows) {
+        let mut splats = Vec::new();
+        for (dst, (src, sp)) in accum.sums.chunks_mut(row_len).zip(rows) {
             dst.copy_from_slice(&src);
+            splats.extend(sp);
         }
-        accum
+        (accum, splats)
     }
 }
 

@@ -3,7 +3,7 @@
 
 use super::accel::Accel;
 use super::geometry::{offset_ray_origin, shadow_segment};
-use super::light::{Light, LightLiSample, LightSampleContext};
+use super::light::{Light, LightLeSample, LightLiSample, LightSampleContext};
 use super::sampling::Distribution1D;
 use glam::{Vec2, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
@@ -232,6 +232,25 @@ impl RenderScene {
             s.l *= self.emission_texture(prim, s.b);
         }
         Some((index, s, pmf))
+    }
+
+    /// Picks a light by power: (light index, selection pmf).
+    pub fn pick_light(&self, u: f32) -> Option<(usize, f32)> {
+        if self.lights.is_empty() {
+            return None;
+        }
+        let (index, pmf, _) = self.light_distr.sample(u);
+        (pmf > 0.0).then_some((index, pmf))
+    }
+
+    /// Samples an emitted ray of light `index` (pbrt's `SampleLe`), emission texture applied.
+    pub fn sample_le(&self, index: usize, u1: Vec2, u2: Vec2) -> Option<LightLeSample> {
+        let light = self.lights.get(index)?;
+        let mut s = light.sample_le(u1, u2, self.center)?;
+        if let Light::Triangle { prim, .. } = *light {
+            s.l *= self.emission_texture(prim, s.b);
+        }
+        (s.l.max_element() > 0.0 && s.pdf_pos > 0.0 && s.pdf_dir > 0.0).then_some(s)
     }
 
     /// Light index of an emissive triangle.

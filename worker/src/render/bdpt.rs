@@ -1,0 +1,642 @@
+//! Bidirectional path tracing (Veach 1997, ch. 10; pbrt-v4's `BDPTIntegrator`).
+//!
+//! Each camera sample traces a camera subpath and a light subpath and combines every prefix pair
+//! `(s, t)` (`s` light vertices, `t` camera vertices): `s = 0` (the camera path hits an emitter),
+//! `s = 1` (a fresh light sample, next-event estimation), `t = 1` (light tracing: the light
+//! vertex is connected to the camera and splatted onto the pixel it lands on) and all inner
+//! connections through a visibility ray. Multiple importance sampling weighs the strategies with
+//! the balance or power heuristic, computed with pbrt-v4's ratio recurrence over the vertices'
+//! forward and reverse area densities; delta BSDFs and delta lights drop out of the sums.
+//!
+//! Path lengths count segments as elsewhere (Mitsuba's convention): a path of `s + t` vertices
+//! has `s + t - 1` segments. Both random walks use Russian roulette after `rr_depth` scatterings;
+//! the MIS weights ignore roulette, which keeps them a partition of unity, so the estimator stays
+//! unbiased.
+
+use super::bsdf::Bsdf;
+use super::camera::Camera;
+use super::geometry::{Ray, offset_ray_origin};
+use super::light::LightSampleContext;
+use super::material::shade;
+use super::sampler::Sampler;
+use super::scene::{RenderScene, SurfaceInteraction};
+use glam::{UVec2, Vec2, Vec3A};
+use pathfarm_common::film::SampleValue;
+use pathfarm_common::job::LightSampling;
+use std::f32::consts::PI;
+
+/// Parameters of the BDPT integrator.
+#[derive(Clone, Copy, Debug)]
+pub struct BdptParams {
+    /// Path segments (1 = emitters seen directly); 0 = no limit but [`UNLIMITED_VERTICES`].
+    pub max_depth: u32,
+    /// Scatterings per subpath before Russian roulette starts.
+    pub rr_depth: u32,
+    /// Exponent of the MIS heuristic: 1 = balance, 2 = power.
+    pub mis_exponent: u32,
+    /// Only this strategy `(s, t)`, with its MIS weight (debugging and teaching).
+    pub strategy: Option<(u32, u32)>,
+}
+
+/// Subpath length cap when the depth is unlimited (roulette ends paths long before).
+const UNLIMITED_VERTICES: usize = 256;
+/// Survival probability cap of Russian roulette, as in the path tracer.
+const RR_MAX_SURVIVAL: f32 = 0.95;
+/// First sampler dimension of the light subpath and of the light samples of `s = 1`.
+const LIGHT_DIM: u32 = 1 << 12;
+const CONNECT_DIM: u32 = 1 << 13;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TransportMode {
+    Radiance,
+    Importance,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VertexKind {
+    Camera,
+    Light,
+    Surface,
+}
+
+/// A subpath vertex (pbrt's `Vertex`). Densities are per unit area at this vertex (or per unit
+/// solid angle after an infinite light).
+#[derive(Clone, Debug)]
+pub struct Vertex {
+    pub(crate) kind: VertexKind,
+    pub(crate) p: Vec3A,
+    /// Geometric normal (zero for point-like vertices: cameras, point lights).
+    pub(crate) ng: Vec3A,
+    /// Shading normal for cosines.
+    pub(crate) ns: Vec3A,
+    /// Geometric normal turned to the side light may leave a reflecting surface.
+    pub(crate) ng_side: Vec3A,
+    /// Surface vertices: direction toward the previous vertex, the BSDF, the hit.
+    pub(crate) wo: Vec3A,
+    pub(crate) bsdf: Option<Bsdf>,
+    pub(crate) si: Option<SurfaceInteraction>,
+    /// Light vertices: the light.
+    pub(crate) light: Option<usize>,
+    pub(crate) beta: Vec3A,
+    pub(crate) delta: bool,
+    pub(crate) pdf_fwd: f32,
+    pub(crate) pdf_rev: f32,
+}
+
+impl Vertex {
+    fn camera(p: Vec3A, beta: Vec3A) -> Self {
+        Self {
+            kind: VertexKind::Camera,
+            p,
+            ng: Vec3A::ZERO,
+            ns: Vec3A::ZERO,
+            ng_side: Vec3A::ZERO,
+            wo: Vec3A::ZERO,
+            bsdf: None,
+            si: None,
+            light: None,
+            beta,
+            delta: false,
+            pdf_fwd: 0.0,
+            pdf_rev: 0.0,
+        }
+    }
+
+    fn light(index: usize, p: Vec3A, n: Option<Vec3A>, beta: Vec3A, pdf_fwd: f32) -> Self {
+        let n = n.unwrap_or(Vec3A::ZERO);
+        Self { kind: VertexKind::Light, ng: n, ns: n, ng_side: n, light: Some(index), pdf_fwd, ..Self::camera(p, beta) }
+    }
+
+    fn on_surface(&self) -> bool {
+        self.ng != Vec3A::ZERO
+    }
+
+    fn is_infinite_light(&self, scene: &RenderScene) -> bool {
+        self.kind == VertexKind::Light && self.light.is_some_and(|l| scene.lights[l].is_infinite())
+    }
+
+    fn is_delta_light(&self, scene: &RenderScene) -> bool {
+        self.kind == VertexKind::Light && self.light.is_some_and(|l| scene.lights[l].is_delta())
+    }
+
+    /// The light this vertex is on: a light vertex's, or an emissive surface's.
+    fn light_index(&self, scene: &RenderScene) -> Option<usize> {
+        match self.kind {
+            VertexKind::Light => self.light,
+            VertexKind::Surface => self.si.and_then(|si| scene.light_of_prim(si.prim)),
+            VertexKind::Camera => None,
+        }
+    }
+
+    /// Whether a connection can end here: not at a purely specular surface or a light with a
+    /// delta direction.
+    pub(crate) fn is_connectible(&self, scene: &RenderScene) -> bool {
+        match self.kind {
+            VertexKind::Camera => true,
+            VertexKind::Light => !self.is_infinite_light(scene),
+            VertexKind::Surface => self.bsdf.is_some_and(|b| !b.is_delta()),
+        }
+    }
+
+    /// Radiance emitted from this surface toward `prev`.
+    fn le(&self, scene: &RenderScene, prev: &Vertex) -> Vec3A {
+        match (self.kind, self.si) {
+            (VertexKind::Surface, Some(si)) => {
+                let w = (prev.p - self.p).normalize_or_zero();
+                scene.emitted(&si, w)
+            }
+            _ => Vec3A::ZERO,
+        }
+    }
+
+    /// BSDF value toward `next` (reflection only to the side light may leave).
+    fn f(&self, next: &Vertex) -> Vec3A {
+        let Some(bsdf) = &self.bsdf else { return Vec3A::ZERO };
+        let wi = (next.p - self.p).normalize_or_zero();
+        if !has_transmission(bsdf) && wi.dot(self.ng_side) <= 0.0 {
+            return Vec3A::ZERO;
+        }
+        bsdf.f(self.wo, wi)
+    }
+
+    /// Converts a solid-angle density at this vertex to an area density at `next` (kept per
+    /// solid angle toward a light at infinity).
+    fn convert_density(&self, scene: &RenderScene, pdf: f32, next: &Vertex) -> f32 {
+        if next.is_infinite_light(scene) {
+            return pdf;
+        }
+        let w = next.p - self.p;
+        let d2 = w.length_squared();
+        if !(d2 > 0.0) {
+            return 0.0;
+        }
+        let inv_d2 = 1.0 / d2;
+        let mut pdf = pdf * inv_d2;
+        if next.on_surface() {
+            pdf *= next.ng.dot(w * inv_d2.sqrt()).abs();
+        }
+        pdf
+    }
+
+    /// Area density at `next` of sampling it from this vertex, arriving from `prev`.
+    fn pdf(&self, scene: &RenderScene, camera: &Camera, prev: Option<&Vertex>, next: &Vertex) -> f32 {
+        if self.kind == VertexKind::Light {
+            return self.pdf_light(scene, next);
+        }
+        let wn = (next.p - self.p).normalize_or_zero();
+        let pdf = match self.kind {
+            VertexKind::Camera => camera.pdf_we(wn),
+            _ => {
+                let (Some(bsdf), Some(prev)) = (&self.bsdf, prev) else { return 0.0 };
+                let wp = (prev.p - self.p).normalize_or_zero();
+                bsdf.pdf(wp, wn)
+            }
+        };
+        self.convert_density(scene, pdf, next)
+    }
+
+    /// Area density at `v` of a ray emitted from this light vertex (or emissive surface).
+    fn pdf_light(&self, scene: &RenderScene, v: &Vertex) -> f32 {
+        let Some(l) = self.light_index(scene) else { return 0.0 };
+        let w = v.p - self.p;
+        let d2 = w.length_squared();
+        if !(d2 > 0.0) {
+            return 0.0;
+        }
+        let w = w / d2.sqrt();
+        let light = &scene.lights[l];
+        let mut pdf = if light.is_infinite() {
+            // Directional: the disk covering the scene, per unit area.
+            1.0 / (PI * scene.radius * scene.radius)
+        } else {
+            light.pdf_le(w).1 / d2
+        };
+        if v.on_surface() {
+            pdf *= v.ng.dot(w).abs();
+        }
+        pdf
+    }
+
+    /// Area density of choosing this point as a light path's origin (light selection included).
+    fn pdf_light_origin(&self, scene: &RenderScene, v: &Vertex) -> f32 {
+        let Some(l) = self.light_index(scene) else { return 0.0 };
+        let light = &scene.lights[l];
+        if light.is_infinite() {
+            // A delta direction: no density of being hit.
+            return 0.0;
+        }
+        let w = (v.p - self.p).normalize_or_zero();
+        scene.light_pmf(l) * light.pdf_le(w).0
+    }
+}
+
+/// Whether a BSDF can transmit (then connections may cross the surface).
+fn has_transmission(bsdf: &Bsdf) -> bool {
+    matches!(bsdf.bxdf, super::bsdf::Bxdf::Dielectric { .. })
+}
+
+/// pbrt's correction of the adjoint BSDF for shading normals (importance transport).
+fn correct_shading_normal(ng: Vec3A, ns: Vec3A, wo: Vec3A, wi: Vec3A) -> f32 {
+    let num = wo.dot(ns).abs() * wi.dot(ng).abs();
+    let denom = wo.dot(ng).abs() * wi.dot(ns).abs();
+    if denom == 0.0 { 0.0 } else { num / denom }
+}
+
+/// Reusable subpath storage (one per thread).
+#[derive(Default)]
+pub struct Subpaths {
+    camera: Vec<Vertex>,
+    light: Vec<Vertex>,
+}
+
+impl Subpaths {
+    /// The light subpath storage (IGI traces its VPL paths into it).
+    pub fn light_mut(&mut self) -> &mut Vec<Vertex> {
+        &mut self.light
+    }
+}
+
+/// Extends `path` (whose last vertex spawned `ray` with solid-angle density `pdf`) by a random
+/// walk of at most `max_vertices` more vertices. Returns nothing; the vertices are in `path`.
+#[allow(clippy::too_many_arguments)]
+pub fn random_walk(
+    scene: &RenderScene,
+    mut ray: Ray,
+    mut beta: Vec3A,
+    pdf: f32,
+    max_vertices: usize,
+    rr_depth: u32,
+    mode: TransportMode,
+    sampler: &mut impl Sampler,
+    path: &mut Vec<Vertex>,
+    mut aov: Option<&mut SampleValue>,
+) {
+    let mut pdf_fwd = pdf;
+    let mut bounces = 0usize;
+    while bounces < max_vertices {
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else { break };
+        let wo = -ray.d;
+        let sh = shade(scene, &si, wo, sampler.get_1d());
+        if let Some(out) = aov.take() {
+            out.depth = Some(si.t);
+            out.albedo = sh.albedo.to_array();
+            out.normal = sh.ns.to_array();
+        }
+        let ns = sh.bsdf.map_or(sh.ns, |b| b.frame.z);
+        let mut v = Vertex {
+            kind: VertexKind::Surface,
+            p: si.p,
+            ng: si.ng,
+            ns,
+            ng_side: sh.ng,
+            wo,
+            bsdf: sh.bsdf,
+            si: Some(si),
+            light: None,
+            beta,
+            delta: false,
+            pdf_fwd: 0.0,
+            pdf_rev: 0.0,
+        };
+        let Some(prev) = path.last() else { break };
+        v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);
+        path.push(v);
+        bounces += 1;
+        if bounces >= max_vertices {
+            break;
+        }
+        let Some(bsdf) = sh.bsdf else { break };
+        let uc = sampler.get_1d();
+        let u = sampler.get_2d();
+        let Some(bs) = bsdf.sample_f(wo, uc, u) else { break };
+        if !bs.is_transmission() && bs.wi.dot(sh.ng) <= 0.0 {
+            break;
+        }
+        beta *= bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+        let mut pdf_rev;
+        let n = path.len();
+        if bs.is_specular() {
+            path[n - 1].delta = true;
+            pdf_fwd = 0.0;
+            pdf_rev = 0.0;
+        } else {
+            pdf_fwd = bs.pdf;
+            pdf_rev = bsdf.pdf(bs.wi, wo);
+        }
+        if mode == TransportMode::Importance {
+            if bs.is_transmission() {
+                // The dielectric scales radiance by 1 / eta'^2; importance is not scaled.
+                beta *= bs.eta * bs.eta;
+            }
+            beta *= correct_shading_normal(si.ng, bsdf.frame.z, wo, bs.wi);
+        }
+        if !pdf_rev.is_finite() {
+            pdf_rev = 0.0;
+        }
+        let rev = path[n - 1].convert_density(scene, pdf_rev, &path[n - 2]);
+        path[n - 2].pdf_rev = rev;
+        if !(beta.max_element() > 0.0) || !beta.is_finite() {
+            break;
+        }
+        if bounces as u32 >= rr_depth {
+            let q = beta.max_element().min(RR_MAX_SURVIVAL);
+            if sampler.get_1d() >= q {
+                break;
+            }
+            beta /= q;
+        }
+        ray = Ray::new(offset_ray_origin(si.p, sh.ng, bs.wi), bs.wi);
+    }
+}
+
+/// Traces a light subpath into `path` (cleared first): light chosen by power, emission sampled
+/// by position and direction.
+pub fn light_subpath(
+    scene: &RenderScene,
+    max_vertices: usize,
+    rr_depth: u32,
+    sampler: &mut impl Sampler,
+    path: &mut Vec<Vertex>,
+) {
+    path.clear();
+    if max_vertices == 0 {
+        return;
+    }
+    let u_light = sampler.get_1d();
+    let u1 = sampler.get_2d();
+    let u2 = sampler.get_2d();
+    let Some((index, pmf)) = scene.pick_light(u_light) else { return };
+    let Some(les) = scene.sample_le(index, u1, u2) else { return };
+    path.push(Vertex::light(index, les.o, les.n, les.l, les.pdf_pos * pmf));
+    let cos = les.n.map_or(1.0, |n| n.dot(les.d).abs());
+    let beta = les.l * (cos / (pmf * les.pdf_pos * les.pdf_dir));
+    let o = match les.n {
+        Some(n) => offset_ray_origin(les.o, n, les.d),
+        None => les.o,
+    };
+    random_walk(
+        scene,
+        Ray::new(o, les.d),
+        beta,
+        les.pdf_dir,
+        max_vertices - 1,
+        rr_depth,
+        TransportMode::Importance,
+        sampler,
+        path,
+        None,
+    );
+    if scene.lights[index].is_infinite() {
+        if let Some(v) = path.get_mut(1) {
+            v.pdf_fwd = les.pdf_pos;
+            if v.on_surface() {
+                v.pdf_fwd *= les.d.dot(v.ng).abs();
+            }
+        }
+        path[0].pdf_fwd = 0.0;
+    }
+}
+
+/// Traces one BDPT sample through `pixel`: returns the camera-side estimate and its AOVs and
+/// calls `splat(raster, value)` for every light-tracing (`t = 1`) contribution.
+#[allow(clippy::too_many_arguments)]
+pub fn li_bdpt(
+    scene: &RenderScene,
+    camera: &Camera,
+    pixel: UVec2,
+    sample_index: u32,
+    sampler: &mut impl Sampler,
+    params: &BdptParams,
+    paths: &mut Subpaths,
+    splat: &mut impl FnMut(Vec2, Vec3A),
+) -> SampleValue {
+    let mut out = SampleValue::default();
+    let (max_camera, max_light) = if params.max_depth == 0 {
+        (UNLIMITED_VERTICES, UNLIMITED_VERTICES)
+    } else {
+        (params.max_depth as usize + 1, params.max_depth as usize)
+    };
+    // Camera subpath.
+    sampler.start_pixel_sample(pixel, sample_index, 0);
+    let ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    paths.camera.clear();
+    paths.camera.push(Vertex::camera(ray.o, Vec3A::ONE));
+    random_walk(
+        scene,
+        ray,
+        Vec3A::ONE,
+        camera.pdf_we(ray.d),
+        max_camera - 1,
+        params.rr_depth,
+        TransportMode::Radiance,
+        sampler,
+        &mut paths.camera,
+        Some(&mut out),
+    );
+    // Light subpath.
+    sampler.start_pixel_sample(pixel, sample_index, LIGHT_DIM);
+    light_subpath(scene, max_light, params.rr_depth, sampler, &mut paths.light);
+
+    let max_vertices = if params.max_depth == 0 { usize::MAX } else { params.max_depth as usize + 1 };
+    let mut l = Vec3A::ZERO;
+    let (cam, light) = (&paths.camera, &paths.light);
+    for t in 1..=cam.len() {
+        for s in 0..=light.len() {
+            if (s == 1 && t == 1) || s + t < 2 || s + t > max_vertices {
+                continue;
+            }
+            if params.strategy.is_some_and(|(ws, wt)| (ws as usize, wt as usize) != (s, t)) {
+                continue;
+            }
+            if s == 1 {
+                sampler.start_pixel_sample(pixel, sample_index, CONNECT_DIM + 3 * t as u32);
+            }
+            let (c, raster) = connect(scene, camera, light, cam, s, t, sampler, params.mis_exponent);
+            if !c.is_finite() {
+                continue;
+            }
+            match raster {
+                Some(r) if c != Vec3A::ZERO => splat(r, c),
+                Some(_) => {}
+                None => l += c,
+            }
+        }
+    }
+    out.radiance = l.to_array();
+    out
+}
+
+/// The weighted contribution of strategy `(s, t)`; `Some(raster)` for a splat (`t = 1`).
+#[allow(clippy::too_many_arguments)]
+fn connect(
+    scene: &RenderScene,
+    camera: &Camera,
+    light: &[Vertex],
+    cam: &[Vertex],
+    s: usize,
+    t: usize,
+    sampler: &mut impl Sampler,
+    mis_exponent: u32,
+) -> (Vec3A, Option<Vec2>) {
+    let pt = &cam[t - 1];
+    let mut raster = None;
+    let mut sampled = None;
+    let l = if s == 0 {
+        if t < 2 {
+            return (Vec3A::ZERO, None);
+        }
+        pt.beta * pt.le(scene, &cam[t - 2])
+    } else if t == 1 {
+        let qs = &light[s - 1];
+        if !qs.is_connectible(scene) || qs.kind != VertexKind::Surface {
+            return (Vec3A::ZERO, None);
+        }
+        let Some(cs) = camera.sample_wi(qs.p) else { return (Vec3A::ZERO, None) };
+        let v = Vertex::camera(cs.p_camera, Vec3A::splat(cs.we / cs.pdf));
+        let mut c = qs.beta * qs.f(&v) * v.beta * cs.wi.dot(qs.ns).abs();
+        if c != Vec3A::ZERO && !scene.visible(qs.p, qs.ng, cs.p_camera, None) {
+            c = Vec3A::ZERO;
+        }
+        raster = Some(cs.raster);
+        sampled = Some(v);
+        c
+    } else if s == 1 {
+        if !pt.is_connectible(scene) || pt.kind != VertexKind::Surface {
+            return (Vec3A::ZERO, None);
+        }
+        let u_select = sampler.get_1d();
+        let u = sampler.get_2d();
+        let ctx = LightSampleContext { p: pt.p, n: pt.ng };
+        // Area sampling: the density the MIS weights assume for a light vertex.
+        let Some((index, ls, pmf)) = scene.sample_light(&ctx, u_select, u, LightSampling::Area) else {
+            return (Vec3A::ZERO, None);
+        };
+        let mut v = Vertex::light(index, ls.p_light, ls.n_light, ls.l / (ls.pdf * pmf), 0.0);
+        v.pdf_fwd = v.pdf_light_origin(scene, pt);
+        let mut c = pt.beta * pt.f(&v) * v.beta * ls.wi.dot(pt.ns).abs();
+        if c != Vec3A::ZERO && !scene.unoccluded(pt.p, pt.ng, &ls) {
+            c = Vec3A::ZERO;
+        }
+        sampled = Some(v);
+        c
+    } else {
+        let qs = &light[s - 1];
+        if !qs.is_connectible(scene) || !pt.is_connectible(scene) || qs.kind != VertexKind::Surface {
+            return (Vec3A::ZERO, None);
+        }
+        let mut c = qs.beta * qs.f(pt) * pt.f(qs) * pt.beta;
+        if c != Vec3A::ZERO {
+            let d = pt.p - qs.p;
+            let d2 = d.length_squared();
+            if !(d2 > 0.0) {
+                return (Vec3A::ZERO, None);
+            }
+            let w = d / d2.sqrt();
+            c *= w.dot(qs.ns).abs() * w.dot(pt.ns).abs() / d2;
+            if c != Vec3A::ZERO && !scene.visible(qs.p, qs.ng, pt.p, Some(pt.ng)) {
+                c = Vec3A::ZERO;
+            }
+        }
+        c
+    };
+    if l == Vec3A::ZERO {
+        return (Vec3A::ZERO, raster);
+    }
+    let w = mis_weight(scene, camera, light, cam, sampled.as_ref(), s, t, mis_exponent);
+    (l * w, raster)
+}
+
+/// The MIS weight of strategy `(s, t)` for the path it built (pbrt-v4's `MISWeight`, with the
+/// ratios raised to `exponent`: 1 = balance heuristic, 2 = power heuristic).
+#[allow(clippy::too_many_arguments)]
+fn mis_weight(
+    scene: &RenderScene,
+    camera: &Camera,
+    light: &[Vertex],
+    cam: &[Vertex],
+    sampled: Option<&Vertex>,
+    s: usize,
+    t: usize,
+    exponent: u32,
+) -> f32 {
+    if s + t == 2 {
+        return 1.0;
+    }
+    // The strategy's endpoints: a sampled vertex replaces the subpath's end for s = 1 or t = 1.
+    let qs: Option<&Vertex> = match s {
+        0 => None,
+        1 => sampled,
+        _ => light.get(s - 1),
+    };
+    let pt: Option<&Vertex> = if t == 1 { sampled } else { cam.get(t - 1) };
+    let Some(pt) = pt else { return 0.0 };
+    let qs_minus = if s > 1 { light.get(s - 2) } else { None };
+    let pt_minus = if t > 1 { cam.get(t - 2) } else { None };
+
+    // Reverse densities of this strategy's path (pbrt's scoped assignments).
+    let pt_rev = match (qs, pt_minus) {
+        (Some(qs), _) => qs.pdf(scene, camera, qs_minus, pt),
+        (None, Some(pm)) => pt.pdf_light_origin(scene, pm),
+        (None, None) => 0.0,
+    };
+    let pt_minus_rev = match (qs, pt_minus) {
+        (Some(qs), Some(pm)) => pt.pdf(scene, camera, Some(qs), pm),
+        (None, Some(pm)) => pt.pdf_light(scene, pm),
+        _ => 0.0,
+    };
+    let qs_rev = qs.map_or(0.0, |qs| pt.pdf(scene, camera, pt_minus, qs));
+    let qs_minus_rev = match (qs, qs_minus) {
+        (Some(qs), Some(qm)) => qs.pdf(scene, camera, Some(pt), qm),
+        _ => 0.0,
+    };
+    let remap = |f: f32| if f != 0.0 { f } else { 1.0 };
+    let pow = |r: f32| if exponent == 2 { r * r } else { r };
+
+    // Camera side: vertex i's (pdf_rev, pdf_fwd, delta) with this strategy's overrides.
+    let cam_vertex = |i: usize| -> (f32, f32, bool) {
+        if i == t - 1 {
+            (pt_rev, pt.pdf_fwd, false)
+        } else if i + 2 == t {
+            (pt_minus_rev, cam[i].pdf_fwd, cam[i].delta)
+        } else {
+            (cam[i].pdf_rev, cam[i].pdf_fwd, cam[i].delta)
+        }
+    };
+    let mut sum = 0.0f32;
+    let mut ri = 1.0f32;
+    for i in (1..t).rev() {
+        let (rev, fwd, delta) = cam_vertex(i);
+        ri *= remap(rev) / remap(fwd);
+        if !delta && !cam_vertex(i - 1).2 {
+            sum += pow(ri);
+        }
+    }
+    if let Some(qs) = qs {
+        let light_vertex = |i: usize| -> (f32, f32, bool) {
+            if i == s - 1 {
+                (qs_rev, qs.pdf_fwd, false)
+            } else if i + 2 == s {
+                (qs_minus_rev, light[i].pdf_fwd, light[i].delta)
+            } else {
+                (light[i].pdf_rev, light[i].pdf_fwd, light[i].delta)
+            }
+        };
+        let mut ri = 1.0f32;
+        for i in (0..s).rev() {
+            let (rev, fwd, delta) = light_vertex(i);
+            ri *= remap(rev) / remap(fwd);
+            let delta_light = if i > 0 {
+                light_vertex(i - 1).2
+            } else if s == 1 {
+                qs.is_delta_light(scene)
+            } else {
+                light[0].is_delta_light(scene)
+            };
+            if !delta && !delta_light {
+                sum += pow(ri);
+            }
+        }
+    }
+    let w = 1.0 / (1.0 + sum);
+    if w.is_finite() { w } else { 0.0 }
+}

@@ -1,0 +1,323 @@
+//! Instant global illumination (Keller 1997) with virtual point lights, the clamped geometry
+//! term and Kollig and Keller's bias compensation (2004).
+//!
+//! For every sample index, `vpl_sets` independent sets of `vpls` light paths are traced; every
+//! non-specular surface vertex of a light path becomes a virtual point light (VPL) carrying the
+//! path's throughput divided by the number of paths of its set. Pixel `(x, y)` uses set
+//! `(x + 2 y) mod vpl_sets` of its sample index (interleaved sampling, Keller and Heidrich 2001),
+//! so neighbouring pixels see different VPLs and the structured error becomes noise. The VPLs
+//! depend only on (job seed, sample index), not on the tile or on how samples are cut into
+//! passes: every tile sees the same ones (no seams), and a render split into units is
+//! bit-identical to one rendered whole. Each unit builds the sets of its samples once
+//! ([`VplCache`]); tracing them costs `spp x vpl_sets x vpls` light paths per job, little
+//! beside the shading.
+//!
+//! At the first non-specular camera hit `x`, radiance is direct lighting (one light sample,
+//! the `direct` estimator's light-sampling half) plus the sum over VPLs of
+//! `f(x) f(vpl) beta_vpl min(G, g_limit) V`. Clamping `G` removes the bright splotches near VPLs
+//! but loses the energy `integral of f max(G - g_limit, 0) L`. Bias compensation adds it back
+//! with a BSDF-sampled ray from `x` to `y`, weighted by `max(1 - g_limit / G(x, y), 0)`, and the
+//! radiance leaving `y` estimated by the same estimator recursively (direct + clamped VPLs +
+//! compensation), so that `a = min(a, b) + max(a - b, 0)` holds in expectation: the compensated
+//! estimator is consistent. Light reflected by specular surfaces (caustics) is beyond VPLs.
+
+use super::bdpt::{Subpaths, VertexKind, light_subpath};
+use super::bsdf::Bsdf;
+use super::camera::Camera;
+use super::geometry::{Ray, offset_ray_origin};
+use super::integrator::{PathParams, sample_ld};
+use super::material::{Shading, shade};
+use super::sampler::{AnySampler, Sampler, hash_u64};
+use super::scene::RenderScene;
+use glam::{UVec2, Vec3A};
+use pathfarm_common::film::SampleValue;
+use pathfarm_common::job::{LightSampling, MisHeuristic, Pass, SamplerKind};
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+/// Parameters of the IGI integrator.
+#[derive(Clone, Copy, Debug)]
+pub struct IgiParams {
+    /// Light paths per VPL set.
+    pub vpls: u32,
+    pub vpl_sets: u32,
+    pub g_limit: f32,
+    pub bias_compensation: bool,
+    /// Path segments (0 = no limit).
+    pub max_depth: u32,
+}
+
+/// Russian roulette starts after this many light-path scatterings; compensation recursion too.
+const RR_DEPTH: u32 = 3;
+/// Caps when the depth is unlimited.
+const UNLIMITED_VERTICES: usize = 256;
+const MAX_SPECULAR_CHAIN: u32 = 64;
+/// Separates the VPL sampler's seed from the camera sampler's.
+const VPL_SEED_TAG: u64 = 0x1617_0001;
+/// Sample indices whose VPLs stay cached (units arrive pass by pass).
+const CACHED_SAMPLES: usize = 128;
+
+/// A virtual point light: a light-path vertex on a non-specular surface.
+#[derive(Clone, Debug)]
+pub struct Vpl {
+    pub p: Vec3A,
+    /// Geometric normal (for ray offsets), shading normal (for cosines), and the side light
+    /// leaves from.
+    ng: Vec3A,
+    ns: Vec3A,
+    ng_side: Vec3A,
+    /// Direction toward the previous light-path vertex, and the BSDF there.
+    wo: Vec3A,
+    bsdf: Bsdf,
+    /// Throughput of the light path at this vertex divided by the set's path count.
+    pub beta: Vec3A,
+    /// Light-path segments from the light to this vertex.
+    segments: u32,
+}
+
+/// The VPL sets of one sample index.
+#[derive(Clone, Debug, Default)]
+pub struct VplSets {
+    pub sets: Vec<Vec<Vpl>>,
+}
+
+/// VPL sets by sample index, built on first use; the tiles of a pass share them.
+#[derive(Default)]
+pub struct VplCache(Mutex<BTreeMap<u32, Arc<VplSets>>>);
+
+impl VplCache {
+    /// The VPL sets of each sample of `pass`, in sample order (a pure function of the
+    /// settings and the sample index).
+    pub fn get(
+        &self,
+        scene: &RenderScene,
+        params: &IgiParams,
+        sampler: SamplerKind,
+        seed: u64,
+        pass: Pass,
+    ) -> Vec<Arc<VplSets>> {
+        pass.samples()
+            .map(|s| {
+                if let Some(v) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(&s) {
+                    return v.clone();
+                }
+                let built = Arc::new(trace_vpls(scene, params, sampler, seed, s));
+                let mut map = self.0.lock().unwrap_or_else(|e| e.into_inner());
+                while map.len() >= CACHED_SAMPLES {
+                    map.pop_first();
+                }
+                map.entry(s).or_insert(built).clone()
+            })
+            .collect()
+    }
+}
+
+/// Traces the VPL sets of sample index `sample_index`.
+pub fn trace_vpls(
+    scene: &RenderScene,
+    params: &IgiParams,
+    sampler_kind: SamplerKind,
+    seed: u64,
+    sample_index: u32,
+) -> VplSets {
+    // A VPL at light vertex k (k segments from the light) lights a camera hit at c >= 1
+    // segments through c + 1 + k segments: k <= max_depth - 2.
+    let max_vertices =
+        if params.max_depth == 0 { UNLIMITED_VERTICES } else { params.max_depth.saturating_sub(1) as usize };
+    let mut sampler = AnySampler::new(sampler_kind, hash_u64(&[seed, VPL_SEED_TAG]));
+    let mut paths = Subpaths::default();
+    let scale = 1.0 / params.vpls.max(1) as f32;
+    let sets = (0..params.vpl_sets)
+        .map(|set| {
+            let mut vpls = Vec::new();
+            for k in 0..params.vpls {
+                sampler.start_pixel_sample(UVec2::new(set, sample_index), k, 0);
+                light_subpath(scene, max_vertices, RR_DEPTH, &mut sampler, paths.light_mut());
+                for (segments, v) in paths.light_mut().iter().enumerate().skip(1) {
+                    let Some(bsdf) = v.bsdf else { continue };
+                    if v.kind != VertexKind::Surface || bsdf.is_delta() {
+                        continue;
+                    }
+                    vpls.push(Vpl {
+                        p: v.p,
+                        ng: v.ng,
+                        ns: v.ns,
+                        ng_side: v.ng_side,
+                        wo: v.wo,
+                        bsdf,
+                        beta: v.beta * scale,
+                        segments: segments as u32,
+                    });
+                }
+            }
+            vpls
+        })
+        .collect();
+    VplSets { sets }
+}
+
+/// Traces one IGI camera sample through `pixel` (the sampler positioned at dimension 0) with
+/// the VPL sets of its sample index.
+pub fn li_igi(
+    scene: &RenderScene,
+    camera: &Camera,
+    pixel: UVec2,
+    sampler: &mut impl Sampler,
+    params: &IgiParams,
+    vpls: &VplSets,
+) -> SampleValue {
+    let mut out = SampleValue::default();
+    let empty = Vec::new();
+    let set = if vpls.sets.is_empty() {
+        &empty
+    } else {
+        let k = (u64::from(pixel.x) + 2 * u64::from(pixel.y)) % vpls.sets.len() as u64;
+        &vpls.sets[k as usize]
+    };
+    let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let mut l = Vec3A::ZERO;
+    let mut beta = Vec3A::ONE;
+    let mut segments = 0u32;
+    while let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) {
+        let wo = -ray.d;
+        segments += 1;
+        // Emitters seen from the camera or through specular surfaces count in full; after a
+        // diffuse or glossy hit, direct lighting is the light sample's.
+        l += beta * scene.emitted(&si, wo);
+        let sh = shade(scene, &si, wo, sampler.get_1d());
+        if segments == 1 {
+            out.depth = Some(si.t);
+            out.albedo = sh.albedo.to_array();
+            out.normal = sh.ns.to_array();
+        }
+        if params.max_depth != 0 && segments >= params.max_depth {
+            break;
+        }
+        let Some(bsdf) = &sh.bsdf else { break };
+        if !bsdf.is_delta() {
+            l += beta * reflected(scene, si.p, &sh, wo, segments, sampler, params, set, 0);
+            break;
+        }
+        let uc = sampler.get_1d();
+        let u = sampler.get_2d();
+        let Some(bs) = bsdf.sample_f(wo, uc, u) else { break };
+        if !bs.is_transmission() && bs.wi.dot(sh.ng) <= 0.0 {
+            break;
+        }
+        beta *= bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+        if !(beta.max_element() > 0.0) || !beta.is_finite() || segments >= MAX_SPECULAR_CHAIN {
+            break;
+        }
+        ray = Ray::new(offset_ray_origin(si.p, sh.ng, bs.wi), bs.wi);
+    }
+    out.radiance = l.to_array();
+    out
+}
+
+/// Radiance reflected toward `wo` at the non-specular point `p` reached through `segments`
+/// path segments: direct lighting + clamped VPLs (+ the compensation of the clamping).
+#[allow(clippy::too_many_arguments)]
+fn reflected(
+    scene: &RenderScene,
+    p: Vec3A,
+    sh: &Shading,
+    wo: Vec3A,
+    segments: u32,
+    sampler: &mut impl Sampler,
+    params: &IgiParams,
+    set: &[Vpl],
+    recursion: u32,
+) -> Vec3A {
+    let Some(bsdf) = &sh.bsdf else { return Vec3A::ZERO };
+    let within = |n: u32| params.max_depth == 0 || n <= params.max_depth;
+    let mut l = Vec3A::ZERO;
+    if within(segments + 1) {
+        let direct = PathParams {
+            max_depth: 2,
+            rr_depth: u32::MAX,
+            mis: MisHeuristic::Light,
+            light_sampling: LightSampling::SolidAngle,
+        };
+        l += sample_ld(scene, p, sh, wo, sampler, &direct);
+    }
+    for vpl in set {
+        if !within(segments + 1 + vpl.segments) {
+            continue;
+        }
+        let d = vpl.p - p;
+        let d2 = d.length_squared();
+        if !(d2 > 0.0) {
+            continue;
+        }
+        let w = d / d2.sqrt();
+        if w.dot(sh.ng) <= 0.0 || (-w).dot(vpl.ng_side) <= 0.0 {
+            continue;
+        }
+        let f = bsdf.f(wo, w) * vpl.bsdf.f(vpl.wo, -w) * vpl.beta;
+        if f == Vec3A::ZERO {
+            continue;
+        }
+        let g = w.dot(bsdf.frame.z).abs() * w.dot(vpl.ns).abs() / d2;
+        let c = f * g.min(params.g_limit);
+        if c != Vec3A::ZERO && scene.visible(p, sh.ng, vpl.p, Some(vpl.ng)) {
+            l += c;
+        }
+    }
+    if params.bias_compensation && within(segments + 2) {
+        l += compensation(scene, p, sh, bsdf, wo, segments, sampler, params, set, recursion);
+    }
+    l
+}
+
+/// The clamped-away part `integral of f L max(G - g_limit, 0) dA`, as a BSDF-sampled ray from
+/// `p` to `y` weighted by `max(1 - g_limit / G, 0)` times the radiance reflected at `y`
+/// (estimated recursively; Russian roulette after [`RR_DEPTH`] levels).
+#[allow(clippy::too_many_arguments)]
+fn compensation(
+    scene: &RenderScene,
+    p: Vec3A,
+    sh: &Shading,
+    bsdf: &Bsdf,
+    wo: Vec3A,
+    segments: u32,
+    sampler: &mut impl Sampler,
+    params: &IgiParams,
+    set: &[Vpl],
+    recursion: u32,
+) -> Vec3A {
+    let uc = sampler.get_1d();
+    let u = sampler.get_2d();
+    let u_lobe = sampler.get_1d();
+    let u_rr = sampler.get_1d();
+    let Some(bs) = bsdf.sample_f(wo, uc, u) else { return Vec3A::ZERO };
+    if bs.is_transmission() || bs.wi.dot(sh.ng) <= 0.0 || bs.is_specular() {
+        return Vec3A::ZERO;
+    }
+    let Some(y) = scene.intersect(offset_ray_origin(p, sh.ng, bs.wi), bs.wi, f32::INFINITY) else {
+        return Vec3A::ZERO;
+    };
+    let wo_y = -bs.wi;
+    let sh_y = shade(scene, &y, wo_y, u_lobe);
+    let Some(bsdf_y) = &sh_y.bsdf else { return Vec3A::ZERO };
+    if bsdf_y.is_delta() {
+        return Vec3A::ZERO;
+    }
+    let d2 = (y.p - p).length_squared();
+    let cos_x = bs.wi.dot(bsdf.frame.z).abs();
+    let g = cos_x * bs.wi.dot(bsdf_y.frame.z).abs() / d2;
+    if !(g > params.g_limit) {
+        return Vec3A::ZERO;
+    }
+    let mut beta = bs.f * (cos_x / bs.pdf) * (1.0 - params.g_limit / g);
+    if recursion >= RR_DEPTH {
+        let q = beta.max_element().min(0.95);
+        if !(u_rr < q) {
+            return Vec3A::ZERO;
+        }
+        beta /= q;
+    }
+    if !beta.is_finite() {
+        return Vec3A::ZERO;
+    }
+    beta * reflected(scene, y.p, &sh_y, wo_y, segments + 1, sampler, params, set, recursion + 1)
+}
