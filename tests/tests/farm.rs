@@ -198,3 +198,25 @@ fn a_sigtermed_worker_finishes_its_unit_and_exits() {
         reqwest::blocking::get(format!("{}{API}/workers", coord.url)).expect("workers").json().expect("json");
     assert!(ws.iter().all(|w| w.current.is_none()), "{ws:?}");
 }
+
+#[test]
+fn bdpt_and_igi_jobs_are_bit_identical_through_the_farm() {
+    // BDPT units carry full-frame light-tracing splats; IGI units share per-sample VPL sets.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let _workers: Vec<Proc> =
+        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let mut bdpt = settings(40, 32, 12, 16);
+    bdpt.integrator =
+        IntegratorSettings::Bdpt { max_depth: 5, mis: MisHeuristic::Balance, rr_depth: 3, strategy: None };
+    let mut igi = settings(40, 32, 8, 16);
+    igi.integrator =
+        IntegratorSettings::Igi { vpls: 16, vpl_sets: 2, g_limit: 5.0, bias_compensation: true, max_depth: 5 };
+    for (name, s) in [("bdpt", bdpt), ("igi", igi)] {
+        let id = submit(&client, &scene, &s, 0, name);
+        wait_done(&client, id, Duration::from_secs(120));
+        assert!(client.image_exr(id).expect("exr") == local_exr(&scene, &s), "{name}: farm image differs from local");
+    }
+}
