@@ -259,29 +259,26 @@ impl Daemon {
         renderer: &Renderer,
         grant: &LeaseGrant,
     ) -> Result<UnitResult, String> {
-        let done = AtomicBool::new(false);
+        // The heartbeat thread waits on a channel, so it ends the moment the render does.
+        let (done, wake) = std::sync::mpsc::channel::<()>();
         let lost = AtomicBool::new(false);
+        let this: &Self = self;
+        let lost_flag = &lost;
         let result = std::thread::scope(|s| {
-            s.spawn(|| {
-                let mut last = Instant::now();
-                while !done.load(Ordering::Relaxed) {
-                    std::thread::sleep(Duration::from_millis(25));
-                    if last.elapsed() < self.heartbeat {
-                        continue;
-                    }
-                    last = Instant::now();
-                    let r = self.auth(self.http.post(self.url(&format!("/workers/{worker}/heartbeat")))).send();
+            s.spawn(move || {
+                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = wake.recv_timeout(this.heartbeat) {
+                    let r = this.auth(this.http.post(this.url(&format!("/workers/{worker}/heartbeat")))).send();
                     if let Ok(resp) = r
                         && resp.status() == StatusCode::NOT_FOUND
                     {
-                        lost.store(true, Ordering::Relaxed);
+                        lost_flag.store(true, Ordering::Relaxed);
                     }
                 }
             });
             let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                self.pool.install(|| renderer.render_unit(grant.tile, grant.pass))
+                this.pool.install(|| renderer.render_unit(grant.tile, grant.pass))
             }));
-            done.store(true, Ordering::Relaxed);
+            drop(done);
             r
         });
         if lost.load(Ordering::Relaxed) {
