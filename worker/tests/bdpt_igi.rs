@@ -487,6 +487,11 @@ fn every_integrator_is_split_invariant() {
         ("path", &cornell, path(8)),
         ("bdpt", &caustics, bdpt(8)),
         (
+            "bdpt balance",
+            &caustics,
+            IntegratorSettings::Bdpt { max_depth: 0, mis: MisHeuristic::Balance, rr_depth: 2, strategy: None },
+        ),
+        (
             "igi",
             &cornell,
             IntegratorSettings::Igi { vpls: 8, vpl_sets: 3, g_limit: 1.0, bias_compensation: true, max_depth: 8 },
@@ -503,8 +508,8 @@ fn every_integrator_is_split_invariant() {
         b.passes = PassSchedule::Doubling { first: 1, max: 64 };
         let (fa, fb) = (film(scene, &a), film(scene, &b));
         assert!(fa.sums.iter().any(|&v| v != 0), "{name}: empty film");
-        if name == "bdpt" {
-            assert!(!fa.splats.is_empty(), "bdpt: no splats");
+        if name.starts_with("bdpt") {
+            assert!(!fa.splats.is_empty(), "{name}: no splats");
         }
         assert!(fa == fb, "{name}: the two splits differ");
         // The units of split `b` rendered by a fresh renderer in reverse order and merged by hand
@@ -599,4 +604,18 @@ fn cli_bdpt_strategy_and_igi_flags() {
         assert!(!out.status.success() && err.contains(needle), "--bdpt-strategy {bad}: {err}");
         assert!(!err.contains("panicked"), "{err}");
     }
+}
+
+/// BDPT refuses an orthographic camera (light paths cannot be connected to it) and a
+/// single-strategy MIS setting, with messages that say why; IGI accepts both cameras.
+#[test]
+fn bdpt_refuses_what_it_cannot_do() {
+    let mut scene = glb_scene(&cornell_demo_glb());
+    scene.cameras[0].projection = pathfarm_common::scene::Projection::Orthographic { xmag: 1.0, ymag: 1.0 };
+    let err = Renderer::new(&scene, &settings(16, 1, bdpt(8), 0)).err().expect("orthographic refused");
+    assert!(err.to_string().contains("perspective"), "{err}");
+    assert!(Renderer::new(&scene, &settings(16, 1, igi(1.0, true), 0)).is_ok());
+    let light_only = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Light, rr_depth: 5, strategy: None };
+    let err = Renderer::new(&glb_scene(&cornell_demo_glb()), &settings(16, 1, light_only, 0)).err().expect("refused");
+    assert!(err.to_string().contains("mis"), "{err}");
 }
