@@ -441,7 +441,9 @@ pub fn li_bdpt(
     let mut l = Vec3A::ZERO;
     let (cam, light) = (&paths.camera, &paths.light);
     for t in 1..=cam.len() {
-        for s in 0..=light.len() {
+        // s = 1 takes a fresh light sample: it does not need the light subpath, which may be
+        // empty (a zero emission texture at its origin).
+        for s in 0..=light.len().max(1) {
             if (s == 1 && t == 1) || s + t < 2 || s + t > max_vertices {
                 continue;
             }

@@ -19,7 +19,9 @@
 //! with a BSDF-sampled ray from `x` to `y`, weighted by `max(1 - g_limit / G(x, y), 0)`, and the
 //! radiance leaving `y` estimated by the same estimator recursively (direct + clamped VPLs +
 //! compensation), so that `a = min(a, b) + max(a - b, 0)` holds in expectation: the compensated
-//! estimator is consistent. Light reflected by specular surfaces (caustics) is beyond VPLs.
+//! estimator is consistent for diffuse and glossy transport. Caustics seen directly (light
+//! focused by specular surfaces onto the point the camera sees) are beyond VPLs; the VPLs that
+//! such light paths leave do light other surfaces.
 
 use super::bdpt::{Subpaths, VertexKind, light_subpath};
 use super::bsdf::Bsdf;
