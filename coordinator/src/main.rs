@@ -44,6 +44,15 @@ struct ServeArgs {
     /// Interval workers heartbeat at.
     #[arg(long, default_value_t = 2_000)]
     heartbeat_ms: u64,
+    /// Largest request body (scene upload or unit result) in MiB.
+    #[arg(long, default_value_t = 512)]
+    max_upload_mb: usize,
+    /// Refuse scenes with more triangles than this.
+    #[arg(long, default_value_t = 20_000_000)]
+    max_triangles: usize,
+    /// Refuse scenes with a texture of more pixels (width x height) than this.
+    #[arg(long, default_value_t = 16384 * 16384)]
+    max_texture_pixels: u64,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -59,6 +68,9 @@ fn main() -> anyhow::Result<()> {
     let mut cfg = ServerConfig::new(a.listen, a.data_dir.clone());
     cfg.farm.lease_timeout_ms = a.lease_timeout_ms;
     cfg.farm.heartbeat_ms = a.heartbeat_ms;
+    cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
+    cfg.max_triangles = a.max_triangles;
+    cfg.max_texture_pixels = a.max_texture_pixels;
     cfg.auth = Auth { client: a.client_token, worker: a.worker_token.clone() };
     let rt = tokio::runtime::Runtime::new()?;
     let server = rt.block_on(Server::start(cfg))?;
