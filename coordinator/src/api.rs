@@ -388,10 +388,22 @@ async fn upload_result(
     let lease_id: LeaseId = parse_id("lease", &id)?;
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
     let t0 = Instant::now();
-    let frame = UnitResultFrame::decode(&body).map_err(|e| {
-        state.farm.lock().counters.results_rejected += 1;
-        ApiError::unprocessable("bad_result", e.to_string())
-    })?;
+    let frame = match UnitResultFrame::decode(&body) {
+        Ok(f) => f,
+        Err(e) => {
+            // The worker does not retry a refused body, so its unit would sit leased until the
+            // lease expired: give it to someone else now (a lost lease stays lost).
+            let requeued = {
+                let mut farm = state.farm.lock();
+                farm.counters.results_rejected += 1;
+                farm.release(lease_id, false, "", now_ms()).is_ok()
+            };
+            if requeued {
+                state.work_ready.notify_waiters();
+            }
+            return Err(ApiError::unprocessable("bad_result", e.to_string()));
+        }
+    };
     let job_id = frame.job_id;
     let outcome = {
         let mut farm = state.farm.lock();
