@@ -203,6 +203,11 @@ async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Nex
     };
     let message = if message.is_empty() { status.canonical_reason().unwrap_or("error").to_string() } else { message };
     let mut out = ApiError::new(status, code, message).into_response();
+    if status == StatusCode::PAYLOAD_TOO_LARGE {
+        // The rest of the body is never read, so the connection cannot serve another request:
+        // say so, or a client's pool reuses it and its next request fails.
+        out.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+    }
     for (name, value) in &parts.headers {
         if name != header::CONTENT_TYPE && name != header::CONTENT_LENGTH {
             out.headers_mut().entry(name).or_insert_with(|| value.clone());
