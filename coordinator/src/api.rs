@@ -133,6 +133,12 @@ async fn require_any(State(state): State<Arc<AppState>>, req: Request, next: Nex
 
 /// The whole router.
 pub fn router(state: Arc<AppState>) -> Router {
+    with_layers(routes(state.clone()), state)
+}
+
+/// Every route, before the fallback, the error layers and the state are added; tests merge
+/// routes of their own into this and finish it with [`with_layers`].
+pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
     let upload_limit = state.config.max_upload_bytes;
     let client = Router::new()
         .route("/scenes", post(upload_scene).layer(DefaultBodyLimit::max(upload_limit)))
@@ -164,6 +170,11 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
         .merge(crate::dashboard::routes())
+}
+
+/// The fallback (404), JSON bodies for axum's own errors, panics turned into 500s, the state.
+pub fn with_layers(routes: Router<Arc<AppState>>, state: Arc<AppState>) -> Router {
+    routes
         .fallback(|| async { ApiError::not_found("no such route") })
         .layer(middleware::from_fn_with_state(state.clone(), json_errors))
         .layer(tower_http::catch_panic::CatchPanicLayer::custom(|_: Box<dyn std::any::Any + Send>| {
