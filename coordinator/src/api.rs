@@ -443,8 +443,45 @@ async fn upload_result(
 ) -> ApiResult<Json<ResultAccepted>> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
+    // Decoding (lz4, CRC, 850 KB of sums for a 64 px tile) and merging take a few hundred
+    // microseconds: run them off the async threads, at most one per core at a time, so lease
+    // requests are answered meanwhile and bodies waiting to be decoded stay compressed.
+    let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()))?;
+    let st = state.clone();
     let t0 = Instant::now();
-    let frame = match UnitResultFrame::decode(&body) {
+    let (job_id, outcome) = tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, &body))
+        .await
+        .map_err(|e| ApiError::internal(format!("result task: {e}")))??;
+    let outcome = match outcome {
+        Ok(o) => o,
+        Err(e) => {
+            // A refused result may have sent its unit back to pending.
+            state.work_ready.notify_waiters();
+            return Err(e.into());
+        }
+    };
+    state.metrics.observe_merge(t0.elapsed());
+    if !outcome.passes_completed.is_empty() || outcome.job_completed {
+        state.output_ready.notify_one();
+    }
+    state.publish("job", job_id);
+    Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
+}
+
+/// Concurrent result decodes: one per core.
+fn decode_slots() -> &'static tokio::sync::Semaphore {
+    static SLOTS: std::sync::OnceLock<tokio::sync::Semaphore> = std::sync::OnceLock::new();
+    SLOTS.get_or_init(|| tokio::sync::Semaphore::new(std::thread::available_parallelism().map_or(2, |n| n.get())))
+}
+
+/// Decodes a result body and merges it; an undecodable body is a 422 (and its unit pending
+/// again), a refusal by the farm is returned as the inner error.
+fn decode_and_accept(
+    state: &AppState,
+    lease_id: LeaseId,
+    body: &[u8],
+) -> ApiResult<(JobId, Result<crate::farm::MergeOutcome, FarmError>)> {
+    let frame = match UnitResultFrame::decode(body) {
         Ok(f) => f,
         Err(e) => {
             // The worker does not retry a refused body, so its unit would sit leased until the
@@ -461,28 +498,12 @@ async fn upload_result(
         }
     };
     let job_id = frame.job_id;
-    let outcome = {
-        let mut farm = state.farm.lock();
-        let r = farm.accept(lease_id, frame, now_ms());
-        if r.is_err() {
-            farm.counters.results_rejected += 1;
-        }
-        r
-    };
-    let outcome = match outcome {
-        Ok(o) => o,
-        Err(e) => {
-            // A refused result may have sent its unit back to pending.
-            state.work_ready.notify_waiters();
-            return Err(e.into());
-        }
-    };
-    state.metrics.observe_merge(t0.elapsed());
-    if !outcome.passes_completed.is_empty() || outcome.job_completed {
-        state.output_ready.notify_one();
+    let mut farm = state.farm.lock();
+    let r = farm.accept(lease_id, frame, now_ms());
+    if r.is_err() {
+        farm.counters.results_rejected += 1;
     }
-    state.publish("job", job_id);
-    Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
+    Ok((job_id, r))
 }
 
 async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {
