@@ -53,6 +53,16 @@ struct ServeArgs {
     /// Refuse scenes with a texture of more pixels (width x height) than this.
     #[arg(long, default_value_t = 16384 * 16384)]
     max_texture_pixels: u64,
+    /// Refuse jobs with more pixels (width x height) than this. A job's film holds 208 bytes
+    /// per pixel (13 channels of 128-bit sums): the default 8192 x 8192 is 13 GiB.
+    #[arg(long, default_value_t = 8192 * 8192)]
+    max_pixels: u64,
+    /// Refuse jobs with more samples per pixel than this.
+    #[arg(long, default_value_t = 1 << 20)]
+    max_spp: u32,
+    /// Refuse jobs whose integrator max_depth exceeds this.
+    #[arg(long, default_value_t = 1024)]
+    max_depth: u32,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -71,6 +81,9 @@ fn main() -> anyhow::Result<()> {
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
     cfg.max_triangles = a.max_triangles;
     cfg.max_texture_pixels = a.max_texture_pixels;
+    cfg.farm.limits.max_pixels = a.max_pixels;
+    cfg.farm.limits.max_spp = a.max_spp;
+    cfg.farm.limits.max_depth = a.max_depth;
     cfg.auth = Auth { client: a.client_token, worker: a.worker_token.clone() };
     let rt = tokio::runtime::Runtime::new()?;
     let server = rt.block_on(Server::start(cfg))?;
