@@ -189,6 +189,25 @@ fn job_settings_over_the_limits_are_422_naming_the_limit() {
 }
 
 #[test]
+fn job_limits_set_by_flags_are_422_naming_the_limit() {
+    let mut c = start(&["--max-pixels", "10000", "--max-spp", "64", "--max-depth", "16"]);
+    let scene = c.upload_ok(cornell_demo_glb());
+    let job = |w: u32, h: u32, spp: u32, depth: u32| {
+        json!({"scene_id": scene, "width": w, "height": h, "spp": spp,
+            "integrator": {"type": "path", "max_depth": depth}})
+    };
+    let r = c.submit(&job(200, 100, 1, 8));
+    expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["width x height", "20000", "10000"]);
+    let r = c.submit(&job(16, 16, 65, 8));
+    expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["spp", "65", "64"]);
+    let r = c.submit(&job(16, 16, 1, 17));
+    expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["max_depth", "17", "16"]);
+    // At the limits: accepted.
+    c.submit_ok(&job(100, 100, 64, 16));
+    c.assert_serving();
+}
+
+#[test]
 fn unknown_json_fields_are_422() {
     let mut c = start(&[]);
     let scene = c.upload_ok(cornell_demo_glb());
