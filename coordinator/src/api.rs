@@ -133,6 +133,12 @@ async fn require_any(State(state): State<Arc<AppState>>, req: Request, next: Nex
 
 /// The whole router.
 pub fn router(state: Arc<AppState>) -> Router {
+    with_layers(routes(state.clone()), state)
+}
+
+/// Every route, before the fallback, the error layers and the state are added; tests merge
+/// routes of their own into this and finish it with [`with_layers`].
+pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
     let upload_limit = state.config.max_upload_bytes;
     let client = Router::new()
         .route("/scenes", post(upload_scene).layer(DefaultBodyLimit::max(upload_limit)))
@@ -164,11 +170,61 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
         .merge(crate::dashboard::routes())
+}
+
+/// The fallback (404), JSON bodies for axum's own errors, panics turned into 500s, the state.
+pub fn with_layers(routes: Router<Arc<AppState>>, state: Arc<AppState>) -> Router {
+    routes
         .fallback(|| async { ApiError::not_found("no such route") })
+        .layer(middleware::from_fn_with_state(state.clone(), json_errors))
         .layer(tower_http::catch_panic::CatchPanicLayer::custom(|_: Box<dyn std::any::Any + Send>| {
             ApiError::internal("the request handler panicked; the server keeps running").into_response()
         }))
         .with_state(state)
+}
+
+/// Gives the errors axum makes itself (extractor rejections: body over the limit, bad path or
+/// query, method not allowed) the JSON error body every other error has.
+async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+    let resp = next.run(req).await;
+    let status = resp.status();
+    if !(status.is_client_error() || status.is_server_error()) {
+        return resp;
+    }
+    let is_json = resp
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if is_json {
+        return resp;
+    }
+    let (parts, body) = resp.into_parts();
+    let text = axum::body::to_bytes(body, 64 << 10).await.unwrap_or_default();
+    let text = String::from_utf8_lossy(&text).trim().to_string();
+    let (code, message) = match status {
+        StatusCode::PAYLOAD_TOO_LARGE => (
+            "payload_too_large",
+            format!("request body is larger than the upload limit of {} bytes ({text})", state.config.max_upload_bytes),
+        ),
+        StatusCode::METHOD_NOT_ALLOWED => ("method_not_allowed", "method not allowed on this route".to_string()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => ("unsupported_media_type", text),
+        s if s.is_server_error() => ("internal", text),
+        _ => ("bad_request", text),
+    };
+    let message = if message.is_empty() { status.canonical_reason().unwrap_or("error").to_string() } else { message };
+    let mut out = ApiError::new(status, code, message).into_response();
+    if status == StatusCode::PAYLOAD_TOO_LARGE {
+        // The rest of the body is never read, so the connection cannot serve another request:
+        // say so, or a client's pool reuses it and its next request fails.
+        out.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+    }
+    for (name, value) in &parts.headers {
+        if name != header::CONTENT_TYPE && name != header::CONTENT_LENGTH {
+            out.headers_mut().entry(name).or_insert_with(|| value.clone());
+        }
+    }
+    out
 }
 
 // ------------------------------------------------------------------------------------ scenes
@@ -390,20 +446,15 @@ async fn upload_result(
 ) -> ApiResult<Json<ResultAccepted>> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
+    // Decoding (lz4, CRC, 850 KB of sums for a 64 px tile) and merging take a few hundred
+    // microseconds: run them off the async threads, at most one per core at a time, so lease
+    // requests are answered meanwhile and bodies waiting to be decoded stay compressed.
+    let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()))?;
+    let st = state.clone();
     let t0 = Instant::now();
-    let frame = UnitResultFrame::decode(&body).map_err(|e| {
-        state.farm.lock().counters.results_rejected += 1;
-        ApiError::unprocessable("bad_result", e.to_string())
-    })?;
-    let job_id = frame.job_id;
-    let outcome = {
-        let mut farm = state.farm.lock();
-        let r = farm.accept(lease_id, frame, now_ms());
-        if r.is_err() {
-            farm.counters.results_rejected += 1;
-        }
-        r
-    };
+    let (job_id, outcome) = tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, &body))
+        .await
+        .map_err(|e| ApiError::internal(format!("result task: {e}")))??;
     let outcome = match outcome {
         Ok(o) => o,
         Err(e) => {
@@ -418,6 +469,44 @@ async fn upload_result(
     }
     state.publish("job", job_id);
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
+}
+
+/// Concurrent result decodes: one per core.
+fn decode_slots() -> &'static tokio::sync::Semaphore {
+    static SLOTS: std::sync::OnceLock<tokio::sync::Semaphore> = std::sync::OnceLock::new();
+    SLOTS.get_or_init(|| tokio::sync::Semaphore::new(std::thread::available_parallelism().map_or(2, |n| n.get())))
+}
+
+/// Decodes a result body and merges it; an undecodable body is a 422 (and its unit pending
+/// again), a refusal by the farm is returned as the inner error.
+fn decode_and_accept(
+    state: &AppState,
+    lease_id: LeaseId,
+    body: &[u8],
+) -> ApiResult<(JobId, Result<crate::farm::MergeOutcome, FarmError>)> {
+    let frame = match UnitResultFrame::decode(body) {
+        Ok(f) => f,
+        Err(e) => {
+            // The worker does not retry a refused body, so its unit would sit leased until the
+            // lease expired: give it to someone else now (a lost lease stays lost).
+            let requeued = {
+                let mut farm = state.farm.lock();
+                farm.counters.results_rejected += 1;
+                farm.release(lease_id, false, "", now_ms()).is_ok()
+            };
+            if requeued {
+                state.work_ready.notify_waiters();
+            }
+            return Err(ApiError::unprocessable("bad_result", e.to_string()));
+        }
+    };
+    let job_id = frame.job_id;
+    let mut farm = state.farm.lock();
+    let r = farm.accept(lease_id, frame, now_ms());
+    if r.is_err() {
+        farm.counters.results_rejected += 1;
+    }
+    Ok((job_id, r))
 }
 
 async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {

@@ -47,6 +47,25 @@ struct ServeArgs {
     /// Interval workers heartbeat at.
     #[arg(long, default_value_t = 2_000)]
     heartbeat_ms: u64,
+    /// Largest request body (scene upload or unit result) in MiB.
+    #[arg(long, default_value_t = 512)]
+    max_upload_mb: usize,
+    /// Refuse scenes with more triangles than this.
+    #[arg(long, default_value_t = 20_000_000)]
+    max_triangles: usize,
+    /// Refuse scenes with a texture of more pixels (width x height) than this.
+    #[arg(long, default_value_t = 16384 * 16384)]
+    max_texture_pixels: u64,
+    /// Refuse jobs with more pixels (width x height) than this. A job's film holds 208 bytes
+    /// per pixel (13 channels of 128-bit sums): the default 8192 x 8192 is 13 GiB.
+    #[arg(long, default_value_t = 8192 * 8192)]
+    max_pixels: u64,
+    /// Refuse jobs with more samples per pixel than this.
+    #[arg(long, default_value_t = 1 << 20)]
+    max_spp: u32,
+    /// Refuse jobs whose integrator max_depth exceeds this.
+    #[arg(long, default_value_t = 1024)]
+    max_depth: u32,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -62,6 +81,12 @@ fn main() -> anyhow::Result<()> {
     let mut cfg = ServerConfig::new(a.listen, a.data_dir.clone());
     cfg.farm.lease_timeout_ms = a.lease_timeout_ms;
     cfg.farm.heartbeat_ms = a.heartbeat_ms;
+    cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
+    cfg.max_triangles = a.max_triangles;
+    cfg.max_texture_pixels = a.max_texture_pixels;
+    cfg.farm.limits.max_pixels = a.max_pixels;
+    cfg.farm.limits.max_spp = a.max_spp;
+    cfg.farm.limits.max_depth = a.max_depth;
     cfg.auth = auth(&a)?;
     let worker_token = cfg.auth.worker.clone();
     let rt = tokio::runtime::Runtime::new()?;

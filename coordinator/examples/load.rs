@@ -1,0 +1,430 @@
+//! Load test of the coordinator: N simulated workers register, long-poll leases and upload
+//! synthetic results for one large job; prints units merged per second, lease latency p50/p99,
+//! the coordinator's CPU time and peak memory.
+//!
+//! ```text
+//! cargo build --release -p pathfarm-coordinator --bins --example load
+//! target/release/examples/load --workers 500 --width 1024 --height 1024 --tile 64 --spp 100
+//! ```
+//!
+//! By default the coordinator is the `pathfarm-coordinator` binary next to this example
+//! (`target/release/`), run as its own process so that its CPU time (`/proc/PID/stat`) and peak
+//! memory (`VmHWM`) are its own; `--in-process` starts `Server` inside this process instead (the
+//! figures then include the simulated workers). `--url` uses a coordinator that is already
+//! running (no CPU or memory figures).
+//!
+//! A result is a real `PFR1` frame (header, lz4 section of the tile's 13 x 128-bit sums, CRC),
+//! built per lease from a section compressed once per tile size, so the workers cost little.
+//! `--payload noise` (default) puts 3 random low bytes in every value (lz4 shrinks it about as
+//! much as a rendered tile), `--payload zeros` sends all-zero sums.
+//!
+//! With `--render-ms 0` (default) every worker asks for its next unit as soon as the last one is
+//! delivered: the coordinator is saturated and lease latency is mostly queueing behind 499
+//! other workers. `--render-ms N` makes each worker "render" N ms per unit, an offered load of
+//! about `workers * 1000 / N` units/s, to measure latency below saturation.
+
+#![allow(clippy::print_stdout)]
+
+use anyhow::{Context, bail};
+use pathfarm_common::film::ch;
+use pathfarm_common::job::TileRect;
+use pathfarm_common::protocol::{API, JobInfo, LeaseGrant, RESULT_MAGIC, Registered};
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+use tokio::sync::Mutex;
+
+#[derive(Clone, Debug)]
+struct Args {
+    workers: usize,
+    width: u32,
+    height: u32,
+    tile: u32,
+    spp: u32,
+    payload: String,
+    in_process: bool,
+    url: Option<String>,
+    threads: usize,
+    wait_ms: u64,
+    render_ms: u64,
+}
+
+fn parse_args() -> anyhow::Result<Args> {
+    let mut a = Args {
+        workers: 500,
+        width: 1024,
+        height: 1024,
+        tile: 64,
+        spp: 100,
+        payload: "noise".into(),
+        in_process: false,
+        url: None,
+        threads: 2,
+        wait_ms: 5000,
+        render_ms: 0,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut val = || it.next().with_context(|| format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--workers" => a.workers = val()?.parse()?,
+            "--width" => a.width = val()?.parse()?,
+            "--height" => a.height = val()?.parse()?,
+            "--tile" => a.tile = val()?.parse()?,
+            "--spp" | "--passes" => a.spp = val()?.parse()?,
+            "--units" => {
+                // As many passes as needed for about this many units.
+                let units: u64 = val()?.parse()?;
+                let tiles = u64::from(a.width.div_ceil(a.tile)) * u64::from(a.height.div_ceil(a.tile));
+                a.spp = units.div_ceil(tiles).max(1) as u32;
+            }
+            "--payload" => a.payload = val()?,
+            "--in-process" => a.in_process = true,
+            "--url" => a.url = Some(val()?),
+            "--client-threads" => a.threads = val()?.parse()?,
+            "--wait-ms" => a.wait_ms = val()?.parse()?,
+            "--render-ms" => a.render_ms = val()?.parse()?,
+            "-h" | "--help" => {
+                eprintln!(
+                    "load [--workers 500] [--width 1024] [--height 1024] [--tile 64] [--spp 100 | --units N] \
+                     [--payload noise|zeros] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0]"
+                );
+                std::process::exit(0);
+            }
+            other => bail!("unknown flag {other}"),
+        }
+    }
+    Ok(a)
+}
+
+/// Compressed sums sections, one per tile size: `(u64 length, lz4 size-prepended block)`.
+fn section(w: u32, h: u32, noise: bool) -> Vec<u8> {
+    let n = (w * h) as usize * ch::COUNT;
+    let mut raw = Vec::with_capacity(n * 16);
+    let mut x: u64 = 0x9E37_79B9_7F4A_7C15 ^ u64::from(w * 131 + h);
+    for i in 0..n {
+        let v: i128 = if noise {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            ((x >> 40) & 0xFF_FFFF) as i128
+        } else if i % ch::COUNT == ch::WEIGHT {
+            // One sample's weight, so the image resolves to finite values either way.
+            1 << 32
+        } else {
+            0
+        };
+        raw.extend_from_slice(&v.to_le_bytes());
+    }
+    let packed = lz4_flex::compress_prepend_size(&raw);
+    let mut out = Vec::with_capacity(8 + packed.len());
+    out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
+    out.extend_from_slice(&packed);
+    out
+}
+
+/// A result body for a grant, in the `PFR1` layout of `UnitResultFrame::encode`.
+fn frame(g: &LeaseGrant, section: &[u8]) -> Vec<u8> {
+    let header = serde_json::json!({
+        "lease_id": g.lease_id,
+        "job_id": g.job_id,
+        "unit": g.unit,
+        "tile": g.tile,
+        "channels": ch::COUNT,
+        "splats": null,
+    });
+    let header = serde_json::to_vec(&header).unwrap_or_default();
+    let mut out = Vec::with_capacity(8 + header.len() + section.len() + 4);
+    out.extend_from_slice(RESULT_MAGIC);
+    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    out.extend_from_slice(&header);
+    out.extend_from_slice(section);
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
+
+/// `/proc/PID/stat` utime + stime in seconds, and `VmHWM` in MiB.
+fn proc_figures(pid: u32) -> Option<(f64, f64)> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // Fields after the command name (which may hold spaces) start after the last ')'.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let hwm_kb: f64 = status.lines().find(|l| l.starts_with("VmHWM:"))?.split_whitespace().nth(1)?.parse().ok()?;
+    // USER_HZ is 100 on Linux.
+    Some((ticks / 100.0, hwm_kb / 1024.0))
+}
+
+struct Stats {
+    lease_us: Mutex<Vec<u32>>,
+    merged: AtomicU64,
+    refused: AtomicU64,
+    errors: AtomicU64,
+    done: AtomicBool,
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn worker(
+    http: reqwest::Client,
+    base: String,
+    i: usize,
+    sections: Arc<HashMap<(u32, u32), Vec<u8>>>,
+    stats: Arc<Stats>,
+    wait_ms: u64,
+    render_ms: u64,
+    start: Arc<tokio::sync::Barrier>,
+) -> anyhow::Result<()> {
+    let reg: Registered = http
+        .post(format!("{base}{API}/workers/register"))
+        .json(&serde_json::json!({"name": format!("sim-{i}"), "threads": 1}))
+        .send()
+        .await?
+        .error_for_status()?
+        .json()
+        .await?;
+    start.wait().await;
+    let lease_url = format!("{base}{API}/workers/{}/lease?wait_ms={wait_ms}", reg.worker_id);
+    let mut lats = Vec::new();
+    while !stats.done.load(Ordering::Relaxed) {
+        let t0 = Instant::now();
+        let r = match http.post(&lease_url).send().await {
+            Ok(r) => r,
+            Err(_) => {
+                stats.errors.fetch_add(1, Ordering::Relaxed);
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        if r.status() == reqwest::StatusCode::NO_CONTENT {
+            continue;
+        }
+        if !r.status().is_success() {
+            stats.errors.fetch_add(1, Ordering::Relaxed);
+            continue;
+        }
+        let g: LeaseGrant = r.json().await?;
+        lats.push(t0.elapsed().as_micros().min(u128::from(u32::MAX)) as u32);
+        if render_ms > 0 {
+            tokio::time::sleep(Duration::from_millis(render_ms)).await;
+        }
+        let TileRect { x0, y0, x1, y1 } = g.tile;
+        let sec = sections.get(&(x1 - x0, y1 - y0)).context("tile size")?;
+        let body = frame(&g, sec);
+        let r = http
+            .put(format!("{base}{API}/leases/{}/result", g.lease_id))
+            .header("content-type", "application/octet-stream")
+            .body(body)
+            .send()
+            .await;
+        match r {
+            Ok(r) if r.status().is_success() => {
+                stats.merged.fetch_add(1, Ordering::Relaxed);
+            }
+            Ok(r) => {
+                stats.refused.fetch_add(1, Ordering::Relaxed);
+                if stats.refused.load(Ordering::Relaxed) < 5 {
+                    eprintln!("result refused: {} {}", r.status(), r.text().await.unwrap_or_default());
+                }
+            }
+            Err(_) => {
+                stats.errors.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+    stats.lease_us.lock().await.extend(lats);
+    Ok(())
+}
+
+fn pct(sorted: &[u32], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    f64::from(sorted[i]) / 1000.0
+}
+
+fn main() -> anyhow::Result<()> {
+    let a = parse_args()?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(a.threads).enable_all().build()?;
+    rt.block_on(run(a))
+}
+
+async fn run(a: Args) -> anyhow::Result<()> {
+    let dir = tempfile::tempdir()?;
+    let mut child = None;
+    let mut server = None;
+    let (base, pid) = if let Some(url) = &a.url {
+        (url.trim_end_matches('/').to_string(), None)
+    } else if a.in_process {
+        let mut cfg = pathfarm_coordinator::server::ServerConfig::new("127.0.0.1:0".parse()?, dir.path().into());
+        // Simulated workers do not heartbeat; they deliver well within the default timeout.
+        cfg.farm.lease_timeout_ms = 60_000;
+        let s = pathfarm_coordinator::server::Server::start(cfg).await?;
+        let url = s.url();
+        server = Some(s);
+        (url, Some(std::process::id()))
+    } else {
+        let exe = std::env::current_exe()?;
+        let bin: PathBuf = exe
+            .parent()
+            .and_then(|p| p.parent())
+            .map(|p| p.join("pathfarm-coordinator"))
+            .context("locating pathfarm-coordinator")?;
+        if !bin.exists() {
+            bail!("{} is missing: cargo build --release -p pathfarm-coordinator", bin.display());
+        }
+        let c = tokio::process::Command::new(&bin)
+            .arg("--listen")
+            .arg("127.0.0.1:0")
+            .arg("--data-dir")
+            .arg(dir.path())
+            .arg("--lease-timeout-ms")
+            .arg("60000")
+            .env("RUST_LOG", "warn")
+            .kill_on_drop(true)
+            .spawn()?;
+        let pid = c.id();
+        child = Some(c);
+        let addr_file = dir.path().join("coordinator.addr");
+        let t0 = Instant::now();
+        let addr = loop {
+            if let Ok(s) = std::fs::read_to_string(&addr_file)
+                && !s.trim().is_empty()
+            {
+                break s.trim().to_string();
+            }
+            if t0.elapsed() > Duration::from_secs(20) {
+                bail!("the coordinator did not start");
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        (format!("http://{addr}"), pid)
+    };
+    let http =
+        reqwest::Client::builder().pool_max_idle_per_host(a.workers + 16).timeout(Duration::from_secs(120)).build()?;
+    // Scene and job.
+    let scene: serde_json::Value = http
+        .post(format!("{base}{API}/scenes"))
+        .body(pathfarm_common::scene::demo::cornell_demo_glb())
+        .send()
+        .await?
+        .error_for_status()?
+        .json()
+        .await?;
+    let scene_id = scene["scene_id"].as_str().context("scene_id")?.to_string();
+    let tiles = u64::from(a.width.div_ceil(a.tile)) * u64::from(a.height.div_ceil(a.tile));
+    let units = tiles * u64::from(a.spp);
+    let film_mb = f64::from(a.width) * f64::from(a.height) * 13.0 * 16.0 / (1 << 20) as f64;
+    eprintln!(
+        "job: {}x{} tile {} spp {} (1 spp per pass) = {tiles} tiles x {} passes = {units} units; film {film_mb:.0} MiB; {} workers, render {} ms",
+        a.width, a.height, a.tile, a.spp, a.spp, a.workers, a.render_ms
+    );
+    // Sections for every tile size of the plan.
+    let noise = a.payload != "zeros";
+    let mut sections = HashMap::new();
+    for w in [a.tile, a.width % a.tile] {
+        for h in [a.tile, a.height % a.tile] {
+            if w > 0 && h > 0 {
+                sections.insert((w, h), section(w, h, noise));
+            }
+        }
+    }
+    let full = sections.get(&(a.tile, a.tile)).map_or(0, Vec::len);
+    eprintln!("result body: {} KiB ({} KiB raw)", full / 1024, (a.tile * a.tile) as usize * ch::COUNT * 16 / 1024);
+    let sections = Arc::new(sections);
+    let stats = Arc::new(Stats {
+        lease_us: Mutex::new(Vec::new()),
+        merged: AtomicU64::new(0),
+        refused: AtomicU64::new(0),
+        errors: AtomicU64::new(0),
+        done: AtomicBool::new(false),
+    });
+    // Workers register and wait; the job is submitted once all are polling.
+    let barrier = Arc::new(tokio::sync::Barrier::new(a.workers + 1));
+    let mut tasks = Vec::new();
+    for i in 0..a.workers {
+        tasks.push(tokio::spawn(worker(
+            http.clone(),
+            base.clone(),
+            i,
+            sections.clone(),
+            stats.clone(),
+            a.wait_ms,
+            a.render_ms,
+            barrier.clone(),
+        )));
+    }
+    barrier.wait().await;
+    let before = pid.and_then(proc_figures);
+    let body = serde_json::json!({
+        "scene_id": scene_id, "name": "load", "width": a.width, "height": a.height, "spp": a.spp,
+        "tile_size": a.tile, "passes": {"type": "fixed", "spp": 1},
+    });
+    let t0 = Instant::now();
+    let job: serde_json::Value =
+        http.post(format!("{base}{API}/jobs")).json(&body).send().await?.error_for_status()?.json().await?;
+    let job_id = job["id"].as_u64().context("job id")?;
+    let mut last = (Instant::now(), 0u64);
+    let info: JobInfo = loop {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let info: JobInfo = http.get(format!("{base}{API}/jobs/{job_id}")).send().await?.json().await?;
+        let now = Instant::now();
+        let rate = (info.units_merged - last.1) as f64 / (now - last.0).as_secs_f64();
+        last = (now, info.units_merged);
+        eprintln!(
+            "{:6.1} s  merged {:>8}/{}  {:>8.0} units/s  state {:?}",
+            t0.elapsed().as_secs_f64(),
+            info.units_merged,
+            info.units_total,
+            rate,
+            info.state
+        );
+        if info.state.is_finished() {
+            break info;
+        }
+    };
+    let elapsed = t0.elapsed().as_secs_f64();
+    let after = pid.and_then(proc_figures);
+    stats.done.store(true, Ordering::Relaxed);
+    // Workers blocked in a long poll return after wait_ms at most.
+    for t in tasks {
+        let _ = tokio::time::timeout(Duration::from_millis(a.wait_ms + 2000), t).await;
+    }
+    let mut lats = stats.lease_us.lock().await.clone();
+    lats.sort_unstable();
+    println!("state                 {:?}", info.state);
+    println!("units merged          {} of {}", info.units_merged, info.units_total);
+    println!("elapsed               {elapsed:.2} s");
+    println!("units merged / s      {:.0}", info.units_merged as f64 / elapsed);
+    println!(
+        "lease latency         p50 {:.2} ms  p99 {:.2} ms  max {:.2} ms  ({} grants)",
+        pct(&lats, 0.5),
+        pct(&lats, 0.99),
+        pct(&lats, 1.0),
+        lats.len()
+    );
+    println!(
+        "results refused       {}  request errors {}",
+        stats.refused.load(Ordering::Relaxed),
+        stats.errors.load(Ordering::Relaxed)
+    );
+    if let (Some((c0, _)), Some((c1, hwm))) = (before, after) {
+        let who = if a.in_process { "process (coordinator + simulated workers)" } else { "coordinator" };
+        println!(
+            "{who} CPU  {:.2} s ({:.0}% of one core; {:.1} us per unit)",
+            c1 - c0,
+            100.0 * (c1 - c0) / elapsed,
+            1e6 * (c1 - c0) / info.units_merged.max(1) as f64
+        );
+        println!("{who} peak memory (VmHWM)  {hwm:.0} MiB");
+    }
+    drop(server);
+    if let Some(mut c) = child {
+        let _ = c.kill().await;
+    }
+    Ok(())
+}
