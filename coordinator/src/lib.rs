@@ -5,6 +5,8 @@ pub mod api;
 pub mod client;
 pub mod dashboard;
 pub mod demo;
+pub mod events;
 pub mod farm;
 pub mod local;
+pub mod openapi;
 pub mod server;
