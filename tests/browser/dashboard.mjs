@@ -77,11 +77,14 @@ try {
   await page.waitForTimeout(600); // let the last detail fetch draw
   const marker = await page.evaluate(() => window.__pathfarmMarker);
   if (marker !== 'no-reload') fail('the page was reloaded');
+  await page.evaluate(() => window.scrollTo(0, 0));
   await page.screenshot({ path: shot, fullPage: true });
   console.log(`screenshot ${shot}`);
   console.log(`states: ${seen.join(' -> ')}`);
 } catch (e) {
   fail(e.message);
+  const page = browser.contexts()[0]?.pages()[0];
+  if (page) await page.screenshot({ path: shot, fullPage: true }).catch(() => {});
 } finally {
   await browser.close();
 }
