@@ -214,3 +214,96 @@ pub async fn events(
     let stream = futures_util::stream::unfold(out, |mut out| async move { out.recv().await.map(|m| (Ok(m), out)) });
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(KEEP_ALIVE)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::server::ServerConfig;
+    use axum::body::Body;
+    use axum::http::Request;
+    use futures_util::StreamExt;
+    use tower::ServiceExt;
+
+    fn auth() -> Auth {
+        Auth { client: Some("client-secret".into()), worker: Some("worker-secret".into()) }
+    }
+
+    fn bearer(t: &str) -> HeaderMap {
+        let mut h = HeaderMap::new();
+        h.insert(header::AUTHORIZATION, format!("Bearer {t}").parse().expect("header"));
+        h
+    }
+
+    #[test]
+    fn token_from_header_or_query() {
+        let none = HeaderMap::new();
+        assert!(authorize_client(&Auth::default(), &none, None).is_ok());
+        let a = auth();
+        assert!(authorize_client(&a, &bearer("client-secret"), None).is_ok());
+        assert!(authorize_client(&a, &none, Some("client-secret")).is_ok());
+        assert_eq!(authorize_client(&a, &none, None).map_err(|e| e.status), Err(StatusCode::UNAUTHORIZED));
+        assert_eq!(
+            authorize_client(&a, &none, Some("client-secreT")).map_err(|e| e.status),
+            Err(StatusCode::UNAUTHORIZED)
+        );
+        assert_eq!(
+            authorize_client(&a, &bearer("worker-secret"), None).map_err(|e| e.status),
+            Err(StatusCode::FORBIDDEN)
+        );
+        assert_eq!(
+            authorize_client(&a, &none, Some("worker-secret")).map_err(|e| e.status),
+            Err(StatusCode::FORBIDDEN)
+        );
+    }
+
+    /// Reads the stream for `d`, returning the text received.
+    async fn read_for(body: Body, d: Duration) -> String {
+        let mut stream = body.into_data_stream();
+        let mut text = String::new();
+        let _ = tokio::time::timeout(d, async {
+            while let Some(Ok(chunk)) = stream.next().await {
+                text.push_str(&String::from_utf8_lossy(&chunk));
+            }
+        })
+        .await;
+        text
+    }
+
+    #[tokio::test]
+    async fn stream_starts_with_a_snapshot_and_coalesces_bursts() {
+        let tmp = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), tmp.path().to_path_buf());
+        cfg.auth = auth();
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        let app = crate::api::router(state.clone());
+
+        let req = Request::builder().uri("/api/v1/events").body(Body::empty()).expect("request");
+        assert_eq!(app.clone().oneshot(req).await.expect("response").status(), StatusCode::UNAUTHORIZED);
+
+        let req = Request::builder().uri("/api/v1/events?token=client-secret").body(Body::empty()).expect("request");
+        let resp = app.oneshot(req).await.expect("response");
+        assert_eq!(resp.status(), StatusCode::OK);
+        let ct = resp.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or_default();
+        assert!(ct.starts_with("text/event-stream"), "{ct}");
+        let body = resp.into_body();
+        let publisher = {
+            let state = state.clone();
+            tokio::spawn(async move {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                for _ in 0..500 {
+                    state.publish("job", 7);
+                    state.publish("image", 7);
+                    tokio::task::yield_now().await;
+                }
+            })
+        };
+        let text = read_for(body, Duration::from_millis(700)).await;
+        publisher.await.expect("publisher");
+        assert!(text.starts_with("event: snapshot\ndata: {\"jobs\":[],\"workers\":[]}"), "{text}");
+        // Job 7 does not exist: its messages say so. 500 events in a burst, 700 ms: a few messages.
+        let jobs = text.matches("event: job_deleted\ndata: {\"id\":7}").count();
+        let images = text.matches("event: image\ndata: {\"id\":7}").count();
+        assert!((1..=4).contains(&jobs), "{jobs} job messages:\n{text}");
+        assert!((1..=4).contains(&images), "{images} image messages:\n{text}");
+    }
+}

@@ -48,7 +48,12 @@ try {
   const t0 = Date.now();
   for (;;) {
     const s = await page.locator(`#jobs tbody tr[data-job-id="${job}"]`).getAttribute('data-state');
-    if (s && seen[seen.length - 1] !== s) { seen.push(s); console.log('state ' + s); }
+    if (s && seen[seen.length - 1] !== s) {
+      seen.push(s);
+      console.log('state ' + s);
+      // A picture of the job mid-render too (best effort).
+      if (s === 'running') await page.screenshot({ path: shot.replace(/\.png$/, '-running.png') }).catch(() => {});
+    }
     if (s === 'completed') break;
     if (s === 'failed' || s === 'cancelled') throw new Error(`job ended ${s}`);
     if (Date.now() - t0 > timeout) throw new Error(`job did not complete in ${timeout} ms (states: ${seen.join(' -> ')})`);

@@ -85,29 +85,51 @@ function actionButtons(info) {
   return b.join('');
 }
 
+// Cells of a job row, as HTML strings (only changed cells are rewritten, so buttons under
+// the pointer survive the updates).
+function jobCells(j) {
+  const i = j.info, s = i.settings, t = live(j);
+  const pct = Math.round(i.progress * 1000) / 10;
+  const done = i.state === 'completed';
+  return [
+    String(i.id),
+    esc(i.name),
+    `<span class="badge state ${i.state}">${i.state}</span>`,
+    esc(s.integrator.type),
+    `${s.width} × ${s.height}`,
+    `${i.spp_done} / ${s.spp}`,
+    `<span class="bar ${done ? 'done' : ''}"><i style="width:${pct}%"></i></span><span class="pct">${pct.toFixed(pct < 100 ? 1 : 0)}%</span>`,
+    fmtRate(i.samples_per_sec),
+    fmtDur(t.eta),
+    fmtDur(t.elapsed),
+    actionButtons(i),
+  ];
+}
+const JOB_CELL_CLASS = ['num', '', '', '', '', 'num', '', 'num', 'num eta', 'num elapsed', 'actions'];
+
 function renderJobs() {
-  const rows = [...st.jobs.values()].sort((a, b) => b.info.id - a.info.id);
-  $('#jobs-empty').hidden = rows.length > 0;
-  $('#jobs-count').textContent = rows.length ? rows.length + (rows.length === 1 ? ' job' : ' jobs') : '';
-  const html = rows.map((j) => {
-    const i = j.info, s = i.settings, t = live(j);
-    const pct = Math.round(i.progress * 1000) / 10;
-    const done = i.state === 'completed';
-    return `<tr data-job-id="${i.id}" data-state="${i.state}" class="${st.selected === i.id ? 'selected' : ''}">
-      <td class="num">${i.id}</td>
-      <td>${esc(i.name)}</td>
-      <td><span class="badge state ${i.state}">${i.state}</span></td>
-      <td>${esc(s.integrator.type)}</td>
-      <td>${s.width} × ${s.height}</td>
-      <td class="num">${i.spp_done} / ${s.spp}</td>
-      <td><span class="bar ${done ? 'done' : ''}"><i style="width:${pct}%"></i></span><span class="pct">${pct.toFixed(pct < 100 ? 1 : 0)}%</span></td>
-      <td class="num">${fmtRate(i.samples_per_sec)}</td>
-      <td class="num eta">${fmtDur(t.eta)}</td>
-      <td class="num elapsed">${fmtDur(t.elapsed)}</td>
-      <td class="actions">${actionButtons(i)}</td>
-    </tr>`;
-  }).join('');
-  $('#jobs tbody').innerHTML = html;
+  const jobs = [...st.jobs.values()].sort((a, b) => b.info.id - a.info.id);
+  $('#jobs-empty').hidden = jobs.length > 0;
+  $('#jobs-count').textContent = jobs.length ? jobs.length + (jobs.length === 1 ? ' job' : ' jobs') : '';
+  const body = $('#jobs tbody');
+  const old = new Map([...body.rows].map((r) => [Number(r.dataset.jobId), r]));
+  jobs.forEach((j, k) => {
+    const id = j.info.id;
+    let row = old.get(id);
+    old.delete(id);
+    if (!row) {
+      row = document.createElement('tr');
+      row.dataset.jobId = id;
+      row._cells = JOB_CELL_CLASS.map((c) => { const td = row.insertCell(); td.className = c; return null; });
+    }
+    row.dataset.state = j.info.state;
+    row.classList.toggle('selected', st.selected === id);
+    jobCells(j).forEach((html, c) => {
+      if (row._cells[c] !== html) { row.cells[c].innerHTML = html; row._cells[c] = html; }
+    });
+    if (body.rows[k] !== row) body.insertBefore(row, body.rows[k] || null);
+  });
+  for (const r of old.values()) r.remove();
   renderSummary();
 }
 
@@ -167,9 +189,12 @@ function select(id) {
   st.tiles = null; st.conv = null; st.lastPasses = -1;
   history.replaceState(null, '', id == null ? location.pathname : '#job=' + id);
   $('#preview').removeAttribute('src');
+  $('#job-log').textContent = '…';
+  $('#preview-cap').textContent = 'preview';
   renderJobs();
-  renderPanel(true);
-  if (id != null) { refreshPreview(); $('#job-panel').scrollIntoView({ behavior: 'smooth', block: 'nearest' }); }
+  renderPanel(false);
+  drawConvergence();
+  if (id != null) { fetchDetailsNow(); refreshPreview(); $('#job-panel').scrollIntoView({ behavior: 'smooth', block: 'nearest' }); }
 }
 
 let panelTimer = null;
@@ -183,7 +208,8 @@ function renderPanel(fetchDetails) {
   $('#job-state').className = 'badge ' + i.state;
   $('#job-state').textContent = i.state;
   $('#job-meta').textContent = `${s.width}×${s.height} · ${s.integrator.type} · ${i.spp_done}/${s.spp} spp · pass ${i.passes_done}/${i.passes_total} · ${i.units_merged}/${i.units_total} units`;
-  $('#job-actions').innerHTML = actionButtons(i);
+  const acts = actionButtons(i);
+  if ($('#job-actions').dataset.html !== acts) { $('#job-actions').innerHTML = acts; $('#job-actions').dataset.html = acts; }
   $('#job-error').hidden = !i.error;
   $('#job-error').textContent = i.error || '';
   $('#job-settings').textContent = JSON.stringify({ scene_id: i.scene_id, priority: i.priority, ...s }, null, 2);
@@ -392,8 +418,9 @@ function tick() {
     const j = st.jobs.get(Number(row.dataset.jobId));
     if (!j || j.info.state !== 'running') continue;
     const t = live(j);
-    row.querySelector('.eta').textContent = fmtDur(t.eta);
-    row.querySelector('.elapsed').textContent = fmtDur(t.elapsed);
+    for (const [c, v] of [[8, fmtDur(t.eta)], [9, fmtDur(t.elapsed)]]) {
+      if (row._cells[c] !== v) { row.cells[c].textContent = v; row._cells[c] = v; }
+    }
   }
   if (st.workers.length) renderWorkers();
 }
