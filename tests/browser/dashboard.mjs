@@ -2,6 +2,8 @@
 //
 //   node tests/browser/dashboard.mjs URL JOBID [SCREENSHOT]
 //
+// With $PATHFARM_TOKEN set, the coordinator is expected to require that client token: the page
+// must ask for it (a dialog), keep it in localStorage and follow the events with `?token=`.
 // Opens URL (the dashboard), waits for job JOBID's row, opens its panel and prints READY; the
 // caller then starts a worker. The job must reach `completed` through live updates (the page
 // is never reloaded), and its preview image must load. Saves a full-page screenshot.
@@ -27,15 +29,30 @@ const errors = [];
 try {
   const page = await browser.newPage({ viewport: { width: 1360, height: 1000 }, deviceScaleFactor: 1 });
   page.on('pageerror', (e) => errors.push('page error: ' + e.message));
-  page.on('console', (m) => { if (m.type() === 'error') errors.push('console error: ' + m.text()); });
+  // With a token, the first requests are refused (401) until the dialog is answered.
+  let expect401 = Boolean(process.env.PATHFARM_TOKEN);
+  page.on('console', (m) => {
+    if (m.type() !== 'error') return;
+    if (expect401 && m.text().includes('status of 401')) return;
+    errors.push('console error: ' + m.text());
+  });
   page.setDefaultTimeout(timeout);
 
   await page.goto(url, { waitUntil: 'domcontentloaded' });
   // A marker that survives only if the page is never reloaded.
   await page.evaluate(() => { window.__pathfarmMarker = 'no-reload'; });
 
+  const token = process.env.PATHFARM_TOKEN;
+  if (token) {
+    await page.locator('#token-dialog[open]').waitFor();
+    console.log('token asked');
+    await page.fill('#token-input', token);
+    await page.click('#token-ok');
+  }
+
   const row = page.locator(`#jobs tbody tr[data-job-id="${job}"]`);
   await row.waitFor();
+  expect401 = false;
   const firstState = await row.getAttribute('data-state');
   console.log(`job ${job} listed, state ${firstState}`);
   await page.locator('#conn.live').waitFor();
@@ -76,10 +93,14 @@ try {
   // The worker shows up in the workers table.
   await page.locator('#workers tbody tr').first().waitFor();
   // The convergence plot has measured at least one pass (the caption line is drawn).
-  const conv = await page.evaluate(async (id) => (await (await fetch(`/api/v1/jobs/${id}/convergence`)).json()).points.length, job);
+  const conv = await page.evaluate(async ([id, t]) => {
+    const r = await fetch(`/api/v1/jobs/${id}/convergence`, { headers: t ? { Authorization: 'Bearer ' + t } : {} });
+    return (await r.json()).points.length;
+  }, [job, token]);
   console.log(`convergence points ${conv}`);
   if (conv < 1) fail('no convergence points');
   await page.waitForTimeout(600); // let the last detail fetch draw
+  if (token && (await page.evaluate(() => localStorage.getItem('pathfarm.token'))) !== token) fail('the token was not kept in localStorage');
   const marker = await page.evaluate(() => window.__pathfarmMarker);
   if (marker !== 'no-reload') fail('the page was reloaded');
   await page.evaluate(() => window.scrollTo(0, 0));

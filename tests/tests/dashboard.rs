@@ -69,8 +69,22 @@ fn wait_for_file(path: &Path, timeout: Duration) -> String {
     }
 }
 
+/// One browser at a time (the machines are small).
+static BROWSER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn dashboard_shows_a_job_completing_live() {
+    run_scenario(None, "dashboard.png");
+}
+
+#[test]
+fn dashboard_asks_for_the_client_token() {
+    run_scenario(Some(("client-token-for-the-browser", "worker-token-for-the-browser")), "dashboard-token.png");
+}
+
+/// `tokens`: (client, worker) bearer tokens the coordinator requires.
+fn run_scenario(tokens: Option<(&str, &str)>, screenshot: &str) {
+    let _one = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
     let (chromium, script) = match browser_tools() {
         Ok(t) => t,
         Err(why) if std::env::var("PATHFARM_REQUIRE_BROWSER").as_deref() == Ok("1") => {
@@ -85,20 +99,23 @@ fn dashboard_shows_a_job_completing_live() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let data = tmp.path().join("data");
     let log = std::fs::File::create(tmp.path().join("coordinator.log")).expect("log");
-    let _coordinator = Proc(
-        Command::new(bin("pathfarm-coordinator"))
-            .args(["--listen", "127.0.0.1:0", "--data-dir"])
-            .arg(&data)
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .expect("start the coordinator"),
-    );
+    let mut coordinator = Command::new(bin("pathfarm-coordinator"));
+    coordinator.args(["--listen", "127.0.0.1:0", "--data-dir"]).arg(&data);
+    if let Some((client, worker)) = tokens {
+        coordinator.env("PATHFARM_CLIENT_TOKEN", client).env("PATHFARM_WORKER_TOKEN", worker);
+    } else {
+        coordinator.env_remove("PATHFARM_CLIENT_TOKEN").env_remove("PATHFARM_WORKER_TOKEN");
+    }
+    let _coordinator = Proc(coordinator.stdout(Stdio::null()).stderr(log).spawn().expect("start the coordinator"));
     let addr = wait_for_file(&data.join("coordinator.addr"), Duration::from_secs(30));
     let url = format!("http://{addr}");
 
     // A small job, queued before any worker exists.
-    let http = reqwest::blocking::Client::new();
+    let mut headers = reqwest::header::HeaderMap::new();
+    if let Some((client, _)) = tokens {
+        headers.insert(reqwest::header::AUTHORIZATION, format!("Bearer {client}").parse().expect("header"));
+    }
+    let http = reqwest::blocking::Client::builder().default_headers(headers).build().expect("http client");
     let scene: serde_json::Value = http
         .post(format!("{url}/api/v1/scenes"))
         .body(cornell_demo_glb())
@@ -118,9 +135,14 @@ fn dashboard_shows_a_job_completing_live() {
         .expect("create the job");
     let job_id = job["id"].as_u64().expect("job id");
 
-    let shot = workspace_root().join("target/dashboard.png");
+    let shot = workspace_root().join("target").join(screenshot);
     let _ = std::fs::remove_file(&shot);
-    let mut node = Command::new("node")
+    let mut node = Command::new("node");
+    match tokens {
+        Some((client, _)) => node.env("PATHFARM_TOKEN", client),
+        None => node.env_remove("PATHFARM_TOKEN"),
+    };
+    let mut node = node
         .arg(&script)
         .arg(&url)
         .arg(job_id.to_string())
@@ -152,15 +174,15 @@ fn dashboard_shows_a_job_completing_live() {
             Err(_) => panic!("the browser script did not get ready (see [browser] lines above)"),
         }
     }
-    let _worker = Proc(
-        Command::new(bin("pathfarm-worker"))
-            .args(["run", "--coordinator", &url, "--threads", "1", "--name", "browser-test-worker", "--cache-dir"])
-            .arg(tmp.path().join("cache"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start the worker"),
-    );
+    let mut worker = Command::new(bin("pathfarm-worker"));
+    worker
+        .args(["run", "--coordinator", &url, "--threads", "1", "--name", "browser-test-worker", "--cache-dir"])
+        .arg(tmp.path().join("cache"));
+    match tokens {
+        Some((_, w)) => worker.env("PATHFARM_WORKER_TOKEN", w),
+        None => worker.env_remove("PATHFARM_WORKER_TOKEN"),
+    };
+    let _worker = Proc(worker.stdout(Stdio::null()).stderr(Stdio::null()).spawn().expect("start the worker"));
 
     let t0 = Instant::now();
     let status = loop {
