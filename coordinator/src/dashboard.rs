@@ -14,6 +14,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{Html, IntoResponse, Json, Response};
 use axum::routing::get;
+use pathfarm_common::film::{Film, ch, from_fixed, luminance};
 use pathfarm_common::protocol::JobId;
 use serde::Serialize;
 use std::collections::HashMap;
@@ -57,24 +58,46 @@ pub struct History {
     jobs: Mutex<HashMap<JobId, Vec<ConvergencePoint>>>,
 }
 
-fn measure(job: &crate::farm::Job) -> ConvergencePoint {
-    let img = job.film.resolve();
-    let (mut var, mut lum, mut spp, mut n) = (0.0f64, 0.0f64, 0.0f64, 0u64);
-    for i in 0..img.samples.len() {
-        spp += f64::from(img.samples[i]);
-        if img.samples[i] > 0.0 {
-            let [r, g, b] = img.rgb[i];
-            var += f64::from(img.variance[i].max(0.0));
-            lum += 0.2126 * f64::from(r) + 0.7152 * f64::from(g) + 0.0722 * f64::from(b);
-            n += 1;
+/// At most this many pixels are read per measurement (a regular subset of larger images), so
+/// the farm lock is held briefly whatever the resolution.
+const MAX_MEASURED_PIXELS: usize = 1 << 16;
+
+/// Mean samples per pixel, RMS standard error of the pixel means and mean luminance, over a
+/// regular subset of the pixels. The variance is the film's `variance.Y` layer (the same formula
+/// as [`Film::resolve`]), computed for the chosen pixels only.
+pub fn noise(film: &Film) -> (f64, f64, f64) {
+    let n = film.sums.len() / ch::COUNT;
+    let stride = n.div_ceil(MAX_MEASURED_PIXELS).max(1);
+    let splat_scale = if film.splat_spp > 0 { 1.0 / f64::from(film.splat_spp) } else { 0.0 };
+    let (mut var, mut lum, mut spp, mut seen, mut lit) = (0.0f64, 0.0f64, 0.0f64, 0u64, 0u64);
+    for i in (0..n).step_by(stride) {
+        let p = &film.sums[i * ch::COUNT..(i + 1) * ch::COUNT];
+        let w = from_fixed(p[ch::WEIGHT]);
+        seen += 1;
+        spp += w;
+        if w > 0.0 {
+            let mean = |c: usize| from_fixed(p[c]) / w;
+            let l = f64::from(luminance([mean(ch::R) as f32, mean(ch::G) as f32, mean(ch::B) as f32]));
+            if w > 1.0 {
+                var += ((from_fixed(p[ch::LUM_SQ]) / w - l * l).max(0.0) * w / (w - 1.0)) / w;
+            }
+            let splat = |c: usize| film.splats.sums.get(i * 3 + c).map_or(0.0, |v| from_fixed(*v) * splat_scale);
+            lum += l + f64::from(luminance([splat(0) as f32, splat(1) as f32, splat(2) as f32]));
+            lit += 1;
         }
     }
-    let pixels = img.samples.len().max(1) as f64;
-    let (rmse, mean) = if n > 0 { ((var / n as f64).sqrt(), lum / n as f64) } else { (0.0, 0.0) };
+    if lit == 0 {
+        return (0.0, 0.0, 0.0);
+    }
+    (spp / seen as f64, (var / lit as f64).sqrt(), lum / lit as f64)
+}
+
+fn measure(job: &crate::farm::Job) -> ConvergencePoint {
+    let (mean_spp, rmse, mean) = noise(&job.film);
     ConvergencePoint {
         passes_done: job.passes_done,
         spp_done: job.plan.passes.get(job.passes_done as usize).map_or(job.settings.spp, |p| p.s0),
-        mean_spp: spp / pixels,
+        mean_spp,
         rmse,
         mean_luminance: mean,
         relative: if mean > 0.0 { rmse / mean } else { 0.0 },
@@ -188,4 +211,40 @@ pub fn routes(state: &Arc<AppState>) -> Router<Arc<AppState>> {
                 convergence(st, history.clone(), h, q.token, id)
             }),
         )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pathfarm_common::film::{SampleValue, TileAccum, add_sample};
+    use pathfarm_common::job::TileRect;
+
+    /// On a small film (every pixel read), the noise is the film's variance layer's.
+    #[test]
+    fn noise_matches_the_variance_layer() {
+        let rect = TileRect { x0: 0, y0: 0, x1: 24, y1: 16 };
+        let mut tile = TileAccum::new(rect);
+        for y in 0..16 {
+            for x in 0..24 {
+                for s in 0..(1 + (x + y) % 5) {
+                    let v = 0.1 * f32::from((x * 7 + y * 3 + s * 11) as u16 % 13);
+                    let sample = SampleValue { radiance: [v, v * 0.5, v * 2.0], ..Default::default() };
+                    add_sample(tile.pixel_mut(x, y), &sample);
+                }
+            }
+        }
+        let mut film = Film::new(24, 16);
+        film.add_tile(&tile);
+        let img = film.resolve();
+        let n = img.variance.len() as f64;
+        let rmse = (img.variance.iter().map(|v| f64::from(*v)).sum::<f64>() / n).sqrt();
+        let lum = img.rgb.iter().map(|c| f64::from(luminance(*c))).sum::<f64>() / n;
+        let spp = img.samples.iter().map(|s| f64::from(*s)).sum::<f64>() / n;
+        let (s, r, l) = noise(&film);
+        assert!((s - spp).abs() < 1e-9, "{s} {spp}");
+        assert!((r - rmse).abs() < 1e-6 * rmse.max(1e-9), "{r} {rmse}");
+        assert!((l - lum).abs() < 1e-5 * lum, "{l} {lum}");
+        assert!(r > 0.0);
+        assert_eq!(noise(&Film::new(8, 8)), (0.0, 0.0, 0.0));
+    }
 }
