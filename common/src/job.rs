@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
 /// How light samples and BSDF samples are combined in direct lighting.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum MisHeuristic {
     Balance,
@@ -20,7 +20,7 @@ pub enum MisHeuristic {
 }
 
 /// How area lights are sampled.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum LightSampling {
     /// Uniform by area, converted to solid angle.
@@ -31,7 +31,7 @@ pub enum LightSampling {
 }
 
 /// Which sampler addresses the random numbers.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum SamplerKind {
     /// Owen-scrambled Sobol, padded per dimension pair (pbrt-v4's PaddedSobolSampler).
@@ -58,7 +58,7 @@ fn default_g_limit() -> f32 {
 }
 
 /// Integrator and its parameters (JSON: `{"type": "path", "max_depth": 8, ...}`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum IntegratorSettings {
     /// Emitted plus direct lighting, one light and one BSDF sample with MIS.
@@ -121,7 +121,7 @@ impl Default for IntegratorSettings {
 }
 
 /// How the sample budget is cut into passes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum PassSchedule {
     /// First pass of `first` spp, then each pass doubles, capped at `max` spp per pass.
@@ -142,7 +142,7 @@ fn default_tile_size() -> u32 {
 
 /// Everything that determines a render's pixels. Two renders with equal settings (and the same
 /// scene) produce the same bits, whatever machine, thread count or work order.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RenderSettings {
     pub width: u32,
@@ -272,7 +272,7 @@ impl RenderSettings {
 }
 
 /// A rectangle of pixels `[x0, x1) x [y0, y1)`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct TileRect {
     pub x0: u32,
     pub y0: u32,
@@ -293,7 +293,7 @@ impl TileRect {
 }
 
 /// A pass: the sample index range `[s0, s1)` rendered for every pixel.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Pass {
     pub index: u32,
     pub s0: u32,
@@ -310,7 +310,7 @@ impl Pass {
 }
 
 /// Address of a work unit inside a job.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct UnitKey {
     pub pass: u32,
     pub tile: u32,

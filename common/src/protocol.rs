@@ -19,12 +19,12 @@ pub type WorkerId = u64;
 pub type LeaseId = u64;
 
 /// Every error body: `{"error": {"code": "...", "message": "..."}}`.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct ErrorBody {
     pub error: ErrorDetail,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct ErrorDetail {
     /// Stable machine-readable code, e.g. `invalid_scene`, `lease_lost`, `not_found`.
     pub code: String,
@@ -32,7 +32,7 @@ pub struct ErrorDetail {
 }
 
 /// `POST /scenes` answer.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct SceneCreated {
     /// SHA-256 of the uploaded bundle, lower-case hex.
     pub scene_id: String,
@@ -42,7 +42,7 @@ pub struct SceneCreated {
 }
 
 /// Lifecycle of a job.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum JobState {
     Queued,
@@ -120,13 +120,13 @@ impl JobRequest {
 }
 
 /// `POST /jobs` answer (201).
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct JobCreated {
     pub id: JobId,
 }
 
 /// `GET /jobs/{id}`: a job's state and progress.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct JobInfo {
     pub id: JobId,
     pub name: String,
@@ -161,7 +161,7 @@ pub struct JobInfo {
 }
 
 /// Worker states as the coordinator sees them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum WorkerState {
     Idle,
@@ -170,7 +170,7 @@ pub enum WorkerState {
 }
 
 /// `GET /workers` entry.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct WorkerInfo {
     pub id: WorkerId,
     pub name: String,
@@ -185,7 +185,7 @@ pub struct WorkerInfo {
 }
 
 /// `POST /workers/register` body.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RegisterRequest {
     pub name: String,
@@ -193,7 +193,7 @@ pub struct RegisterRequest {
 }
 
 /// `POST /workers/register` answer.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct Registered {
     pub worker_id: WorkerId,
     /// Send a heartbeat at least this often.
@@ -203,7 +203,7 @@ pub struct Registered {
 }
 
 /// `POST /workers/{id}/lease?wait_ms=N` answer (200; 204 when there is no work).
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct LeaseGrant {
     pub lease_id: LeaseId,
     pub job_id: JobId,
@@ -215,7 +215,7 @@ pub struct LeaseGrant {
 }
 
 /// `POST /leases/{id}/release` body: give a unit back (shutdown) or report its failure.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ReleaseRequest {
     /// `true` if rendering failed (counts towards retries and the blocklist).
@@ -224,7 +224,7 @@ pub struct ReleaseRequest {
 }
 
 /// `PUT /leases/{id}/result` answer.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct ResultAccepted {
     pub merged: bool,
 }

@@ -164,12 +164,16 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
     let shared = Router::new()
         .route("/scenes/{id}", get(download_scene))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_any));
-    let api = Router::new().merge(client).merge(worker).merge(shared);
+    // Own auth (the token may come as `?token=`, for EventSource), and the public API document.
+    let live = Router::new()
+        .route("/events", get(crate::events::events))
+        .route("/openapi.json", get(crate::openapi::openapi_json));
+    let api = Router::new().merge(client).merge(worker).merge(shared).merge(live);
     Router::new()
         .nest(API, api)
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
-        .merge(crate::dashboard::routes())
+        .merge(crate::dashboard::routes(&state))
 }
 
 /// The fallback (404), JSON bodies for axum's own errors, panics turned into 500s, the state.
@@ -229,6 +233,15 @@ async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Nex
 
 // ------------------------------------------------------------------------------------ scenes
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/scenes",
+    tag = "scenes",
+    summary = "Upload a scene (.glb, .gltf or tar bundle); content-addressed by SHA-256",
+    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "A .glb, a self-contained .gltf, or a tar of a .gltf with its files"),
+    security(("client_token" = [])),
+    responses((status = 201, description = "Stored (or already stored)", body = SceneCreated), (status = 422, description = "Not a loadable scene, or over a limit", body = ErrorBody), (status = 413, description = "Body too large"), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<SceneCreated>)> {
     if body.is_empty() {
         return Err(ApiError::unprocessable("invalid_scene", "empty body: send a .glb, a .gltf or a tar bundle"));
@@ -241,6 +254,15 @@ async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiRes
     Ok((StatusCode::CREATED, Json(created)))
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/scenes/{id}",
+    tag = "scenes",
+    summary = "Download a scene bundle (workers and clients)",
+    params(("id" = String, Path, description = "Scene id (SHA-256, hex)")),
+    security(("client_token" = []), ("worker_token" = [])),
+    responses((status = 200, description = "The bundle bytes", body = Vec<u8>, content_type = "application/octet-stream"), (status = 404, description = "No such scene", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn download_scene(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     if !is_scene_id(&id) {
         return Err(ApiError::not_found(format!("scene {id:?} does not exist")));
@@ -252,6 +274,15 @@ async fn download_scene(State(state): State<Arc<AppState>>, Path(id): Path<Strin
 
 // ------------------------------------------------------------------------------------ jobs
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/jobs",
+    tag = "jobs",
+    summary = "Submit a job",
+    request_body = crate::openapi::JobRequestBody,
+    security(("client_token" = [])),
+    responses((status = 201, description = "Queued", body = JobCreated), (status = 400, description = "Not JSON", body = ErrorBody), (status = 422, description = "Invalid settings or unknown scene", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<JobCreated>)> {
     let value: serde_json::Value = serde_json::from_slice(&body)
         .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_json", format!("job body is not JSON: {e}")))?;
@@ -278,24 +309,59 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
     Ok((StatusCode::CREATED, Json(JobCreated { id })))
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs",
+    tag = "jobs",
+    summary = "List jobs with their progress",
+    security(("client_token" = [])),
+    responses((status = 200, description = "Every job", body = Vec<pathfarm_common::protocol::JobInfo>), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn list_jobs(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     let farm = state.farm.lock();
     let now = now_ms();
     Json(farm.jobs().map(|j| j.info(now)).collect::<Vec<_>>())
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}",
+    tag = "jobs",
+    summary = "A job's state and progress",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "The job", body = pathfarm_common::protocol::JobInfo), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn get_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
     let id = parse_id("job", &id)?;
     let farm = state.farm.lock();
     Ok(Json(farm.job(id)?.info(now_ms())))
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/log",
+    tag = "jobs",
+    summary = "A job's log (retries, failures, blocklists), oldest first",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "Log lines", body = Vec<String>), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn job_log(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
     let id = parse_id("job", &id)?;
     let farm = state.farm.lock();
     Ok(Json(farm.job(id)?.log.clone()))
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/tiles",
+    tag = "jobs",
+    summary = "Per-tile progress (the tile map)",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "Tiles and passes merged per tile", body = crate::openapi::TileProgress), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn job_tiles(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
     let id = parse_id("job", &id)?;
     let farm = state.farm.lock();
@@ -324,14 +390,41 @@ async fn job_action(
     Ok(Json(info))
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/jobs/{id}/cancel",
+    tag = "jobs",
+    summary = "Cancel a job",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "The job after the change", body = pathfarm_common::protocol::JobInfo), (status = 409, description = "Not possible in the job's state", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn cancel_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
     job_action(state, id, |f, id, now| f.cancel(id, now)).await
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/jobs/{id}/pause",
+    tag = "jobs",
+    summary = "Pause a job (leased units finish)",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "The job after the change", body = pathfarm_common::protocol::JobInfo), (status = 409, description = "Not possible in the job's state", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn pause_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
     job_action(state, id, |f, id, now| f.pause(id, now)).await
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/jobs/{id}/resume",
+    tag = "jobs",
+    summary = "Resume a paused job",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "The job after the change", body = pathfarm_common::protocol::JobInfo), (status = 409, description = "Not possible in the job's state", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn resume_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<impl IntoResponse> {
     job_action(state, id, |f, id, now| f.resume(id, now)).await
 }
@@ -342,6 +435,16 @@ struct PriorityBody {
     priority: i32,
 }
 
+#[utoipa::path(
+    put,
+    path = "/api/v1/jobs/{id}/priority",
+    tag = "jobs",
+    summary = "Change a job's priority (higher first)",
+    params(("id" = u64, Path, description = "Job id")),
+    request_body = crate::openapi::PriorityBody,
+    security(("client_token" = [])),
+    responses((status = 200, description = "The job after the change", body = pathfarm_common::protocol::JobInfo), (status = 422, description = "Bad body", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn set_priority(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
@@ -352,6 +455,15 @@ async fn set_priority(
     job_action(state, id, move |f, id, _| f.set_priority(id, p.priority)).await
 }
 
+#[utoipa::path(
+    delete,
+    path = "/api/v1/jobs/{id}",
+    tag = "jobs",
+    summary = "Delete a job and its images",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 204, description = "Deleted"), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn delete_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id = parse_id("job", &id)?;
     state.farm.lock().delete(id)?;
@@ -367,6 +479,15 @@ fn resolve_job(state: &AppState, id: &str) -> ApiResult<pathfarm_common::film::I
     Ok(farm.job(id)?.film.resolve())
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/image.exr",
+    tag = "images",
+    summary = "The image so far as multi-layer OpenEXR (RGB, albedo, normal, depth, samples, variance)",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     let layers = resolve_job(&state, &id)?;
     let bytes = tokio::task::spawn_blocking(move || layers.encode_exr())
@@ -376,6 +497,15 @@ async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
     Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response())
 }
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/preview.png",
+    tag = "images",
+    summary = "The image so far as an sRGB PNG preview",
+    params(("id" = u64, Path, description = "Job id")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     let layers = resolve_job(&state, &id)?;
     let bytes = tokio::task::spawn_blocking(move || layers.encode_png(0.0))
@@ -389,10 +519,27 @@ async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
 
 // ------------------------------------------------------------------------------------ workers
 
+#[utoipa::path(
+    get,
+    path = "/api/v1/workers",
+    tag = "workers",
+    summary = "List workers",
+    security(("client_token" = [])),
+    responses((status = 200, description = "Every registered worker", body = Vec<pathfarm_common::protocol::WorkerInfo>), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn list_workers(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     Json(state.farm.lock().workers(now_ms()))
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/workers/register",
+    tag = "worker protocol",
+    summary = "Register a worker",
+    request_body = RegisterRequest,
+    security(("worker_token" = [])),
+    responses((status = 200, description = "Registered", body = Registered), (status = 422, description = "Bad body", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<Json<Registered>> {
     let req: RegisterRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("register body: {e}")))?;
@@ -401,6 +548,15 @@ async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<
     Ok(Json(Registered { worker_id, heartbeat_ms: farm.cfg.heartbeat_ms, lease_timeout_ms: farm.cfg.lease_timeout_ms }))
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/workers/{id}/heartbeat",
+    tag = "worker protocol",
+    summary = "Heartbeat (renews the worker's leases)",
+    params(("id" = u64, Path, description = "Worker id")),
+    security(("worker_token" = [])),
+    responses((status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn heartbeat(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id: WorkerId = parse_id("worker", &id)?;
     state.farm.lock().heartbeat(id, now_ms())?;
@@ -412,6 +568,15 @@ struct LeaseQuery {
     wait_ms: Option<u64>,
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/workers/{id}/lease",
+    tag = "worker protocol",
+    summary = "Lease a work unit (long poll)",
+    params(("id" = u64, Path, description = "Worker id"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 60000)")),
+    security(("worker_token" = [])),
+    responses((status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn lease(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
@@ -439,6 +604,16 @@ async fn lease(
     }
 }
 
+#[utoipa::path(
+    put,
+    path = "/api/v1/leases/{id}/result",
+    tag = "worker protocol",
+    summary = "Upload a unit's result",
+    params(("id" = u64, Path, description = "Lease id")),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR1 magic, u32 header length, JSON header, lz4 sections of i128 sums, CRC-32"),
+    security(("worker_token" = [])),
+    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn upload_result(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
@@ -509,6 +684,16 @@ fn decode_and_accept(
     Ok((job_id, r))
 }
 
+#[utoipa::path(
+    post,
+    path = "/api/v1/leases/{id}/release",
+    tag = "worker protocol",
+    summary = "Give a unit back, or report that it failed",
+    params(("id" = u64, Path, description = "Lease id")),
+    request_body = ReleaseRequest,
+    security(("worker_token" = [])),
+    responses((status = 204, description = "Released"), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
 async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
     let req: ReleaseRequest = serde_json::from_slice(&body)
@@ -520,6 +705,13 @@ async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, bod
 
 // ------------------------------------------------------------------------------------ metrics
 
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "service",
+    summary = "Prometheus metrics",
+    responses((status = 200, description = "Prometheus text exposition", body = String, content_type = "text/plain; version=0.0.4")),
+)]
 async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     let text = state.metrics_text();
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text)

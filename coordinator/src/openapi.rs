@@ -1,0 +1,216 @@
+//! The OpenAPI 3 document, generated from the code with utoipa: `GET /api/v1/openapi.json`.
+//!
+//! Handlers carry `#[utoipa::path]` attributes where they are defined (api.rs); routes served by
+//! closures or by other modules are described by the stubs below. `coordinator/tests/openapi.rs`
+//! fails when a route registered in the router is missing here.
+
+use crate::dashboard::{Convergence, ConvergencePoint};
+use crate::events::{IdOnly, Snapshot};
+use axum::http::header;
+use axum::response::IntoResponse;
+use pathfarm_common::job::{
+    IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings, SamplerKind, TileRect, UnitKey,
+};
+use pathfarm_common::protocol::{
+    ErrorBody, ErrorDetail, JobCreated, JobInfo, JobState, LeaseGrant, RegisterRequest, Registered, ReleaseRequest,
+    ResultAccepted, SceneCreated, WorkerInfo, WorkerState,
+};
+use serde::{Deserialize, Serialize};
+use std::sync::OnceLock;
+use utoipa::OpenApi;
+use utoipa::openapi::security::{Http, HttpAuthScheme, SecurityScheme};
+
+/// `POST /jobs` body: the job's own fields plus every [`RenderSettings`] field at the top level.
+#[derive(Debug, Serialize, Deserialize, utoipa::ToSchema)]
+#[schema(example = json!({"scene_id": "3f2a...", "name": "cornell", "priority": 0, "width": 256, "height": 256, "spp": 64, "integrator": {"type": "path", "max_depth": 8}}))]
+pub struct JobRequestBody {
+    /// Id returned by `POST /scenes`.
+    pub scene_id: String,
+    pub name: Option<String>,
+    /// Higher runs first; equal priorities share the workers.
+    #[serde(default)]
+    pub priority: i32,
+    #[serde(flatten)]
+    pub settings: RenderSettings,
+}
+
+/// `PUT /jobs/{id}/priority` body.
+#[derive(Debug, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct PriorityBody {
+    pub priority: i32,
+}
+
+/// `GET /jobs/{id}/tiles` answer.
+#[derive(Debug, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct TileProgress {
+    /// The job's tiles, row-major.
+    pub tiles: Vec<TileRect>,
+    /// Per tile, the passes merged so far.
+    pub passes_merged: Vec<u32>,
+    pub passes_total: usize,
+}
+
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "service",
+    summary = "Liveness probe",
+    responses((status = 200, description = "`ok`", body = String, content_type = "text/plain"))
+)]
+#[allow(dead_code)]
+fn healthz() {}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/openapi.json",
+    tag = "service",
+    summary = "This document",
+    responses((status = 200, description = "OpenAPI 3.1 document", body = Object))
+)]
+#[allow(dead_code)]
+fn openapi_doc() {}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/events",
+    tag = "events",
+    summary = "Live events (server-sent events)",
+    description = "A `text/event-stream`. Messages (SSE `event:` name, JSON `data:`): `snapshot` \
+        (first: `{jobs, workers}`), `job` (a JobInfo), `job_deleted` (`{id}`), `workers` (the \
+        WorkerInfo list; on changes and every 2 s), `image` (`{id}`: new preview/EXR), `resync` \
+        (`{}`: messages were dropped, fetch again). Bursts are coalesced to at most one message \
+        per job every 250 ms; a comment line every 15 s keeps the connection open. The client \
+        token may be passed as `?token=` because EventSource cannot set headers.",
+    params(crate::events::EventsQuery),
+    security(("client_token" = [])),
+    responses(
+        (status = 200, description = "Event stream; `snapshot` data shown", body = Snapshot, content_type = "text/event-stream"),
+        (status = 401, description = "Missing or invalid token", body = ErrorBody),
+        (status = 403, description = "Wrong role for the token", body = ErrorBody),
+    )
+)]
+#[allow(dead_code)]
+fn events() {}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/convergence",
+    tag = "jobs",
+    summary = "Estimated image noise after each completed pass",
+    description = "Measured from the film's variance layer (variance of each pixel's mean) when \
+        a pass completes: `rmse` is the root mean square standard error of pixel luminance. \
+        Takes `?token=` like /events.",
+    params(("id" = u64, Path, description = "Job id"), crate::events::EventsQuery),
+    security(("client_token" = [])),
+    responses(
+        (status = 200, description = "Noise per pass", body = Convergence),
+        (status = 404, description = "No such job", body = ErrorBody),
+        (status = 401, description = "Missing or invalid token", body = ErrorBody),
+    )
+)]
+#[allow(dead_code)]
+fn convergence() {}
+
+#[utoipa::path(get, path = "/", tag = "dashboard", summary = "The web dashboard (HTML)",
+    responses((status = 200, description = "HTML page", body = String, content_type = "text/html")))]
+#[allow(dead_code)]
+fn dashboard_page() {}
+
+#[utoipa::path(get, path = "/dashboard/app.js", tag = "dashboard", summary = "Dashboard script",
+    responses((status = 200, description = "JavaScript", body = String, content_type = "text/javascript")))]
+#[allow(dead_code)]
+fn dashboard_script() {}
+
+#[utoipa::path(get, path = "/dashboard/style.css", tag = "dashboard", summary = "Dashboard stylesheet",
+    responses((status = 200, description = "CSS", body = String, content_type = "text/css")))]
+#[allow(dead_code)]
+fn dashboard_style() {}
+
+#[utoipa::path(get, path = "/dashboard/icon.svg", tag = "dashboard", summary = "Dashboard icon",
+    responses((status = 200, description = "SVG", body = String, content_type = "image/svg+xml")))]
+#[allow(dead_code)]
+fn dashboard_icon() {}
+
+struct SecuritySchemes;
+
+impl utoipa::Modify for SecuritySchemes {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        let components = openapi.components.get_or_insert_with(Default::default);
+        for name in ["client_token", "worker_token"] {
+            components.add_security_scheme(name, SecurityScheme::Http(Http::new(HttpAuthScheme::Bearer)));
+        }
+    }
+}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(
+        title = "pathfarm",
+        description = "Distributed render farm: scenes, jobs, images, live events, and the worker protocol. \
+            Every error is `{\"error\": {\"code\", \"message\"}}`. Bearer tokens (client, worker) are \
+            required only when the coordinator is started with them."
+    ),
+    paths(
+        crate::api::upload_scene,
+        crate::api::download_scene,
+        crate::api::create_job,
+        crate::api::list_jobs,
+        crate::api::get_job,
+        crate::api::delete_job,
+        crate::api::cancel_job,
+        crate::api::pause_job,
+        crate::api::resume_job,
+        crate::api::set_priority,
+        crate::api::job_log,
+        crate::api::job_tiles,
+        crate::api::job_exr,
+        crate::api::job_png,
+        crate::api::list_workers,
+        crate::api::register,
+        crate::api::heartbeat,
+        crate::api::lease,
+        crate::api::upload_result,
+        crate::api::release,
+        crate::api::metrics,
+        healthz,
+        openapi_doc,
+        events,
+        convergence,
+        dashboard_page,
+        dashboard_script,
+        dashboard_style,
+        dashboard_icon,
+    ),
+    components(schemas(
+        ErrorBody, ErrorDetail, SceneCreated, JobState, JobCreated, JobInfo, WorkerState, WorkerInfo,
+        RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings,
+        IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
+        JobRequestBody, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
+    )),
+    modifiers(&SecuritySchemes),
+    tags(
+        (name = "scenes", description = "Scene bundles, content-addressed"),
+        (name = "jobs", description = "Render jobs and their progress"),
+        (name = "images", description = "A job's image so far"),
+        (name = "workers", description = "The worker list (clients)"),
+        (name = "events", description = "Live updates"),
+        (name = "worker protocol", description = "Routes the worker daemons use"),
+        (name = "service", description = "Health, metrics, this document"),
+        (name = "dashboard", description = "The web dashboard's files"),
+    )
+)]
+pub struct ApiDoc;
+
+/// The document.
+pub fn document() -> utoipa::openapi::OpenApi {
+    let mut doc = ApiDoc::openapi();
+    doc.info.version = env!("CARGO_PKG_VERSION").to_string();
+    doc
+}
+
+/// `GET /api/v1/openapi.json`.
+pub async fn openapi_json() -> impl IntoResponse {
+    static JSON: OnceLock<String> = OnceLock::new();
+    let body = JSON.get_or_init(|| document().to_pretty_json().unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}")));
+    ([(header::CONTENT_TYPE, "application/json")], body.as_str())
+}
