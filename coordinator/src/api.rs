@@ -539,6 +539,16 @@ fn decode_and_accept(
     lease_id: LeaseId,
     body: &[u8],
 ) -> ApiResult<(JobId, Result<crate::farm::MergeOutcome, FarmError>)> {
+    // Refuse results for leases that are not held before decoding: duplicates and late
+    // results cost nothing, and a body from someone without a lease cannot make the decoder
+    // allocate what its header declares (up to 4 GiB of sums).
+    {
+        let mut farm = state.farm.lock();
+        if !farm.lease_is_held(lease_id) {
+            farm.counters.results_rejected += 1;
+            return Ok((0, Err(FarmError::LeaseLost(lease_id))));
+        }
+    }
     let frame = match UnitResultFrame::decode(body) {
         Ok(f) => f,
         Err(e) => {
