@@ -131,7 +131,8 @@ if [[ -n "${EXCLUDE_CHECKS:-}" ]]; then
 fi
 echo "fuzz-api: $st ${args[*]}" >&2
 set +e
-"$st" "${args[@]}"
+# schemathesis keeps its example database in ./.schemathesis: keep it under the report dir.
+(cd "$report_dir" && "$st" "${args[@]}")
 rc=$?
 set -e
 if [[ -n "$pid" ]] && ! kill -0 "$pid" 2>/dev/null; then

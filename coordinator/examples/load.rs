@@ -161,6 +161,9 @@ fn proc_figures(pid: u32) -> Option<(f64, f64)> {
 
 struct Stats {
     lease_us: Mutex<Vec<u32>>,
+    /// Each worker's first grant: all workers poll before the job exists, so these include the
+    /// wait for the job and the herd of 500 grants at once.
+    first_us: Mutex<Vec<u32>>,
     merged: AtomicU64,
     refused: AtomicU64,
     errors: AtomicU64,
@@ -189,6 +192,7 @@ async fn worker(
     start.wait().await;
     let lease_url = format!("{base}{API}/workers/{}/lease?wait_ms={wait_ms}", reg.worker_id);
     let mut lats = Vec::new();
+    let mut first = None;
     while !stats.done.load(Ordering::Relaxed) {
         let t0 = Instant::now();
         let r = match http.post(&lease_url).send().await {
@@ -207,7 +211,12 @@ async fn worker(
             continue;
         }
         let g: LeaseGrant = r.json().await?;
-        lats.push(t0.elapsed().as_micros().min(u128::from(u32::MAX)) as u32);
+        let us = t0.elapsed().as_micros().min(u128::from(u32::MAX)) as u32;
+        if first.is_none() {
+            first = Some(us);
+        } else {
+            lats.push(us);
+        }
         if render_ms > 0 {
             tokio::time::sleep(Duration::from_millis(render_ms)).await;
         }
@@ -236,6 +245,7 @@ async fn worker(
         }
     }
     stats.lease_us.lock().await.extend(lats);
+    stats.first_us.lock().await.extend(first);
     Ok(())
 }
 
@@ -338,6 +348,7 @@ async fn run(a: Args) -> anyhow::Result<()> {
     let sections = Arc::new(sections);
     let stats = Arc::new(Stats {
         lease_us: Mutex::new(Vec::new()),
+        first_us: Mutex::new(Vec::new()),
         merged: AtomicU64::new(0),
         refused: AtomicU64::new(0),
         errors: AtomicU64::new(0),
@@ -396,6 +407,8 @@ async fn run(a: Args) -> anyhow::Result<()> {
     }
     let mut lats = stats.lease_us.lock().await.clone();
     lats.sort_unstable();
+    let mut firsts = stats.first_us.lock().await.clone();
+    firsts.sort_unstable();
     println!("state                 {:?}", info.state);
     println!("units merged          {} of {}", info.units_merged, info.units_total);
     println!("elapsed               {elapsed:.2} s");
@@ -406,6 +419,13 @@ async fn run(a: Args) -> anyhow::Result<()> {
         pct(&lats, 0.99),
         pct(&lats, 1.0),
         lats.len()
+    );
+    println!(
+        "first lease (herd)    p50 {:.2} ms  p99 {:.2} ms  max {:.2} ms  ({} workers; from before the job existed)",
+        pct(&firsts, 0.5),
+        pct(&firsts, 0.99),
+        pct(&firsts, 1.0),
+        firsts.len()
     );
     println!(
         "results refused       {}  request errors {}",

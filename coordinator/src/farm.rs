@@ -846,6 +846,11 @@ impl Farm {
         Ok(out)
     }
 
+    /// Whether `lease_id` is held (a result for it could be accepted).
+    pub fn lease_is_held(&self, lease_id: LeaseId) -> bool {
+        self.leases.contains_key(&lease_id)
+    }
+
     /// Leases held right now.
     pub fn leases_held(&self) -> usize {
         self.leases.len()

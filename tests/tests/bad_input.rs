@@ -337,6 +337,9 @@ fn duplicate_result_is_409_and_not_merged() {
     let msg = expect_error(r, StatusCode::CONFLICT, &[&format!("lease {}", g.lease_id), "not held"]);
     assert!(msg.contains("already delivered"), "{msg}");
     assert_eq!(f.units_merged(), merged, "the duplicate was merged");
+    // The lease is checked before the body is decoded: garbage for it is also a 409.
+    let r = f.put(g.lease_id, b"garbage".to_vec());
+    expect_error(r, StatusCode::CONFLICT, &["not held"]);
     f.finish_and_compare();
 }
 
