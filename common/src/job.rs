@@ -256,6 +256,8 @@ impl RenderSettings {
             at_most("integrator.vpls", (*vpls).into(), 1 << 16)?;
             at_least("integrator.vpl_sets", (*vpl_sets).into(), 1)?;
             at_most("integrator.vpl_sets", (*vpl_sets).into(), 1024)?;
+            // Every sample index traces vpls x vpl_sets light paths.
+            at_most("integrator.vpls x vpl_sets", u64::from(*vpls) * u64::from(*vpl_sets), 1 << 18)?;
             if !(g_limit.is_finite() && *g_limit > 0.0) {
                 return Err(SettingsError::Invalid(format!(
                     "integrator.g_limit must be a positive number, got {g_limit}"

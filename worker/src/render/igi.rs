@@ -56,8 +56,9 @@ const UNLIMITED_VERTICES: usize = 256;
 const MAX_SPECULAR_CHAIN: u32 = 64;
 /// Separates the VPL sampler's seed from the camera sampler's.
 const VPL_SEED_TAG: u64 = 0x1617_0001;
-/// Sample indices whose VPLs stay cached (units arrive pass by pass).
-const CACHED_SAMPLES: usize = 128;
+/// VPLs kept in the cache (about 200 bytes each); the oldest sample indices go first. Units
+/// arrive pass by pass, so the cache mostly serves the tiles of the current pass.
+const CACHED_VPLS: usize = 1 << 21;
 
 /// A virtual point light: a light-path vertex on a non-specular surface.
 #[derive(Clone, Debug)]
@@ -105,8 +106,11 @@ impl VplCache {
                 }
                 let built = Arc::new(trace_vpls(scene, params, sampler, seed, s));
                 let mut map = self.0.lock().unwrap_or_else(|e| e.into_inner());
-                while map.len() >= CACHED_SAMPLES {
-                    map.pop_first();
+                let count = |v: &VplSets| v.sets.iter().map(Vec::len).sum::<usize>();
+                let mut total: usize = map.values().map(|v| count(v)).sum::<usize>() + count(&built);
+                while total > CACHED_VPLS {
+                    let Some((_, old)) = map.pop_first() else { break };
+                    total -= count(&old);
                 }
                 map.entry(s).or_insert(built).clone()
             })
