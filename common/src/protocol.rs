@@ -359,6 +359,17 @@ impl UnitResultFrame {
 
     /// Parses and checks a body; never panics, whatever the bytes.
     pub fn decode(bytes: &[u8]) -> Result<Self, DecodeError> {
+        Self::decode_inner(bytes, None)
+    }
+
+    /// Like [`decode`](Self::decode), but refuses a header whose tile is not `tile` or whose
+    /// splat buffer is not `image` (width, height) before decompressing anything, so a body
+    /// cannot make the decoder allocate more than the lease's unit needs.
+    pub fn decode_expecting(bytes: &[u8], tile: TileRect, image: (u32, u32)) -> Result<Self, DecodeError> {
+        Self::decode_inner(bytes, Some((tile, image)))
+    }
+
+    fn decode_inner(bytes: &[u8], expect: Option<(TileRect, (u32, u32))>) -> Result<Self, DecodeError> {
         if bytes.len() < 12 {
             return Err(DecodeError::Truncated(bytes.len()));
         }
@@ -383,6 +394,16 @@ impl UnitResultFrame {
         let t = header.tile;
         if t.x1 <= t.x0 || t.y1 <= t.y0 || t.width() > 4096 || t.height() > 4096 {
             return Err(DecodeError::Header(format!("bad tile rectangle {t:?}")));
+        }
+        if let Some((tile, image)) = expect {
+            if t != tile {
+                return Err(DecodeError::Header(format!("tile {t:?}, the lease is for {tile:?}")));
+            }
+            if let Some(dims) = header.splats
+                && dims != image
+            {
+                return Err(DecodeError::Header(format!("splat buffer {dims:?}, the image is {image:?}")));
+            }
         }
         let mut rest = &body[8 + hlen..];
         let sums = read_section(&mut rest, "sums")?;

@@ -720,14 +720,17 @@ fn decode_and_accept(
     // Refuse results for leases that are not held before decoding: duplicates and late
     // results cost nothing, and a body from someone without a lease cannot make the decoder
     // allocate what its header declares (up to 4 GiB of sums).
-    {
+    let (tile, image) = {
         let mut farm = state.farm.lock();
-        if !farm.lease_is_held(lease_id) {
-            farm.counters.results_rejected += 1;
-            return Ok((0, Err(FarmError::LeaseLost(lease_id))));
+        match farm.lease_shape(lease_id) {
+            Some(shape) => shape,
+            None => {
+                farm.counters.results_rejected += 1;
+                return Ok((0, Err(FarmError::LeaseLost(lease_id))));
+            }
         }
-    }
-    let frame = match UnitResultFrame::decode(body) {
+    };
+    let frame = match UnitResultFrame::decode_expecting(body, tile, image) {
         Ok(f) => f,
         Err(e) => {
             // The worker does not retry a refused body, so its unit would sit leased until the

@@ -846,9 +846,12 @@ impl Farm {
         Ok(out)
     }
 
-    /// Whether `lease_id` is held (a result for it could be accepted).
-    pub fn lease_is_held(&self, lease_id: LeaseId) -> bool {
-        self.leases.contains_key(&lease_id)
+    /// The tile and image size a result for `lease_id` must have, if the lease is held.
+    pub fn lease_shape(&self, lease_id: LeaseId) -> Option<(pathfarm_common::job::TileRect, (u32, u32))> {
+        let l = self.leases.get(&lease_id)?;
+        let job = self.jobs.get(&l.job)?;
+        let key = job.unit_key(l.unit);
+        Some((job.plan.tiles[key.tile as usize], (job.film.width, job.film.height)))
     }
 
     /// Leases held right now.

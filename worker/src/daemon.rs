@@ -309,7 +309,11 @@ impl Daemon {
                 }
                 Ok(resp) if resp.status().is_client_error() => {
                     let status = resp.status();
-                    tracing::error!(lease, %status, "result refused: {}", text(resp));
+                    let reason = format!("result refused with {status}: {}", text(resp));
+                    tracing::error!(lease, "{reason}");
+                    // Give the unit back: heartbeats would otherwise keep renewing a lease
+                    // whose result will never arrive.
+                    self.release(lease, true, &reason);
                     return;
                 }
                 Ok(resp) => tracing::warn!(lease, status = %resp.status(), attempt, "upload failed; retrying"),
@@ -319,7 +323,8 @@ impl Daemon {
             let never = AtomicBool::new(false);
             backoff(attempt + 1, if attempt < 3 { &never } else { shutdown });
         }
-        tracing::error!(lease, "giving up on uploading; the lease will expire and the unit be redone");
+        tracing::error!(lease, "giving up on uploading; releasing the unit so it is redone");
+        self.release(lease, true, "upload failed after 10 attempts");
     }
 
     fn release(&self, lease: u64, failed: bool, reason: &str) {
