@@ -327,7 +327,9 @@ function drawConvergence() {
   ctx.strokeStyle = '#e4e7ee'; ctx.fillStyle = '#6b7385'; ctx.lineWidth = 1;
   for (let d = x0; d <= x1; d++) {
     ctx.beginPath(); ctx.moveTo(px(d), T); ctx.lineTo(px(d), H - B); ctx.stroke();
-    ctx.fillText(String(10 ** d), px(d) - 6, H - B + 14);
+    ctx.textAlign = d === x1 ? 'right' : d === x0 ? 'left' : 'center';
+    ctx.fillText(String(10 ** d), px(d), H - B + 14);
+    ctx.textAlign = 'left';
   }
   for (let d = y0; d <= y1; d++) {
     ctx.beginPath(); ctx.moveTo(L, py(d)); ctx.lineTo(W - R, py(d)); ctx.stroke();
@@ -402,7 +404,11 @@ function connect() {
   es.onerror = () => {
     setConn('down', 'reconnecting');
     // A refused token closes the stream for good: find out why.
-    if (es.readyState === EventSource.CLOSED) fetchAll().then(() => setTimeout(connect, 2000)).catch(() => {});
+    if (es.readyState === EventSource.CLOSED) {
+      fetchAll()
+        .then(() => setTimeout(connect, 2000))
+        .catch((err) => { if (err.message !== 'unauthorized') setTimeout(connect, 5000); });
+    }
   };
   on('snapshot', applySnapshot);
   on('job', upsertJob);
