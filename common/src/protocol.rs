@@ -188,7 +188,9 @@ pub struct WorkerInfo {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RegisterRequest {
+    #[schema(min_length = 1, max_length = 256)]
     pub name: String,
+    #[schema(minimum = 1, maximum = 4096)]
     pub threads: u32,
 }
 
@@ -419,8 +421,8 @@ impl UnitResultFrame {
         if !rest.is_empty() {
             return Err(DecodeError::Section { section: "trailer", message: format!("{} extra bytes", rest.len()) });
         }
-        let mut accum = TileAccum::new(t);
-        accum.sums = sums;
+        // The sums were checked against the tile's size above.
+        let accum = TileAccum { rect: t, sums };
         Ok(Self { lease_id: header.lease_id, job_id: header.job_id, unit: header.unit, accum, splats })
     }
 }

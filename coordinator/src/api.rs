@@ -601,9 +601,20 @@ async fn list_workers(State(state): State<Arc<AppState>>) -> impl IntoResponse {
 async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<Json<Registered>> {
     let req: RegisterRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("register body: {e}")))?;
-    let mut farm = state.farm.lock();
-    let worker_id = farm.register(req.name, req.threads, now_ms());
-    Ok(Json(Registered { worker_id, heartbeat_ms: farm.cfg.heartbeat_ms, lease_timeout_ms: farm.cfg.lease_timeout_ms }))
+    if !(1..=4096).contains(&req.threads) || req.name.is_empty() || req.name.len() > 256 {
+        return Err(ApiError::unprocessable(
+            "invalid_body",
+            format!("register body: threads must be 1..=4096 (got {}) and name 1..=256 bytes", req.threads),
+        ));
+    }
+    let reg = {
+        let mut farm = state.farm.lock();
+        let worker_id = farm.register(req.name.clone(), req.threads, now_ms());
+        Registered { worker_id, heartbeat_ms: farm.cfg.heartbeat_ms, lease_timeout_ms: farm.cfg.lease_timeout_ms }
+    };
+    state.persist_worker(reg.worker_id, &req.name, req.threads);
+    state.publish("worker", reg.worker_id);
+    Ok(Json(reg))
 }
 
 #[utoipa::path(
@@ -670,7 +681,7 @@ async fn lease(
     params(("id" = u64, Path, description = "Lease id")),
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR1 magic, u32 header length, JSON header, lz4 sections of i128 sums, CRC-32"),
     security(("worker_token" = [])),
-    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "Body too large", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn upload_result(
     State(state): State<Arc<AppState>>,
@@ -763,7 +774,7 @@ fn decode_and_accept(
     params(("id" = u64, Path, description = "Lease id")),
     request_body = ReleaseRequest,
     security(("worker_token" = [])),
-    responses((status = 204, description = "Released"), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 204, description = "Released"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 422, description = "Bad body", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
