@@ -262,7 +262,7 @@ async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiRes
     summary = "Download a scene bundle (workers and clients)",
     params(("id" = String, Path, description = "Scene id (SHA-256, hex)")),
     security(("client_token" = []), ("worker_token" = [])),
-    responses((status = 200, description = "The bundle bytes", body = Vec<u8>, content_type = "application/octet-stream"), (status = 404, description = "No such scene", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 200, description = "The bundle bytes", body = Vec<u8>, content_type = "application/octet-stream"), (status = 404, description = "No such scene", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn download_scene(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     if !is_scene_id(&id) {
@@ -624,13 +624,16 @@ async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<
     summary = "Heartbeat (renews the worker's leases)",
     params(("id" = u64, Path, description = "Worker id")),
     security(("worker_token" = [])),
-    responses((status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn heartbeat(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id: WorkerId = parse_id("worker", &id)?;
     state.farm.lock().heartbeat(id, now_ms())?;
     Ok(StatusCode::NO_CONTENT)
 }
+
+/// Longest long-poll a lease request may ask for (longer asks are cut to this).
+const MAX_LEASE_WAIT_MS: u64 = 20_000;
 
 #[derive(Deserialize)]
 struct LeaseQuery {
@@ -642,9 +645,9 @@ struct LeaseQuery {
     path = "/api/v1/workers/{id}/lease",
     tag = "worker protocol",
     summary = "Lease a work unit (long poll)",
-    params(("id" = u64, Path, description = "Worker id"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 60000)")),
+    params(("id" = u64, Path, description = "Worker id"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 20000)")),
     security(("worker_token" = [])),
-    responses((status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn lease(
     State(state): State<Arc<AppState>>,
@@ -652,7 +655,7 @@ async fn lease(
     Query(q): Query<LeaseQuery>,
 ) -> ApiResult<Response> {
     let worker: WorkerId = parse_id("worker", &id)?;
-    let wait = Duration::from_millis(q.wait_ms.unwrap_or(0).min(60_000));
+    let wait = Duration::from_millis(q.wait_ms.unwrap_or(0).min(MAX_LEASE_WAIT_MS));
     let start = Instant::now();
     loop {
         let notified = state.work_ready.notified();

@@ -30,8 +30,26 @@ pub struct JobRequestBody {
     /// Higher runs first; equal priorities share the workers.
     #[serde(default)]
     pub priority: i32,
-    #[serde(flatten)]
-    pub settings: RenderSettings,
+    // The RenderSettings fields, spelled out: a flattened struct that refuses unknown fields
+    // becomes an `allOf` that no object can satisfy.
+    #[schema(minimum = 1)]
+    pub width: u32,
+    #[schema(minimum = 1)]
+    pub height: u32,
+    #[schema(minimum = 1)]
+    pub spp: u32,
+    #[serde(default)]
+    pub seed: u64,
+    /// Scene camera index; absent = camera 0 or a camera framing the scene.
+    pub camera: Option<usize>,
+    #[serde(default)]
+    pub integrator: Option<pathfarm_common::job::IntegratorSettings>,
+    #[serde(default)]
+    pub sampler: Option<pathfarm_common::job::SamplerKind>,
+    #[schema(minimum = 8, maximum = 1024)]
+    pub tile_size: Option<u32>,
+    #[serde(default)]
+    pub passes: Option<pathfarm_common::job::PassSchedule>,
 }
 
 /// `PUT /jobs/{id}/priority` body.
