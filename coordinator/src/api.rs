@@ -4,7 +4,7 @@
 //! handler becomes a 500 and the server keeps serving.
 
 use crate::farm::FarmError;
-use crate::server::{AppState, now_ms};
+use crate::server::{AppState, Auth, now_ms};
 use axum::body::Bytes;
 use axum::extract::{DefaultBodyLimit, Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -86,17 +86,18 @@ fn token_matches(given: &str, expected: &str) -> bool {
     given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
 }
 
-/// Checks the bearer token for a route that `allowed` roles may use.
-fn authorize(state: &AppState, headers: &HeaderMap, allowed: &[Role]) -> ApiResult<()> {
-    let auth = &state.auth;
+/// The bearer token of a request, if any.
+pub fn bearer(headers: &HeaderMap) -> Option<&str> {
+    headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "))
+}
+
+/// Checks `token` for a route that `allowed` roles may use: missing or unknown 401, the wrong
+/// kind 403; with no tokens configured everything is allowed.
+pub fn authorize_token(auth: &Auth, token: Option<&str>, allowed: &[Role]) -> ApiResult<()> {
     if auth.client.is_none() && auth.worker.is_none() {
         return Ok(());
     }
-    let token = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
+    let token = token.ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
     let role = if auth.client.as_deref().is_some_and(|t| token_matches(token, t)) {
         Role::Client
     } else if auth.worker.as_deref().is_some_and(|t| token_matches(token, t)) {
@@ -109,6 +110,10 @@ fn authorize(state: &AppState, headers: &HeaderMap, allowed: &[Role]) -> ApiResu
     } else {
         Err(ApiError::new(StatusCode::FORBIDDEN, "forbidden", format!("a {role:?} token may not use this route")))
     }
+}
+
+fn authorize(state: &AppState, headers: &HeaderMap, allowed: &[Role]) -> ApiResult<()> {
+    authorize_token(&state.auth, bearer(headers), allowed)
 }
 
 async fn require_client(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {

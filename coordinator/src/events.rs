@@ -19,7 +19,7 @@
 use crate::api::ApiError;
 use crate::server::{AppState, Auth, now_ms};
 use axum::extract::{Query, State};
-use axum::http::{HeaderMap, StatusCode, header};
+use axum::http::HeaderMap;
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
 use futures_util::stream::Stream;
 use pathfarm_common::protocol::{JobId, JobInfo, WorkerInfo};
@@ -58,29 +58,9 @@ pub struct IdOnly {
     pub id: u64,
 }
 
-fn token_matches(given: &str, expected: &str) -> bool {
-    use subtle::ConstantTimeEq;
-    given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
-}
-
 /// Client-token check that also takes the token from the query string.
 pub fn authorize_client(auth: &Auth, headers: &HeaderMap, query_token: Option<&str>) -> Result<(), ApiError> {
-    if auth.client.is_none() && auth.worker.is_none() {
-        return Ok(());
-    }
-    let token = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .or(query_token)
-        .ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
-    if auth.client.as_deref().is_some_and(|t| token_matches(token, t)) {
-        Ok(())
-    } else if auth.worker.as_deref().is_some_and(|t| token_matches(token, t)) {
-        Err(ApiError::new(StatusCode::FORBIDDEN, "forbidden", "a Worker token may not use this route"))
-    } else {
-        Err(ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "invalid token"))
-    }
+    crate::api::authorize_token(auth, crate::api::bearer(headers).or(query_token), &[crate::api::Role::Client])
 }
 
 fn message(name: &str, data: &impl Serialize) -> SseEvent {
@@ -220,7 +200,7 @@ mod tests {
     use super::*;
     use crate::server::ServerConfig;
     use axum::body::Body;
-    use axum::http::Request;
+    use axum::http::{Request, StatusCode, header};
     use futures_util::StreamExt;
     use tower::ServiceExt;
 
