@@ -54,6 +54,7 @@ pub struct JobRequestBody {
 
 /// `PUT /jobs/{id}/priority` body.
 #[derive(Debug, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct PriorityBody {
     pub priority: i32,
 }
@@ -122,6 +123,7 @@ fn events() {}
     security(("client_token" = [])),
     responses(
         (status = 200, description = "Noise per pass", body = Convergence),
+        (status = 400, description = "Bad id", body = ErrorBody),
         (status = 404, description = "No such job", body = ErrorBody),
         (status = 401, description = "Missing or invalid token", body = ErrorBody),
     )
