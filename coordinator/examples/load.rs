@@ -290,6 +290,7 @@ async fn run(a: Args) -> anyhow::Result<()> {
         let c = tokio::process::Command::new(&bin)
             .arg("--listen")
             .arg("127.0.0.1:0")
+            .arg("--no-auth")
             .arg("--data-dir")
             .arg(dir.path())
             .arg("--lease-timeout-ms")
