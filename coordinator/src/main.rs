@@ -47,6 +47,10 @@ struct ServeArgs {
     /// Interval workers heartbeat at.
     #[arg(long, default_value_t = 2_000)]
     heartbeat_ms: u64,
+    /// How often jobs whose merged units changed are checkpointed (film + merged set); a crash
+    /// redoes at most this much work. Each checkpoint copies the job's film under the farm lock.
+    #[arg(long, default_value_t = 1_000)]
+    checkpoint_ms: u64,
     /// Largest request body (scene upload or unit result) in MiB.
     #[arg(long, default_value_t = 512)]
     max_upload_mb: usize,
@@ -81,6 +85,7 @@ fn main() -> anyhow::Result<()> {
     let mut cfg = ServerConfig::new(a.listen, a.data_dir.clone());
     cfg.farm.lease_timeout_ms = a.lease_timeout_ms;
     cfg.farm.heartbeat_ms = a.heartbeat_ms;
+    cfg.checkpoint_interval = std::time::Duration::from_millis(a.checkpoint_ms.max(100));
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
     cfg.max_triangles = a.max_triangles;
     cfg.max_texture_pixels = a.max_texture_pixels;
