@@ -10,8 +10,8 @@ use anyhow::{Context, bail};
 use pathfarm_common::protocol::{
     API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WorkerId,
 };
-use pathfarm_common::scene::bundle::{is_scene_id, load_bundle, scene_id};
-use pathfarm_common::scene::{LoadOptions, Scene};
+use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
+use pathfarm_common::scene::{LoadOptions, Scene, load_scene};
 use reqwest::StatusCode;
 use reqwest::blocking::{Client, RequestBuilder, Response};
 use std::path::PathBuf;
@@ -377,8 +377,19 @@ impl Daemon {
                 b
             }
         };
+        // Unpack into a private folder and rename it into place: workers sharing a cache dir
+        // never see each other's half-written files (bundles are immutable, so the first
+        // complete folder wins).
         let dir = self.cfg.cache_dir.join(id);
-        let scene = Arc::new(load_bundle(&bytes, &dir, &LoadOptions::default())?);
+        static SEQ: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let seq = SEQ.fetch_add(1, Ordering::Relaxed);
+        let tmp = self.cfg.cache_dir.join(format!(".{id}.{}.{seq}", std::process::id()));
+        let main = unpack_bundle(&bytes, &tmp)?;
+        let rel = main.strip_prefix(&tmp).map(PathBuf::from).unwrap_or_else(|_| PathBuf::from("scene.glb"));
+        if dir.exists() || std::fs::rename(&tmp, &dir).is_err() {
+            let _ = std::fs::remove_dir_all(&tmp);
+        }
+        let scene = Arc::new(load_scene(&dir.join(rel), &LoadOptions::default())?);
         self.scene = Some((id.to_string(), scene.clone()));
         Ok(scene)
     }
