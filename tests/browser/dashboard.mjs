@@ -58,6 +58,18 @@ try {
   await page.locator('#conn.live').waitFor();
   await row.click();
   await page.locator('#job-panel:not([hidden])').waitFor();
+  // Raise the queued job's priority from the page; the row shows it and the API has it.
+  await page.click(`button[data-act="prio-up"][data-id="${job}"]`);
+  await page.waitForFunction((id) => {
+    const p = document.querySelector(`#jobs tbody tr[data-job-id="${id}"] .prio`);
+    return p && p.textContent.trim() === 'P1';
+  }, job);
+  const prio = await page.evaluate(async ([id, t]) => {
+    const r = await fetch(`/api/v1/jobs/${id}`, { headers: t ? { Authorization: 'Bearer ' + t } : {} });
+    return (await r.json()).priority;
+  }, [job, token]);
+  if (prio !== 1) fail(`priority after the click is ${prio}, expected 1`);
+  console.log('priority raised');
   console.log('READY');
 
   // Record every state the row shows until it completes.
@@ -107,6 +119,14 @@ try {
   await page.screenshot({ path: shot, fullPage: true });
   console.log(`screenshot ${shot}`);
   console.log(`states: ${seen.join(' -> ')}`);
+  // Delete the finished job from the page (confirming the dialog): the row goes, the API 404s.
+  page.once('dialog', (d) => d.accept());
+  await page.click(`button[data-act="delete"][data-id="${job}"]`);
+  await page.locator(`#jobs tbody tr[data-job-id="${job}"]`).waitFor({ state: 'detached' });
+  // Asked from node, not the page: a 404 in the page would be logged as a console error.
+  const gone = (await fetch(new URL(`/api/v1/jobs/${job}`, url), { headers: token ? { Authorization: 'Bearer ' + token } : {} })).status;
+  if (gone !== 404) fail(`deleted job answers ${gone}, expected 404`);
+  console.log('deleted');
 } catch (e) {
   fail(e.message);
   const page = browser.contexts()[0]?.pages()[0];

@@ -79,9 +79,17 @@ function actionButtons(info) {
   const id = info.id;
   if (info.state === 'running' || info.state === 'queued') b.push(`<button data-act="pause" data-id="${id}">pause</button>`);
   if (info.state === 'paused') b.push(`<button data-act="resume" data-id="${id}">resume</button>`);
-  if (!['completed', 'failed', 'cancelled'].includes(info.state)) b.push(`<button data-act="cancel" data-id="${id}">cancel</button>`);
+  const finished = ['completed', 'failed', 'cancelled'].includes(info.state);
+  if (!finished) b.push(`<button data-act="cancel" data-id="${id}">cancel</button>`);
   b.push(`<button data-act="exr" data-id="${id}" title="download the multi-layer EXR">EXR</button>`);
   b.push(`<button data-act="png" data-id="${id}" title="download the PNG preview">PNG</button>`);
+  if (!finished) {
+    b.push(`<span class="prio" title="priority: higher runs first">P${info.priority}</span>`);
+    b.push(`<button data-act="prio-up" data-id="${id}" title="raise the priority">▲</button>`);
+    b.push(`<button data-act="prio-down" data-id="${id}" title="lower the priority">▼</button>`);
+  } else {
+    b.push(`<button data-act="delete" data-id="${id}" title="delete the job and its files">delete</button>`);
+  }
   return b.join('');
 }
 
@@ -165,7 +173,20 @@ document.addEventListener('click', async (e) => {
     const id = Number(btn.dataset.id), act = btn.dataset.act;
     try {
       if (act === 'exr' || act === 'png') await download(id, act);
-      else {
+      else if (act === 'prio-up' || act === 'prio-down') {
+        const cur = st.jobs.get(id)?.info.priority ?? 0;
+        const priority = cur + (act === 'prio-up' ? 1 : -1);
+        const r = await api(`/jobs/${id}/priority`, {
+          method: 'PUT', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ priority }),
+        });
+        upsertJob(await r.json());
+      } else if (act === 'delete') {
+        if (!confirm(`Delete job ${id} and its images?`)) return;
+        await api(`/jobs/${id}`, { method: 'DELETE' });
+        st.jobs.delete(id);
+        if (st.selected === id) select(null);
+        renderJobs();
+      } else {
         const r = await api(`/jobs/${id}/${act}`, { method: 'POST' });
         upsertJob(await r.json());
       }
