@@ -58,12 +58,12 @@ try {
   await page.locator('#conn.live').waitFor();
   await row.click();
   await page.locator('#job-panel:not([hidden])').waitFor();
-  // Raise the queued job's priority from the page; the row shows it and the API has it.
+  // Raise the queued job's priority from its panel; the panel shows it and the API has it.
   await page.click(`button[data-act="prio-up"][data-id="${job}"]`);
-  await page.waitForFunction((id) => {
-    const p = document.querySelector(`#jobs tbody tr[data-job-id="${id}"] .prio`);
+  await page.waitForFunction(() => {
+    const p = document.querySelector('#job-actions .prio');
     return p && p.textContent.trim() === 'P1';
-  }, job);
+  });
   const prio = await page.evaluate(async ([id, t]) => {
     const r = await fetch(`/api/v1/jobs/${id}`, { headers: t ? { Authorization: 'Bearer ' + t } : {} });
     return (await r.json()).priority;
@@ -82,6 +82,10 @@ try {
       console.log('state ' + s);
       // A picture of the job mid-render too (best effort).
       if (s === 'running') await page.screenshot({ path: shot.replace(/\.png$/, '-running.png') }).catch(() => {});
+      // Only finished jobs can be deleted.
+      if (s === 'running' && (await page.locator(`button[data-act="delete"][data-id="${job}"]`).count()) > 0) {
+        fail('a running job offers delete');
+      }
     }
     if (s === 'completed') break;
     if (s === 'failed' || s === 'cancelled') throw new Error(`job ended ${s}`);

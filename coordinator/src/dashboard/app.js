@@ -74,7 +74,8 @@ $('#token-dialog').addEventListener('close', () => {
 $('#token-btn').addEventListener('click', askToken);
 
 // ------------------------------------------------------------------ jobs table
-function actionButtons(info) {
+// The table row gets the common actions; the job panel (`panel`) adds the priority controls.
+function actionButtons(info, panel = false) {
   const b = [];
   const id = info.id;
   if (info.state === 'running' || info.state === 'queued') b.push(`<button data-act="pause" data-id="${id}">pause</button>`);
@@ -83,12 +84,12 @@ function actionButtons(info) {
   if (!finished) b.push(`<button data-act="cancel" data-id="${id}">cancel</button>`);
   b.push(`<button data-act="exr" data-id="${id}" title="download the multi-layer EXR">EXR</button>`);
   b.push(`<button data-act="png" data-id="${id}" title="download the PNG preview">PNG</button>`);
-  if (!finished) {
+  if (finished) {
+    b.push(`<button data-act="delete" data-id="${id}" title="delete the job and its files">delete</button>`);
+  } else if (panel) {
     b.push(`<span class="prio" title="priority: higher runs first">P${info.priority}</span>`);
     b.push(`<button data-act="prio-up" data-id="${id}" title="raise the priority">▲</button>`);
     b.push(`<button data-act="prio-down" data-id="${id}" title="lower the priority">▼</button>`);
-  } else {
-    b.push(`<button data-act="delete" data-id="${id}" title="delete the job and its files">delete</button>`);
   }
   return b.join('');
 }
@@ -229,7 +230,7 @@ function renderPanel(fetchDetails) {
   $('#job-state').className = 'badge ' + i.state;
   $('#job-state').textContent = i.state;
   $('#job-meta').textContent = `${s.width}×${s.height} · ${s.integrator.type} · ${i.spp_done}/${s.spp} spp · pass ${i.passes_done}/${i.passes_total} · ${i.units_merged}/${i.units_total} units`;
-  const acts = actionButtons(i);
+  const acts = actionButtons(i, true);
   if ($('#job-actions').dataset.html !== acts) { $('#job-actions').innerHTML = acts; $('#job-actions').dataset.html = acts; }
   $('#job-error').hidden = !i.error;
   $('#job-error').textContent = i.error || '';
