@@ -409,20 +409,34 @@ async fn output_loop(state: Arc<AppState>) {
 /// Checkpoints every job whose merged units or state changed: the film with its merged set
 /// (atomically, one file), then the job's row.
 async fn checkpoint_loop(state: Arc<AppState>) {
-    let mut seen: HashMap<JobId, (u64, JobState, i32)> = HashMap::new();
+    // Per job: what the last checkpoint held, and when the next one may start. A checkpoint
+    // copies the film under the farm lock and compresses it; for big films that is costly, so
+    // the next one waits at least nine times as long as the last took (at most ~10% of a core),
+    // unless the job's state or priority changed.
+    let mut seen: HashMap<JobId, ((u64, JobState, i32), Instant)> = HashMap::new();
     loop {
         tokio::time::sleep(state.config.checkpoint_interval).await;
-        let now = now_ms();
-        let due: Vec<_> = {
+        let due: Vec<JobId> = {
             let farm = state.farm.lock();
             farm.jobs()
-                .filter(|j| seen.get(&j.id) != Some(&(j.units_merged, j.state, j.priority)))
-                .map(|j| ((j.units_merged, j.state, j.priority), j.record(now), j.checkpoint()))
+                .filter(|j| match seen.get(&j.id) {
+                    None => true,
+                    Some(((merged, st, prio), next)) => {
+                        (*st, *prio) != (j.state, j.priority) || (*merged != j.units_merged && Instant::now() >= *next)
+                    }
+                })
+                .map(|j| j.id)
                 .collect()
         };
-        for (key, rec, cp) in due {
+        for id in due {
+            let t0 = Instant::now();
+            // One job's snapshot at a time: the lock is held for one film copy, not all of them.
+            let snapshot = {
+                let farm = state.farm.lock();
+                farm.job(id).ok().map(|j| ((j.units_merged, j.state, j.priority), j.record(now_ms()), j.checkpoint()))
+            };
+            let Some((key, rec, cp)) = snapshot else { continue };
             let st = state.clone();
-            let id = rec.id;
             let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
                 let path = st.store().checkpoint_path(id);
                 write_checkpoint(&path, &cp)?;
@@ -432,7 +446,8 @@ async fn checkpoint_loop(state: Arc<AppState>) {
             .await;
             match r {
                 Ok(Ok(())) => {
-                    seen.insert(id, key);
+                    let took = t0.elapsed();
+                    seen.insert(id, (key, Instant::now() + took * 9));
                 }
                 Ok(Err(e)) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
                 Err(e) => tracing::error!(job = id, "checkpoint task failed: {e}"),
