@@ -44,10 +44,30 @@ pub mod procs {
         pub child: Child,
     }
 
-    impl Drop for Proc {
-        fn drop(&mut self) {
+    impl Proc {
+        /// SIGKILL and reap.
+        pub fn kill(&mut self) {
             let _ = self.child.kill();
             let _ = self.child.wait();
+        }
+
+        /// Sends SIGTERM and waits up to `timeout` for the process to exit.
+        pub fn terminate(&mut self, timeout: Duration) -> Option<std::process::ExitStatus> {
+            let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
+            let t0 = Instant::now();
+            while t0.elapsed() < timeout {
+                if let Ok(Some(s)) = self.child.try_wait() {
+                    return Some(s);
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            None
+        }
+    }
+
+    impl Drop for Proc {
+        fn drop(&mut self) {
+            self.kill();
         }
     }
 

@@ -1,4 +1,6 @@
-//! Shared helpers of the end-to-end tests: real coordinator and worker processes on 127.0.0.1.
+//! Helpers of the farm, restart and CLI end-to-end tests: a coordinator on a data dir the test
+//! owns (so it can be restarted on it), named workers, and local reference renders. Processes
+//! and binaries come from `pathfarm_tests::procs`.
 
 #![allow(dead_code)]
 
@@ -6,57 +8,10 @@ use pathfarm_common::job::RenderSettings;
 use pathfarm_common::scene::LoadOptions;
 use pathfarm_common::scene::bundle::load_bundle;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// A child process killed (SIGKILL) when dropped.
-pub struct Proc {
-    pub child: Child,
-    pub name: String,
-}
-
-impl Proc {
-    pub fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-
-    pub fn pid(&self) -> u32 {
-        self.child.id()
-    }
-
-    /// Sends SIGTERM and waits up to `timeout` for the process to exit.
-    pub fn terminate(&mut self, timeout: Duration) -> Option<std::process::ExitStatus> {
-        let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
-        let t0 = Instant::now();
-        while t0.elapsed() < timeout {
-            if let Ok(Some(s)) = self.child.try_wait() {
-                return Some(s);
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        None
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill();
-    }
-}
-
-/// A binary of this workspace, next to the test executable's `deps` folder.
-pub fn bin(name: &str) -> PathBuf {
-    let exe = std::env::current_exe().expect("current exe");
-    let dir = exe.parent().and_then(Path::parent).expect("target dir");
-    let path = dir.join(name);
-    assert!(
-        path.exists(),
-        "{} is missing: build the workspace binaries first (cargo build --release --bins, or cargo test --release --workspace)",
-        path.display()
-    );
-    path
-}
+pub use pathfarm_tests::procs::{Proc, bin};
 
 /// A coordinator process on a free port, its data under `data_dir`.
 pub struct Coordinator {
@@ -85,7 +40,7 @@ pub fn start_coordinator_at(data_dir: &Path, listen: &str, extra: &[&str]) -> Co
         .stderr(log)
         .spawn()
         .expect("spawn coordinator");
-    let proc = Proc { child, name: "coordinator".into() };
+    let proc = Proc { child };
     let t0 = Instant::now();
     loop {
         if let Ok(addr) = std::fs::read_to_string(&addr_file)
@@ -112,7 +67,7 @@ pub fn start_worker(url: &str, name: &str, cache_dir: &Path, extra: &[&str]) -> 
         .stderr(Stdio::null())
         .spawn()
         .expect("spawn worker");
-    Proc { child, name: name.into() }
+    Proc { child }
 }
 
 /// The EXR a local render of `settings` produces (same plan and merge as the farm).
