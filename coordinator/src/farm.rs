@@ -741,9 +741,18 @@ impl Farm {
         if *worker_failures >= blocklist_after && job.blocklist.insert(l.worker) {
             job.log(format!("worker {} is blocklisted for this job after {blocklist_after} failures", l.worker));
         }
-        if unit_failures >= max_failures {
-            let msg =
-                format!("unit pass {} tile {} failed {unit_failures} times; last error: {reason}", key.pass, key.tile);
+        // Fail the job when a unit keeps failing, or when every live worker is blocklisted for
+        // it (nobody is left to try: waiting would leave it queued forever).
+        let workers = &self.workers;
+        let everyone_blocklisted = workers.iter().all(|(id, w)| w.offline || job.blocklist.contains(id));
+        let failure = if unit_failures >= max_failures {
+            Some(format!("unit pass {} tile {} failed {unit_failures} times; last error: {reason}", key.pass, key.tile))
+        } else if everyone_blocklisted {
+            Some(format!("every worker is blocklisted for this job after repeated failures; last error: {reason}"))
+        } else {
+            None
+        };
+        if let Some(msg) = failure {
             let id = job.id;
             job.log(format!("job failed: {msg}"));
             self.finish(id, JobState::Failed, Some(msg), now_ms);
@@ -1001,6 +1010,21 @@ mod tests {
         let job = farm.job(id).expect("job");
         assert_eq!(job.state, JobState::Failed);
         assert!(job.error.as_deref().is_some_and(|e| e.contains("boom again")), "{:?}", job.error);
+    }
+
+    #[test]
+    fn a_job_every_worker_fails_fails_instead_of_waiting_forever() {
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let only = farm.register("only".into(), 1, 0);
+        // Two different units fail on the only worker: it is blocklisted, no unit failed 3 times.
+        for _ in 0..2 {
+            let g = farm.lease(only, 0).expect("lease").expect("work");
+            farm.release(g.lease_id, true, "scene does not load", 0).expect("release");
+        }
+        let job = farm.job(id).expect("job");
+        assert_eq!(job.state, JobState::Failed);
+        assert!(job.error.as_deref().is_some_and(|e| e.contains("every worker")), "{:?}", job.error);
     }
 
     #[test]
