@@ -220,3 +220,36 @@ fn bdpt_and_igi_jobs_are_bit_identical_through_the_farm() {
         assert!(client.image_exr(id).expect("exr") == local_exr(&scene, &s), "{name}: farm image differs from local");
     }
 }
+
+#[test]
+fn a_tar_bundle_renders_and_a_job_no_worker_can_render_fails_with_the_reason() {
+    // ../shared/scenes/Cameras: a .gltf with an external .bin, a perspective and an orthographic
+    // camera. Uploaded as a tar bundle; bdpt cannot use the orthographic camera.
+    let shared = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes/Cameras");
+    let gltf = std::fs::read(shared.join("Cameras.gltf")).expect("Cameras.gltf");
+    let bin = std::fs::read(shared.join("simpleSquare.bin")).expect("simpleSquare.bin");
+    let bundle = pathfarm_common::scene::bundle::tar_bundle(&[("Cameras.gltf", &gltf), ("simpleSquare.bin", &bin)])
+        .expect("tar");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let _w = start_worker(&coord.url, "only", &dir.path().join("c"), &[]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let mut ok = settings(32, 32, 4, 16);
+    ok.camera = Some(1);
+    ok.integrator = IntegratorSettings::Direct { mis: MisHeuristic::Power, light_sampling: LightSampling::Area };
+    let id = submit(&client, &bundle, &ok, 0, "ortho direct");
+    wait_done(&client, id, Duration::from_secs(60));
+    assert!(client.image_exr(id).expect("exr") == local_exr(&bundle, &ok), "tar bundle render differs from local");
+
+    let mut bad = ok.clone();
+    bad.integrator = IntegratorSettings::Bdpt { max_depth: 4, mis: MisHeuristic::Balance, rr_depth: 3, strategy: None };
+    let id = submit(&client, &bundle, &bad, 0, "ortho bdpt");
+    let info = wait_for("the job to fail", Duration::from_secs(60), || {
+        let info = client.job(id).ok()?;
+        info.state.is_finished().then_some(info)
+    });
+    assert_eq!(info.state, JobState::Failed);
+    let error = info.error.unwrap_or_default();
+    assert!(error.contains("perspective"), "the job's error should carry the worker's reason: {error}");
+    assert!(!info.blocklist.is_empty(), "the failing worker should be blocklisted");
+}
