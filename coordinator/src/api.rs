@@ -17,7 +17,7 @@ use pathfarm_common::protocol::{
     API, ErrorBody, ErrorDetail, JobCreated, JobId, JobRequest, LeaseId, RegisterRequest, Registered, ReleaseRequest,
     ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
 };
-use pathfarm_common::scene::bundle::{is_scene_id, scene_id};
+use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -805,11 +805,6 @@ async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, bod
 async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     let text = state.metrics_text();
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text)
-}
-
-/// Scene ids are computed the same way on both sides.
-pub fn bundle_id(bytes: &[u8]) -> String {
-    scene_id(bytes)
 }
 
 #[cfg(test)]
