@@ -379,7 +379,7 @@ async fn output_loop(state: Arc<AppState>) {
     let mut last: HashMap<JobId, Instant> = HashMap::new();
     loop {
         let _ = tokio::time::timeout(Duration::from_millis(500), state.output_ready.notified()).await;
-        let due: Vec<(JobId, JobState, ImageLayers)> = {
+        let due: Vec<(JobId, JobState)> = {
             let mut farm = state.farm.lock();
             farm.jobs_mut()
                 .filter(|j| j.output_dirty)
@@ -388,14 +388,20 @@ async fn output_loop(state: Arc<AppState>) {
                 })
                 .map(|j| {
                     j.output_dirty = false;
-                    (j.id, j.state, j.film.resolve())
+                    (j.id, j.state)
                 })
                 .collect()
         };
-        for (id, job_state, layers) in due {
+        for (id, job_state) in due {
             last.insert(id, Instant::now());
             let dir = state.job_dir(id);
-            let r = tokio::task::spawn_blocking(move || write_outputs(&dir, &layers)).await;
+            let st = state.clone();
+            // Resolved band by band, so the farm lock is never held for a whole film.
+            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+                let layers = crate::api::resolve_banded(&st, id).map_err(|e| anyhow::anyhow!(e.message))?;
+                write_outputs(&dir, &layers)
+            })
+            .await;
             match r {
                 Ok(Ok(())) => tracing::debug!(job = id, state = job_state.as_str(), "images written"),
                 Ok(Err(e)) => tracing::error!(job = id, "writing images failed: {e:#}"),
