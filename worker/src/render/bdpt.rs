@@ -16,6 +16,7 @@
 use super::bsdf::Bsdf;
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
+use super::integrator::sample_scatter;
 use super::light::LightSampleContext;
 use super::material::shade;
 use super::sampler::Sampler;
@@ -306,13 +307,8 @@ pub fn random_walk(
             break;
         }
         let Some(bsdf) = sh.bsdf else { break };
-        let uc = sampler.get_1d();
-        let u = sampler.get_2d();
-        let Some(bs) = bsdf.sample_f(wo, uc, u) else { break };
-        if !bs.is_transmission() && bs.wi.dot(sh.ng) <= 0.0 {
-            break;
-        }
-        beta *= bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+        let Some((bs, weight)) = sample_scatter(&bsdf, sh.ng, wo, sampler) else { break };
+        beta *= weight;
         let mut pdf_rev;
         let n = path.len();
         if bs.is_specular() {

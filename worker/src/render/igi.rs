@@ -27,7 +27,7 @@ use super::bdpt::{Subpaths, VertexKind, light_subpath};
 use super::bsdf::Bsdf;
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
-use super::integrator::{PathParams, sample_ld};
+use super::integrator::{PathParams, sample_ld, sample_scatter};
 use super::material::{Shading, shade};
 use super::sampler::{AnySampler, Sampler, hash_u64};
 use super::scene::RenderScene;
@@ -204,13 +204,8 @@ pub fn li_igi(
             l += beta * reflected(scene, si.p, &sh, wo, segments, sampler, params, set, 0);
             break;
         }
-        let uc = sampler.get_1d();
-        let u = sampler.get_2d();
-        let Some(bs) = bsdf.sample_f(wo, uc, u) else { break };
-        if !bs.is_transmission() && bs.wi.dot(sh.ng) <= 0.0 {
-            break;
-        }
-        beta *= bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+        let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, sampler) else { break };
+        beta *= weight;
         if !(beta.max_element() > 0.0) || !beta.is_finite() || segments >= MAX_SPECULAR_CHAIN {
             break;
         }

@@ -2,6 +2,7 @@
 //! next-event estimation, MIS and Russian roulette). Both trace one camera sample; the renderer
 //! schedules samples over pixels (Tungsten's split between scheduling and `trace_sample`).
 
+use super::bsdf::{Bsdf, BsdfSample};
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
 use super::light::LightSampleContext;
@@ -78,6 +79,23 @@ pub fn sample_ld(
     f * ls.l * (w / light_pdf)
 }
 
+/// Samples the BSDF for the next path segment (one 1D and one 2D sample, in that order) and
+/// returns the sample with its throughput weight `f |cos| / pdf`. Reflection below the geometric
+/// surface is refused, so shading normals cannot leak light. Shared by every integrator that
+/// extends a path by BSDF sampling.
+#[inline]
+pub fn sample_scatter(bsdf: &Bsdf, ng: Vec3A, wo: Vec3A, sampler: &mut impl Sampler) -> Option<(BsdfSample, Vec3A)> {
+    let uc = sampler.get_1d();
+    let u = sampler.get_2d();
+    let bs = bsdf.sample_f(wo, uc, u)?;
+    // Reflection must stay on the viewer's side of the geometric surface.
+    if !bs.is_transmission() && bs.wi.dot(ng) <= 0.0 {
+        return None;
+    }
+    let weight = bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+    Some((bs, weight))
+}
+
 /// Traces one camera sample through `pixel` and returns its radiance and AOVs.
 pub fn li_path(
     scene: &RenderScene,
@@ -137,14 +155,8 @@ pub fn li_path(
         if !bsdf.is_delta() {
             l += beta * sample_ld(scene, si.p, &sh, wo, sampler, params);
         }
-        let uc = sampler.get_1d();
-        let u = sampler.get_2d();
-        let Some(bs) = bsdf.sample_f(wo, uc, u) else { break };
-        // Reflection must stay on the viewer's side of the geometric surface.
-        if !bs.is_transmission() && bs.wi.dot(sh.ng) <= 0.0 {
-            break;
-        }
-        beta *= bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);
+        let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, sampler) else { break };
+        beta *= weight;
         specular_bounce = bs.is_specular();
         prev_bsdf_pdf = bs.pdf;
         prev_ctx = LightSampleContext { p: si.p, n: sh.ng };
