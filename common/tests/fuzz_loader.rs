@@ -2,7 +2,8 @@
 //! any bytes, never panic (a panic in the coordinator's upload handler is a 500, in a worker a
 //! failed unit).
 //!
-//! Seeds: our own demo scenes plus the small glTF files of the shared scene set, with their
+//! Seeds: our own demo scenes plus, when `PATHFARM_CORPUS` names the third-party scene folder,
+//! its small glTF files, with their
 //! external buffers and images inlined as `data:` URIs. Three mutators: raw bytes (flips, sets,
 //! truncation, insertions), JSON values (numbers, strings and arrays of the glTF document
 //! replaced by hostile values, GLB re-packed), and the GLB binary chunk (indices, offsets).
@@ -38,12 +39,10 @@ fn opts() -> LoadOptions {
     LoadOptions { max_triangles: Some(1 << 20), max_texture_pixels: Some(1 << 22) }
 }
 
+/// The third-party corpus (`PATHFARM_CORPUS`), when the run names one: more seeds.
 fn shared_scenes() -> Option<&'static Path> {
-    let candidates = [
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes"),
-        Path::new("/work/shared/scenes").to_path_buf(),
-    ];
-    candidates.into_iter().find(|p| p.is_dir()).map(|p| &*Box::leak(p.into_boxed_path()))
+    let dir = std::path::PathBuf::from(std::env::var_os("PATHFARM_CORPUS")?);
+    dir.is_dir().then(|| &*Box::leak(dir.into_boxed_path()))
 }
 
 /// A `.gltf` document with every relative buffer/image URI replaced by a `data:` URI.
@@ -82,6 +81,7 @@ fn corpus() -> &'static [(String, Vec<u8>)] {
             ("furnace.glb".to_string(), demo::furnace_glb(1.0, 0.5)),
             ("caustics.glb".to_string(), demo::caustics_glb()),
             ("mis.glb".to_string(), demo::mis_glb()),
+            ("cornell_mitsuba.glb".to_string(), demo::cornell_mitsuba_glb()),
         ];
         if let Some(dir) = shared_scenes() {
             let mut files: Vec<_> = walk(dir);

@@ -1,8 +1,13 @@
-//! Loads every test scene in `shared/scenes` and checks what SOURCES.md says about it, plus the
+//! Loads every third-party scene of the corpus (`PATHFARM_CORPUS`, i.e. `../shared/scenes`) and
+//! checks what its SOURCES.md says about it, plus our own Cornell box (`reference/`), the
 //! loader's error cases, node hierarchy baking, and a no-panic fuzz test.
+//!
+//! The corpus tests are `#[ignore]`d unless asked for: `PATHFARM_CORPUS=../shared/scenes cargo
+//! test --release -- --include-ignored` (what `scripts/test` does when the variable is set).
 
 use base64::Engine as _;
 use glam::Vec3;
+use pathfarm_common::scene::demo;
 use pathfarm_common::scene::{
     LoadOptions, MaterialModel, Projection, PunctualKind, Scene, SceneError, default_camera, load_scene,
     load_scene_from_slice,
@@ -10,19 +15,27 @@ use pathfarm_common::scene::{
 use proptest::prelude::*;
 use std::path::{Path, PathBuf};
 
-fn shared() -> PathBuf {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared");
-    assert!(
-        dir.join("scenes").is_dir(),
-        "test scenes not found: expected the shared folder at {} (../../shared from common/)",
-        dir.display()
+/// The third-party scene folder named by `PATHFARM_CORPUS` (only the ignored corpus tests call it).
+fn corpus() -> PathBuf {
+    let dir = std::env::var_os("PATHFARM_CORPUS").map(PathBuf::from).expect(
+        "PATHFARM_CORPUS is not set: point it at the third-party scene folder (../shared/scenes) to run the corpus suite",
     );
+    assert!(dir.is_dir(), "PATHFARM_CORPUS={} is not a folder", dir.display());
     dir
 }
 
+/// Our own files (`reference/` at the repository root).
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
 fn load(rel: &str) -> Scene {
-    let path = shared().join(rel);
-    match load_scene(&path, &LoadOptions::default()) {
+    load_path(&corpus().join(rel))
+}
+
+fn load_path(path: &Path) -> Scene {
+    let rel = path.display();
+    match load_scene(path, &LoadOptions::default()) {
         Ok(s) => s,
         Err(e) => panic!("{rel}: {e}"),
     }
@@ -61,17 +74,18 @@ const SCENES: &[(&str, Option<usize>)] = &[
 ];
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn every_scene_loads() {
     // The list above must stay complete: compare it with the folder.
     let mut found = Vec::new();
-    for dir in std::fs::read_dir(shared().join("scenes")).expect("read shared/scenes").flatten() {
+    for dir in std::fs::read_dir(corpus()).expect("read the corpus folder").flatten() {
         if !dir.path().is_dir() {
             continue;
         }
         for f in std::fs::read_dir(dir.path()).expect("read scene folder").flatten() {
             let p = f.path();
             if p.extension().is_some_and(|e| e == "gltf" || e == "glb") {
-                let rel = p.strip_prefix(shared().join("scenes")).expect("prefix");
+                let rel = p.strip_prefix(corpus()).expect("prefix");
                 found.push(rel.to_string_lossy().replace('\\', "/"));
             }
         }
@@ -79,10 +93,10 @@ fn every_scene_loads() {
     found.sort();
     let mut listed: Vec<String> = SCENES.iter().map(|(s, _)| s.to_string()).collect();
     listed.sort();
-    assert_eq!(found, listed, "SCENES must list every .gltf/.glb in shared/scenes");
+    assert_eq!(found, listed, "SCENES must list every .gltf/.glb in the corpus");
 
     for &(rel, tris) in SCENES {
-        let s = load(&format!("scenes/{rel}"));
+        let s = load(rel);
         assert!(s.triangle_count() > 0, "{rel}: no triangles");
         if let Some(t) = tris {
             assert_eq!(s.triangle_count(), t, "{rel}");
@@ -111,16 +125,18 @@ fn every_scene_loads() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn big_mesh_uses_u32_indices() {
-    let s = load("scenes/01_vertex_count_32bit/01_vertex_count_32bit.gltf");
+    let s = load("01_vertex_count_32bit/01_vertex_count_32bit.gltf");
     assert_eq!(s.triangle_count(), 130_380);
     assert!(s.meshes.iter().any(|m| m.positions.len() > 65_535));
     assert!(s.cameras.is_empty() && s.lights.is_empty(), "the Lamp/Camera nodes carry nothing");
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn triangle_without_indices_has_no_normals() {
-    let s = load("scenes/TriangleWithoutIndices/TriangleWithoutIndices.gltf");
+    let s = load("TriangleWithoutIndices/TriangleWithoutIndices.gltf");
     assert_eq!(s.meshes.len(), 1);
     let m = &s.meshes[0];
     assert_eq!(m.indices, vec![[0, 1, 2]]);
@@ -130,8 +146,9 @@ fn triangle_without_indices_has_no_normals() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn sparse_accessor_replaces_vertices() {
-    let s = load("scenes/SimpleSparseAccessor/SimpleSparseAccessor.gltf");
+    let s = load("SimpleSparseAccessor/SimpleSparseAccessor.gltf");
     let p = &s.meshes[0].positions;
     assert_eq!(p.len(), 14);
     assert_eq!(p[8], Vec3::new(1.0, 2.0, 0.0));
@@ -141,9 +158,10 @@ fn sparse_accessor_replaces_vertices() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn box_sparse_gltf_and_glb_agree() {
-    let a = load("scenes/box_sparse/box_sparse.gltf");
-    let b = load("scenes/box_sparse/box_sparse.glb");
+    let a = load("box_sparse/box_sparse.gltf");
+    let b = load("box_sparse/box_sparse.glb");
     assert_eq!(a.meshes.len(), b.meshes.len());
     for (x, y) in a.meshes.iter().zip(&b.meshes) {
         assert_eq!(x.positions, y.positions);
@@ -153,8 +171,9 @@ fn box_sparse_gltf_and_glb_agree() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn cameras_perspective_and_orthographic() {
-    let s = load("scenes/Cameras/Cameras.gltf");
+    let s = load("Cameras/Cameras.gltf");
     let persp = s.cameras.iter().filter(|c| matches!(c.projection, Projection::Perspective { .. })).count();
     let ortho = s.cameras.iter().filter(|c| matches!(c.projection, Projection::Orthographic { .. })).count();
     assert_eq!((persp, ortho), (1, 1));
@@ -167,8 +186,9 @@ fn cameras_perspective_and_orthographic() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn cubes_point_light() {
-    let s = load("scenes/Cubes_bevy/Cubes.glb");
+    let s = load("Cubes_bevy/Cubes.glb");
     assert_eq!(s.lights.len(), 1);
     let l = &s.lights[0];
     assert_eq!(l.kind, PunctualKind::Point);
@@ -177,8 +197,9 @@ fn cubes_point_light() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn mixed_lighting_sun_and_texture_transforms() {
-    let s = load("scenes/MixedLightingExample_bevy/MixedLightingExample.gltf");
+    let s = load("MixedLightingExample_bevy/MixedLightingExample.gltf");
     assert!(s.lights.iter().any(|l| l.kind == PunctualKind::Directional));
     let transformed = s
         .materials
@@ -196,8 +217,9 @@ fn mixed_lighting_sun_and_texture_transforms() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn animation_pointer_lights_and_cameras() {
-    let s = load("scenes/24_animation_pointer/24_animation_pointer.gltf");
+    let s = load("24_animation_pointer/24_animation_pointer.gltf");
     let spots = s.lights.iter().filter(|l| matches!(l.kind, PunctualKind::Spot { .. })).count();
     let dirs = s.lights.iter().filter(|l| l.kind == PunctualKind::Directional).count();
     assert_eq!((spots, dirs), (3, 1));
@@ -212,8 +234,9 @@ fn animation_pointer_lights_and_cameras() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn texture_transform_test_reads_transforms() {
-    let s = load("scenes/TextureTransformTest/TextureTransformTest.gltf");
+    let s = load("TextureTransformTest/TextureTransformTest.gltf");
     let refs: Vec<_> = s.materials.iter().filter_map(|m| m.base_color_texture).collect();
     assert!(refs.iter().any(|t| t.transform.rotation != 0.0));
     assert!(refs.iter().any(|t| t.transform.offset != glam::Vec2::ZERO));
@@ -248,29 +271,45 @@ fn check_cornell_mitsuba(s: &Scene) {
 
 #[test]
 fn cornell_mitsuba_reference() {
-    check_cornell_mitsuba(&load("reference/cornell_mitsuba.gltf"));
-    check_cornell_mitsuba(&load("reference/cornell_mitsuba.glb"));
+    check_cornell_mitsuba(&load_path(&repo().join("reference/cornell_mitsuba.glb")));
+    let built =
+        load_scene_from_slice(&demo::cornell_mitsuba_glb(), "cornell_mitsuba.glb", None, &LoadOptions::default());
+    check_cornell_mitsuba(&built.expect("cornell_mitsuba_glb loads"));
+}
+
+/// The committed `reference/cornell_mitsuba.glb` is what our exporter writes today (regenerate
+/// with `cargo run -p pathfarm-common --example make_reference_scene`).
+#[test]
+fn committed_cornell_mitsuba_is_current() {
+    let committed = std::fs::read(repo().join("reference/cornell_mitsuba.glb")).expect("reference/cornell_mitsuba.glb");
+    assert!(
+        committed == demo::cornell_mitsuba_glb(),
+        "reference/cornell_mitsuba.glb differs from demo::cornell_mitsuba_glb(): run `cargo run -p pathfarm-common --example make_reference_scene`"
+    );
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn emission_strength_materials() {
-    let s = load("scenes/14_emission_strength/14_emission_strength.gltf");
+    let s = load("14_emission_strength/14_emission_strength.gltf");
     let emissive = s.materials.iter().filter(|m| m.emissive.max_element() > 0.0).count();
     assert!(emissive >= 8, "{emissive} emissive materials");
     assert!(s.materials.iter().any(|m| m.emissive.max_element() > 1.0), "strength > 1 applied");
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn cornell_bevy_emissive_strength() {
-    let s = load("scenes/CornellBox_bevy/CornellBox.glb");
+    let s = load("CornellBox_bevy/CornellBox.glb");
     let light = s.materials.iter().find(|m| m.emissive != Vec3::ZERO).expect("emissive material");
     assert!(close(light.emissive, Vec3::splat(100.0), 1e-3), "{:?}", light.emissive);
     assert!(s.cameras.is_empty());
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn cornell_nvpro_loads_with_warning_on_dangling_texture() {
-    let s = load("scenes/cornellBox_nvpro/cornellBox.gltf");
+    let s = load("cornellBox_nvpro/cornellBox.gltf");
     assert!(
         s.warnings.iter().any(|w| w.contains("texture 0 \"tex\"") && w.contains("image 0 does not exist")),
         "{:?}",
@@ -282,17 +321,19 @@ fn cornell_nvpro_loads_with_warning_on_dangling_texture() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn transmission_and_ior() {
-    let s = load("scenes/17_ior/17_ior.gltf");
+    let s = load("17_ior/17_ior.gltf");
     assert!(s.materials.iter().any(|m| m.transmission > 0.0));
     assert!(s.materials.iter().any(|m| m.ior != 1.5));
-    let s = load("scenes/15_transmission/15_transmission.gltf");
+    let s = load("15_transmission/15_transmission.gltf");
     assert!(s.materials.iter().any(|m| m.transmission_texture.is_some()));
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn default_camera_frames_bounds() {
-    let s = load("scenes/Box/Box.gltf");
+    let s = load("Box/Box.gltf");
     let c = default_camera(&s, 1.5);
     let (lo, hi) = s.bounds().expect("bounds");
     let eye = c.world_from_camera.w_axis.truncate();
@@ -465,10 +506,10 @@ fn triangle_limit_names_the_limit() {
 }
 
 #[test]
+#[ignore = "corpus: needs PATHFARM_CORPUS (the third-party scenes, ../shared/scenes)"]
 fn texture_limit_names_the_limit() {
     let opts = LoadOptions { max_texture_pixels: Some(16), ..Default::default() };
-    let e =
-        load_scene(&shared().join("scenes/TextureTransformTest/TextureTransformTest.gltf"), &opts).expect_err("limit");
+    let e = load_scene(&corpus().join("TextureTransformTest/TextureTransformTest.gltf"), &opts).expect_err("limit");
     assert!(matches!(e, SceneError::LimitExceeded { limit: "max_texture_pixels", .. }), "{e:?}");
     assert!(e.to_string().contains("image "), "{e}");
 }

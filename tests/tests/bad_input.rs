@@ -14,7 +14,6 @@ use pathfarm_tests::procs::{Coordinator, assert_exr_identical, error_code, expec
 use pathfarm_worker::render::Renderer;
 use reqwest::StatusCode;
 use serde_json::json;
-use std::path::Path;
 use std::time::Duration;
 
 fn start(extra: &[&str]) -> Coordinator {
@@ -115,20 +114,8 @@ fn triangle_limit_is_422_naming_the_limit() {
 #[test]
 fn texture_size_limit_is_422_naming_the_limit() {
     let mut c = start(&["--max-texture-pixels", "64"]);
-    let dir = Path::new("/work/shared/scenes/TextureTransformTest");
-    let dir = if dir.exists() {
-        dir.to_path_buf()
-    } else {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes/TextureTransformTest")
-    };
-    let mut files = Vec::new();
-    for e in std::fs::read_dir(&dir).expect("TextureTransformTest scene") {
-        let p = e.expect("entry").path();
-        if matches!(p.extension().and_then(|e| e.to_str()), Some("gltf" | "bin" | "png")) {
-            let name = p.file_name().expect("name").to_string_lossy().into_owned();
-            files.push((name, std::fs::read(&p).expect("read")));
-        }
-    }
+    // A .gltf + .bin + 16 x 16 PNG bundle (256 texels > 64).
+    let files = pathfarm_common::scene::demo::cornell_separate_files();
     let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
     let bundle = tar_bundle(&refs).expect("tar");
     let r = c.upload(bundle.clone());

@@ -3,8 +3,9 @@
 //! the job going to `completed` through live updates (no reload) and load its preview image.
 //!
 //! Needs `node`, `tests/browser/node_modules` (`npm ci` there) and Chromium (`/usr/bin/chromium`
-//! or `$PATHFARM_CHROMIUM`). Without them the test prints a note and passes, unless
-//! `PATHFARM_REQUIRE_BROWSER=1` (CI), where it fails.
+//! or `$PATHFARM_CHROMIUM`); `scripts/test` installs them. Where they were missing at build time
+//! (tests/build.rs) the tests are `#[ignore]`d with that reason; run anyway (`--include-ignored`)
+//! without them, they fail naming what is missing.
 
 use pathfarm_common::scene::demo::cornell_demo_glb;
 use std::io::{BufRead, BufReader};
@@ -73,11 +74,19 @@ fn wait_for_file(path: &Path, timeout: Duration) -> String {
 static BROWSER: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 #[test]
+#[cfg_attr(
+    not(browser_tools),
+    ignore = "browser tools missing at build time: Chromium, node, npm ci in tests/browser (scripts/test installs them)"
+)]
 fn dashboard_shows_a_job_completing_live() {
     run_scenario(None, "dashboard.png");
 }
 
 #[test]
+#[cfg_attr(
+    not(browser_tools),
+    ignore = "browser tools missing at build time: Chromium, node, npm ci in tests/browser (scripts/test installs them)"
+)]
 fn dashboard_asks_for_the_client_token() {
     run_scenario(Some(("client-token-for-the-browser", "worker-token-for-the-browser")), "dashboard-token.png");
 }
@@ -85,16 +94,7 @@ fn dashboard_asks_for_the_client_token() {
 /// `tokens`: (client, worker) bearer tokens the coordinator requires.
 fn run_scenario(tokens: Option<(&str, &str)>, screenshot: &str) {
     let _one = BROWSER.lock().unwrap_or_else(|e| e.into_inner());
-    let (chromium, script) = match browser_tools() {
-        Ok(t) => t,
-        Err(why) if std::env::var("PATHFARM_REQUIRE_BROWSER").as_deref() == Ok("1") => {
-            panic!("PATHFARM_REQUIRE_BROWSER=1 but the browser test cannot run: {why}")
-        }
-        Err(why) => {
-            eprintln!("SKIPPED dashboard browser test: {why} (set PATHFARM_REQUIRE_BROWSER=1 to make this an error)");
-            return;
-        }
-    };
+    let (chromium, script) = browser_tools().unwrap_or_else(|why| panic!("the browser test cannot run: {why}"));
     let t_start = Instant::now();
     let tmp = tempfile::tempdir().expect("tempdir");
     let data = tmp.path().join("data");

@@ -223,13 +223,11 @@ fn bdpt_and_igi_jobs_are_bit_identical_through_the_farm() {
 
 #[test]
 fn a_tar_bundle_renders_and_a_job_no_worker_can_render_fails_with_the_reason() {
-    // ../shared/scenes/Cameras: a .gltf with an external .bin, a perspective and an orthographic
-    // camera. Uploaded as a tar bundle; bdpt cannot use the orthographic camera.
-    let shared = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/scenes/Cameras");
-    let gltf = std::fs::read(shared.join("Cameras.gltf")).expect("Cameras.gltf");
-    let bin = std::fs::read(shared.join("simpleSquare.bin")).expect("simpleSquare.bin");
-    let bundle = pathfarm_common::scene::bundle::tar_bundle(&[("Cameras.gltf", &gltf), ("simpleSquare.bin", &bin)])
-        .expect("tar");
+    // A "glTF Separate" export (.gltf + .bin + .png) with a perspective and an orthographic
+    // camera, uploaded as a tar bundle; bdpt cannot use the orthographic camera.
+    let files = pathfarm_common::scene::demo::cornell_separate_files();
+    let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
+    let bundle = pathfarm_common::scene::bundle::tar_bundle(&refs).expect("tar");
     let dir = tempfile::tempdir().expect("tempdir");
     let coord = start_coordinator(&dir.path().join("data"), &[]);
     let _w = start_worker(&coord.url, "only", &dir.path().join("c"), &[]);

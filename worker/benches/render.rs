@@ -6,11 +6,11 @@
 //! ```
 //!
 //! 1. BVH build time and Mrays/s for primary and diffuse (cosine) rays on
-//!    ../shared/scenes/01_vertex_count_32bit (130k triangles), closest hit with full hit data.
+//!    01_vertex_count_32bit of the corpus (`PATHFARM_CORPUS`, default ../shared/scenes; 130k triangles), closest hit with full hit data.
 //! 2. Direct-lighting samples/s on the reference Cornell box.
 //! 3. Path tracing on the Cornell box at 256 x 256, max depth 8, 64 spp, 2 threads, in samples/s;
 //!    when the `mitsuba` Python package is installed, the same scene with Mitsuba 3's
-//!    `scalar_rgb` and `llvm_ad_rgb` variants (../shared/reference/mitsuba_cornell.py) and the
+//!    `scalar_rgb` and `llvm_ad_rgb` variants (scripts/make-reference.py) and the
 //!    ratios; and the equal-time error: RMSE against the 16k-spp reference of our render given
 //!    the wall time of Mitsuba's llvm render of 64 spp, and of Mitsuba's.
 
@@ -27,8 +27,14 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-fn shared() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared")
+/// The repository's root (`reference/`, `scripts/`).
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The third-party scenes: `PATHFARM_CORPUS`, else `../shared/scenes` beside the repository.
+fn corpus() -> PathBuf {
+    std::env::var_os("PATHFARM_CORPUS").map_or_else(|| repo().join("../shared/scenes"), PathBuf::from)
 }
 
 fn hash(mut x: u64) -> u64 {
@@ -44,7 +50,7 @@ fn unit(x: u64) -> f32 {
 }
 
 fn bvh_figures() {
-    let path = shared().join("scenes/01_vertex_count_32bit/01_vertex_count_32bit.gltf");
+    let path = corpus().join("01_vertex_count_32bit/01_vertex_count_32bit.gltf");
     let scene = match load_scene(&path, &LoadOptions::default()) {
         Ok(s) => s,
         Err(e) => {
@@ -121,7 +127,7 @@ fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
 /// Runs the reference script; returns (samples/s median, render seconds median, output exr).
 fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
     let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{variant}_{spp}.exr"));
-    let script = shared().join("reference/mitsuba_cornell.py");
+    let script = repo().join("scripts/make-reference.py");
     let mut cmd = Command::new("python3");
     // drjit's LLVM backend needs a recent libLLVM (Debian's default 14 fails with "Cannot select
     // fminimum"): point it at the newest one installed (`apt-get install libllvm19`).
@@ -130,8 +136,8 @@ fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
     }
     let o = cmd
         .arg(script)
-        .args(["--variant", variant, "--spp", &spp.to_string(), "--res", "256", "--repeats", "3", "--threads", "2"])
-        .args(["--rfilter", "box", "--max-depth", "8", "--no-json", "--output"])
+        .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp.to_string()])
+        .args(["--res", "256", "--repeats", "3", "--threads", "2", "--max-depth", "8", "--out"])
         .arg(&out)
         .output()
         .ok()?;
@@ -158,7 +164,7 @@ fn newest_libllvm() -> Option<PathBuf> {
 /// `tiny`: one small path-traced render on one thread, for instruction counts under
 /// `valgrind --tool=callgrind` (repeatable whatever the machine's load).
 fn tiny() {
-    let scene = load_scene(&shared().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
+    let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
     s.integrator = IntegratorSettings::Path {
         max_depth: 8,
@@ -182,7 +188,7 @@ fn main() {
     rayon::ThreadPoolBuilder::new().num_threads(2).build_global().ok();
     bvh_figures();
 
-    let reference = shared().join("reference");
+    let reference = repo().join("reference");
     let scene = load_scene(&reference.join("cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let direct = IntegratorSettings::Direct { mis: MisHeuristic::Power, light_sampling: LightSampling::SolidAngle };
     let (t, _) = time_render(&scene, &settings(64, direct));

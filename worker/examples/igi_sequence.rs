@@ -34,7 +34,7 @@ fn main() -> anyhow::Result<()> {
     let ref_spp: u32 = args.next().map(|s| s.parse()).transpose().context("REF_SPP must be a number")?.unwrap_or(1024);
     anyhow::ensure!(size > 0 && 256 % size == 0, "SIZE must divide 256 (the Mitsuba reference's size)");
     std::fs::create_dir_all(&out)?;
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/reference");
+    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../reference");
     let cornell = load_scene(&shared.join("cornell_mitsuba.glb"), &LoadOptions::default())?;
     let caustics = load_scene_from_slice(&caustics_glb(), "caustics.glb", None, &LoadOptions::default())?;
 

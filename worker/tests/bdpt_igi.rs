@@ -11,7 +11,7 @@
 
 mod common;
 
-use common::{file_scene, glb_scene, luminance, mean_rgb, shared};
+use common::{file_scene, glb_scene, luminance, mean_rgb, reference};
 use pathfarm_common::film::{Film, ImageLayers};
 use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings};
 use pathfarm_common::scene::Scene;
@@ -172,8 +172,8 @@ fn worst_block_z(w: usize, block: usize, a: &[f64], var_a: &[f64], b: &[f64], va
 /// The Mitsuba Cornell reference box-downsampled to `w x w` (our box-filtered pixel at `w` is the
 /// mean of the reference pixels it covers): per-pixel RGB.
 fn mitsuba_reference(w: usize) -> Vec<[f64; 3]> {
-    let reference = pathfarm_common::film::read_exr(&shared().join("reference/cornell_mitsuba_box_16384spp.exr"))
-        .expect("reference exr");
+    let reference =
+        pathfarm_common::film::read_exr(&reference().join("cornell_mitsuba_box_16384spp.exr")).expect("reference exr");
     assert_eq!((reference.width, reference.height), (256, 256));
     let ch: Vec<&[f32]> = ["R", "G", "B"].iter().map(|c| reference.get(c).expect("channel")).collect();
     let f = 256 / w;
@@ -261,7 +261,7 @@ fn bdpt_strategies_sum_to_the_whole() {
 #[test]
 fn bdpt_cornell_box_matches_mitsuba_reference() {
     let t0 = Instant::now();
-    let scene = file_scene(&shared().join("reference/cornell_mitsuba.glb"));
+    let scene = file_scene(&reference().join("cornell_mitsuba.glb"));
     let w = 128;
     let ours = Estimate::from_seeds(&scene, &settings(w as u32, 16, bdpt(8), 0), &[9, 10, 11, 12]);
     let reference = mitsuba_reference(w);
@@ -403,7 +403,7 @@ fn bdpt_beats_path_at_equal_time_on_caustics() {
 #[test]
 fn igi_with_compensation_matches_path_and_reference() {
     let t0 = Instant::now();
-    let scene = file_scene(&shared().join("reference/cornell_mitsuba.glb"));
+    let scene = file_scene(&reference().join("cornell_mitsuba.glb"));
     let w = 64;
     let reference = mitsuba_reference(w);
     let ref_lum: Vec<f64> = reference.iter().map(|&p| luminance(p)).collect();
@@ -455,7 +455,7 @@ fn igi_with_compensation_matches_path_and_reference() {
 /// large (> 3%) at g_limit 0.25 and small (< 1%) at 64.
 #[test]
 fn igi_clamping_loses_less_energy_as_g_limit_grows() {
-    let scene = file_scene(&shared().join("reference/cornell_mitsuba.glb"));
+    let scene = file_scene(&reference().join("cornell_mitsuba.glb"));
     let mean = |i| luminance(mean_rgb(&render(&scene, &settings(64, 8, i, 5))));
     let full = mean(igi(1.0, true));
     let mut losses = Vec::new();

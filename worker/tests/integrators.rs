@@ -7,7 +7,7 @@ mod common;
 
 use common::*;
 use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, RenderSettings};
-use pathfarm_common::scene::demo::{cornell_demo_glb, furnace_glb, point_furnace_glb};
+use pathfarm_common::scene::demo::{cornell_demo_glb, furnace_glb, glass_furnace_glb, point_furnace_glb};
 
 fn path(max_depth: u32, rr_depth: u32) -> IntegratorSettings {
     IntegratorSettings::Path {
@@ -39,6 +39,46 @@ fn furnace_emission_matches_le_over_one_minus_rho() {
             let rel = (m - expected).abs() / expected;
             assert!(rel < 0.01, "rho {rho} channel {c}: mean {m:.5}, expected {expected:.5} ({:.2}% off)", rel * 100.0);
         }
+    }
+}
+
+/// A lossless glass sphere inside an emitting, black enclosure (radiance 1): every pixel must
+/// read 1 whatever the path does inside the glass (Fresnel reflection, total internal
+/// reflection). 48 x 48 x 64 spp, seed 11, no depth limit; the mean of the pixels that see the
+/// sphere's centre, and of those that see its rim (grazing incidence), within 1% for path,
+/// bdpt and igi (glass reflects and refracts only, so IGI's VPLs play no part).
+#[test]
+fn glass_furnace_keeps_every_internal_reflection() {
+    let scene = glb_scene(&glass_furnace_glb(1.0));
+    let w = 48usize;
+    let integrators = [
+        ("path", path(0, 3)),
+        ("bdpt", IntegratorSettings::Bdpt { max_depth: 0, mis: MisHeuristic::Balance, rr_depth: 3, strategy: None }),
+        ("igi", IntegratorSettings::Igi { vpls: 4, vpl_sets: 1, g_limit: 10.0, bias_compensation: true, max_depth: 0 }),
+    ];
+    for (name, integrator) in integrators {
+        let img = render(&scene, &settings(w as u32, 64, integrator, 11));
+        // The sphere (radius 0.3 at distance 0.9) covers a disc of radius ~0.3 / 0.9 / tan(0.35)
+        // = 0.91 of the half-image; the rim is the ring between 0.75 and 0.88 of it.
+        let (mut centre, mut nc, mut rim, mut nr) = (0.0f64, 0, 0.0f64, 0);
+        for y in 0..w {
+            for x in 0..w {
+                let dx = (x as f64 + 0.5) / w as f64 * 2.0 - 1.0;
+                let dy = (y as f64 + 0.5) / w as f64 * 2.0 - 1.0;
+                let r = (dx * dx + dy * dy).sqrt();
+                let v = f64::from(img.rgb[y * w + x][1]);
+                if r < 0.4 {
+                    centre += v;
+                    nc += 1;
+                } else if (0.75..0.88).contains(&r) {
+                    rim += v;
+                    nr += 1;
+                }
+            }
+        }
+        let (centre, rim) = (centre / f64::from(nc), rim / f64::from(nr));
+        assert!((centre - 1.0).abs() < 0.01, "{name}: centre of the glass sphere reads {centre:.4}, expected 1");
+        assert!((rim - 1.0).abs() < 0.01, "{name}: rim of the glass sphere reads {rim:.4}, expected 1");
     }
 }
 
@@ -142,7 +182,7 @@ fn mis_strategies_agree_and_mis_beats_the_worse_strategy() {
     }
 }
 
-/// The Cornell box against Mitsuba 3 (../shared/reference: 16,384 spp, box filter, path,
+/// The Cornell box against Mitsuba 3 (reference/, made by scripts/make-reference.py: 16,384 spp, box filter, path,
 /// max_depth 8). Ours: 256 x 256 x 64 spp, seed 9. Per-channel image means within 0.5%; the
 /// 16 x 16 block means of luminance agree within the noise: |ours - ref| < 5 sigma for every
 /// block, sigma^2 = our block variance (from the variance layer) + (0.06% of the image mean)^2
@@ -150,11 +190,10 @@ fn mis_strategies_agree_and_mis_beats_the_worse_strategy() {
 /// -> about 0.06%).
 #[test]
 fn cornell_box_matches_mitsuba_reference() {
-    let shared = shared();
-    let scene = file_scene(&shared.join("reference/cornell_mitsuba.glb"));
+    let scene = file_scene(&reference().join("cornell_mitsuba.glb"));
     let img = render(&scene, &settings(256, 64, path(8, 5), 9));
-    let reference = pathfarm_common::film::read_exr(&shared.join("reference/cornell_mitsuba_box_16384spp.exr"))
-        .expect("reference exr");
+    let reference =
+        pathfarm_common::film::read_exr(&reference().join("cornell_mitsuba_box_16384spp.exr")).expect("reference exr");
     assert_eq!((reference.width, reference.height), (256, 256));
     let ref_rgb: Vec<&[f32]> = ["R", "G", "B"].iter().map(|c| reference.get(c).expect("channel")).collect();
     let ours = mean_rgb(&img);

@@ -92,8 +92,9 @@ impl GltfBuilder {
             "translation": position.to_array()}));
     }
 
-    /// The `.glb` bytes.
-    pub fn to_glb(&self) -> Vec<u8> {
+    /// The glTF document; its one buffer is the GLB's binary chunk (`buffer_uri` None) or an
+    /// external file (`Some("scene.bin")`, the bytes of [`GltfBuilder::bin`]).
+    pub fn document(&self, buffer_uri: Option<&str>) -> Value {
         let mut extensions_used = vec!["KHR_materials_emissive_strength", "KHR_materials_specular"];
         let mut root = json!({
             "asset": {"version": "2.0", "generator": "pathfarm"},
@@ -106,6 +107,9 @@ impl GltfBuilder {
             "bufferViews": self.buffer_views,
             "buffers": [{"byteLength": self.bin.len()}],
         });
+        if let Some(uri) = buffer_uri {
+            root["buffers"][0]["uri"] = json!(uri);
+        }
         if !self.cameras.is_empty() {
             root["cameras"] = json!(self.cameras);
         }
@@ -114,6 +118,17 @@ impl GltfBuilder {
             extensions_used.push("KHR_lights_punctual");
         }
         root["extensionsUsed"] = json!(extensions_used);
+        root
+    }
+
+    /// The binary buffer (vertex and index data).
+    pub fn bin(&self) -> &[u8] {
+        &self.bin
+    }
+
+    /// The `.glb` bytes.
+    pub fn to_glb(&self) -> Vec<u8> {
+        let root = self.document(None);
         let mut json = serde_json::to_vec(&root).unwrap_or_default();
         while !json.len().is_multiple_of(4) {
             json.push(b' ');
@@ -228,6 +243,26 @@ pub fn cornell_demo_glb() -> Vec<u8> {
     b.to_glb()
 }
 
+/// Mitsuba 3's built-in Cornell box (`mitsuba.cornell_box()`), every number as in its scene
+/// dictionary: Lambertian walls and boxes (one-sided), the one-sided light quad (radiance
+/// 18.387, 13.9873, 6.75357, also white-reflecting), a pinhole camera at (0, 0, 3.9). The
+/// tests' Mitsuba reference (`reference/cornell_mitsuba_box_16384spp.exr`, rendered by
+/// `scripts/make-reference.py`) shows this scene; `reference/cornell_mitsuba.glb` is this file.
+pub fn cornell_mitsuba_glb() -> Vec<u8> {
+    let white_rgb = Vec3::new(0.885_809, 0.698_859, 0.666_422);
+    let mut b = GltfBuilder::new();
+    let white = b.material(lambert("white", white_rgb));
+    let red = b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6)));
+    let green = b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425)));
+    let light = b.material(emitter("light", white_rgb, Vec3::new(18.387, 13.9873, 6.753_57)));
+    cornell_walls(&mut b, white, red, green, light);
+    // Mitsuba `cube`s: translate . rotate(+Y, degrees) . scale, with the [-1, 1]^3 cube.
+    turned_box(&mut b, "small-box", Vec3::new(0.335, -0.7, 0.38), Vec3::splat(0.6), (-17f32).to_radians(), white);
+    let large = Vec3::new(0.6, 1.22, 0.6);
+    turned_box(&mut b, "large-box", Vec3::new(-0.33, -0.4, -0.28), large, 18.25f32.to_radians(), white);
+    b.to_glb()
+}
+
 /// An icosphere of radius `r` subdivided `level` times; normals point inward (toward the centre)
 /// and triangles wind counter-clockwise seen from inside.
 pub fn inward_sphere(r: f32, level: u32) -> (Vec<Vec3>, Vec<Vec3>, Vec<u32>) {
@@ -307,6 +342,26 @@ pub fn furnace_glb(le: f32, rho: f32) -> Vec<u8> {
     b.to_glb()
 }
 
+/// A lossless glass sphere (ior 1.5, radius 0.3) at the centre of an emitting, non-reflecting
+/// enclosure of radiance `le`: every camera ray, however often it reflects or refracts, ends on
+/// the enclosure, so every pixel reads `le`. The camera (0, 0, 0.9) sees the whole sphere with
+/// its grazing rim.
+pub fn glass_furnace_glb(le: f32) -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let wall = b.material(emitter("furnace", Vec3::ZERO, Vec3::splat(le)));
+    let glass = b.material(json!({"name": "glass",
+        "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.0},
+        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5}}}));
+    let (p, n, i) = inward_sphere(2.0, 3);
+    b.mesh("enclosure", &p, &n, &i, wall);
+    let (p, n, i) = inward_sphere(0.3, 4);
+    let n: Vec<Vec3> = n.iter().map(|&x| -x).collect();
+    let i: Vec<u32> = i.chunks(3).flat_map(|t| [t[0], t[2], t[1]]).collect();
+    b.mesh("glass-sphere", &p, &n, &i, glass);
+    b.camera(Vec3::new(0.0, 0.0, 0.9), Vec3::ZERO, Vec3::Y, 0.7, 1.0);
+    b.to_glb()
+}
+
 /// pbrt's analytic scene: a point light of intensity `intensity` at the centre of a Lambertian
 /// sphere of radius `r` and albedo `rho`. Every wall point has radiance
 /// `rho / pi * intensity / r^2 / (1 - rho)`.
@@ -383,6 +438,45 @@ pub fn mis_glb() -> Vec<u8> {
     );
     b.camera(v(0.0, 1.2, 2.6), v(0.0, 0.0, -0.3), Vec3::Y, 0.7, 1.0);
     b.to_glb()
+}
+
+/// The Cornell box as Blender's "glTF Separate" export would write it: `cornell.gltf` with its
+/// buffer in `cornell.bin` and a `checker.png` base-colour texture (16 x 16) on the back wall;
+/// camera 0 is the usual pinhole, camera 1 an orthographic view of the same box. The files
+/// (name, bytes) go into a scene bundle with [`super::bundle::tar_bundle`].
+pub fn cornell_separate_files() -> Vec<(String, Vec<u8>)> {
+    let mut b = GltfBuilder::new();
+    let white = b.material(lambert("white", Vec3::new(0.8, 0.8, 0.8)));
+    let red = b.material(lambert("red", Vec3::new(0.6, 0.05, 0.05)));
+    let green = b.material(lambert("green", Vec3::new(0.1, 0.4, 0.08)));
+    let light = b.material(emitter("light", Vec3::splat(0.8), Vec3::new(18.0, 14.0, 7.0)));
+    cornell_walls(&mut b, white, red, green, light);
+    let mut doc = b.document(Some("cornell.bin"));
+    doc["materials"][white]["pbrMetallicRoughness"]["baseColorTexture"] = json!({"index": 0});
+    doc["textures"] = json!([{"source": 0, "sampler": 0}]);
+    doc["samplers"] = json!([{"magFilter": 9728, "minFilter": 9728}]);
+    doc["images"] = json!([{"uri": "checker.png", "mimeType": "image/png"}]);
+    if let Some(cameras) = doc["cameras"].as_array_mut() {
+        cameras.push(
+            json!({"type": "orthographic", "orthographic": {"xmag": 1.1, "ymag": 1.1, "znear": 0.01, "zfar": 100.0}}),
+        );
+    }
+    if let Some(nodes) = doc["nodes"].as_array_mut() {
+        nodes.push(json!({"name": "ortho-camera", "camera": 1, "translation": [0.0, 0.0, 3.9]}));
+        let count = nodes.len();
+        doc["scenes"][0]["nodes"] = json!((0..count).collect::<Vec<_>>());
+    }
+    let checker = image::RgbaImage::from_fn(16, 16, |x, y| {
+        if (x / 4 + y / 4) % 2 == 0 { image::Rgba([230, 230, 230, 255]) } else { image::Rgba([60, 60, 200, 255]) }
+    });
+    let mut png = Vec::new();
+    // Encoding an in-memory image into a Vec cannot fail.
+    let _ = checker.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png);
+    vec![
+        ("cornell.gltf".to_string(), serde_json::to_vec_pretty(&doc).unwrap_or_default()),
+        ("cornell.bin".to_string(), b.bin().to_vec()),
+        ("checker.png".to_string(), png),
+    ]
 }
 
 #[cfg(test)]

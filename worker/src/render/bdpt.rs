@@ -29,7 +29,7 @@ use std::f32::consts::PI;
 /// Parameters of the BDPT integrator.
 #[derive(Clone, Copy, Debug)]
 pub struct BdptParams {
-    /// Path segments (1 = emitters seen directly); 0 = no limit but [`UNLIMITED_VERTICES`].
+    /// Path segments (1 = emitters seen directly); 0 = no limit but `UNLIMITED_VERTICES`.
     pub max_depth: u32,
     /// Scatterings per subpath before Russian roulette starts.
     pub rr_depth: u32,

@@ -80,16 +80,17 @@ pub fn sample_ld(
 }
 
 /// Samples the BSDF for the next path segment (one 1D and one 2D sample, in that order) and
-/// returns the sample with its throughput weight `f |cos| / pdf`. Reflection below the geometric
-/// surface is refused, so shading normals cannot leak light. Shared by every integrator that
-/// extends a path by BSDF sampling.
+/// returns the sample with its throughput weight `f |cos| / pdf`. A reflection that crosses the
+/// geometric surface (wi and wo on different sides of `ng`) is refused, so shading normals cannot
+/// leak light; `ng` need not face `wo` (glass keeps its true orientation, and light inside it
+/// reflects below `ng`). Shared by every integrator that extends a path by BSDF sampling.
 #[inline]
 pub fn sample_scatter(bsdf: &Bsdf, ng: Vec3A, wo: Vec3A, sampler: &mut impl Sampler) -> Option<(BsdfSample, Vec3A)> {
     let uc = sampler.get_1d();
     let u = sampler.get_2d();
     let bs = bsdf.sample_f(wo, uc, u)?;
     // Reflection must stay on the viewer's side of the geometric surface.
-    if !bs.is_transmission() && bs.wi.dot(ng) <= 0.0 {
+    if !bs.is_transmission() && bs.wi.dot(ng) * wo.dot(ng) <= 0.0 {
         return None;
     }
     let weight = bs.f * (bs.wi.dot(bsdf.frame.z).abs() / bs.pdf);

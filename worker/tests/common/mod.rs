@@ -7,10 +7,10 @@ use pathfarm_common::scene::{LoadOptions, Scene, load_scene, load_scene_from_sli
 use pathfarm_worker::render::{Renderer, render_local};
 use std::path::{Path, PathBuf};
 
-pub fn shared() -> PathBuf {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared");
-    assert!(p.is_dir(), "../shared (beside the repository) is missing: {}", p.display());
-    p
+/// The repository's `reference/` folder: Mitsuba 3's Cornell box as our exporter writes it and
+/// the Mitsuba render of it made by `scripts/make-reference.py`.
+pub fn reference() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../reference")
 }
 
 pub fn glb_scene(bytes: &[u8]) -> Scene {

@@ -1,0 +1,24 @@
+//! Sets `cfg(browser_tools)` when the dashboard's browser test can run here: Chromium
+//! (`$PATHFARM_CHROMIUM` or /usr/bin/chromium), `node` on PATH and playwright-core in
+//! tests/browser/node_modules (`npm ci` there). Without them the test is `#[ignore]`d with that
+//! reason instead of passing without running; `scripts/test` installs them first.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn main() {
+    println!("cargo:rustc-check-cfg=cfg(browser_tools)");
+    println!("cargo:rerun-if-env-changed=PATHFARM_CHROMIUM");
+    println!("cargo:rerun-if-env-changed=PATH");
+    let chromium =
+        std::env::var_os("PATHFARM_CHROMIUM").map_or_else(|| PathBuf::from("/usr/bin/chromium"), PathBuf::from);
+    let playwright = Path::new("browser/node_modules/playwright-core/package.json");
+    // A missing path here makes cargo run this script again on every build, so installing the
+    // tools later is noticed.
+    println!("cargo:rerun-if-changed={}", chromium.display());
+    println!("cargo:rerun-if-changed={}", playwright.display());
+    let node = Command::new("node").arg("--version").output().is_ok_and(|o| o.status.success());
+    if chromium.exists() && playwright.exists() && node {
+        println!("cargo:rustc-cfg=browser_tools");
+    }
+}
