@@ -36,7 +36,7 @@ fn config() -> Config {
 
 /// The server's limits, smaller: mutated counts must not turn into huge allocations here.
 fn opts() -> LoadOptions {
-    LoadOptions { max_triangles: Some(1 << 20), max_texture_pixels: Some(1 << 22) }
+    LoadOptions { max_triangles: Some(1 << 20), max_texture_pixels: Some(1 << 22), max_texture_bytes: Some(256 << 20) }
 }
 
 /// The third-party corpus (`PATHFARM_CORPUS`), when the run names one: more seeds.

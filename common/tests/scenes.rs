@@ -693,3 +693,80 @@ proptest! {
         let _ = load_scene_from_slice(text.as_bytes(), "r.gltf", None, &LoadOptions::default());
     }
 }
+
+// ---- Hostile geometry and images ----
+
+/// A vertex at 1e25 (here through a node translation, as an attack would) made every worker
+/// panic in the BVH build; the loader refuses it, naming the mesh and the bound.
+#[test]
+fn huge_or_non_finite_coordinates_are_refused() {
+    for node in [
+        r#""nodes": [{"mesh": 0, "translation": [1e25, 0, 0]}], "scenes": [{"nodes": [0]}],"#,
+        r#""nodes": [{"mesh": 0, "scale": [1e30, 1e30, 1e30]}], "scenes": [{"nodes": [0]}],"#,
+    ] {
+        let json = triangle_gltf(&triangle_data_uri(), node, "");
+        let e = load_str(&json, None, &LoadOptions::default()).expect_err("refused");
+        let msg = e.to_string();
+        assert!(matches!(e, SceneError::Invalid { .. }), "{e:?}");
+        assert!(msg.contains("mesh 0") && msg.contains("finite and within") && msg.contains("1e7"), "{msg}");
+    }
+    // A NaN coordinate in the buffer itself.
+    let mut data = f32_bytes(&[0.0, 0.0, 0.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    data.extend([0u16, 1, 2].iter().flat_map(|i| i.to_le_bytes()));
+    data.extend([0, 0]);
+    let uri = format!("data:application/octet-stream;base64,{}", b64(&data));
+    let e = load_str(&triangle_gltf(&uri, ONE_NODE, ""), None, &LoadOptions::default()).expect_err("NaN refused");
+    assert!(e.to_string().contains("POSITION has non-finite values"), "{e}");
+    // 1e6 is a large but sane scene (a city in metres).
+    let json = triangle_gltf(
+        &triangle_data_uri(),
+        r#""nodes": [{"mesh": 0, "scale": [1e6, 1e6, 1e6]}], "scenes": [{"nodes": [0]}],"#,
+        "",
+    );
+    assert!(load_str(&json, None, &LoadOptions::default()).is_ok());
+}
+
+/// One 64 x 64 PNG used by five textures that differ only in their samplers (the texture bomb:
+/// each texture/sampler pair used to copy the image).
+fn one_image_five_samplers() -> String {
+    let png = {
+        let mut out = Vec::new();
+        image::RgbaImage::from_fn(64, 64, |x, y| image::Rgba([(x * 4) as u8, (y * 4) as u8, 128, 255]))
+            .write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
+            .expect("png");
+        out
+    };
+    let materials: Vec<String> =
+        (0..5).map(|i| format!(r#"{{"pbrMetallicRoughness": {{"baseColorTexture": {{"index": {i}}}}}}}"#)).collect();
+    let textures: Vec<String> = (0..5).map(|i| format!(r#"{{"source": 0, "sampler": {i}}}"#)).collect();
+    let extra = format!(
+        r#""images": [{{"uri": "data:image/png;base64,{}"}}],
+  "samplers": [{{"wrapS": 10497, "wrapT": 10497}}, {{"wrapS": 33071, "wrapT": 33071}}, {{"wrapS": 33648, "wrapT": 33648}},
+               {{"wrapS": 10497, "wrapT": 33071}}, {{"wrapS": 33071, "wrapT": 10497}}],
+  "textures": [{}],
+  "materials": [{}],"#,
+        b64(&png),
+        textures.join(", "),
+        materials.join(", ")
+    );
+    triangle_gltf(&triangle_data_uri(), ONE_NODE, &extra)
+}
+
+#[test]
+fn textures_of_one_image_share_texels_within_the_memory_budget() {
+    let json = one_image_five_samplers();
+    // Decode buffer (64 x 64 x 4) + RGBA copy (x 4) + linear texels once (x 16) = 98,304 bytes.
+    let need = 64 * 64 * (4 + 4 + 16);
+    let s = load_str(&json, None, &LoadOptions { max_texture_bytes: Some(need), ..Default::default() })
+        .expect("five textures of one image fit the budget of one");
+    assert_eq!(s.textures.len(), 5);
+    for t in &s.textures[1..] {
+        assert!(std::sync::Arc::ptr_eq(&t.texels, &s.textures[0].texels), "{} copies the image", t.name);
+    }
+    let wraps: std::collections::HashSet<_> = s.textures.iter().map(|t| (t.wrap_s, t.wrap_t)).collect();
+    assert_eq!(wraps.len(), 5, "each texture keeps its own sampler");
+    let e = load_str(&json, None, &LoadOptions { max_texture_bytes: Some(need - 1), ..Default::default() })
+        .expect_err("one byte short");
+    assert!(matches!(e, SceneError::LimitExceeded { limit: "max_texture_bytes", .. }), "{e:?}");
+    assert!(e.to_string().contains("image memory"), "{e}");
+}

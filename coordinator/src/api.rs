@@ -253,6 +253,8 @@ async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiRes
         return Err(ApiError::unprocessable("invalid_scene", "empty body: send a .glb, a .gltf or a tar bundle"));
     }
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
+    // Decoding may use up to max_texture_bytes: only a few at once.
+    let _permit = state.scene_decodes.acquire().await.map_err(|_| ApiError::internal("scene decoding is shut down"))?;
     let st = state.clone();
     let created = tokio::task::spawn_blocking(move || st.scenes.add(&body, &st.load_options()))
         .await

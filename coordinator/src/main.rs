@@ -60,6 +60,13 @@ struct ServeArgs {
     /// Refuse scenes with a texture of more pixels (width x height) than this.
     #[arg(long, default_value_t = 16384 * 16384)]
     max_texture_pixels: u64,
+    /// Memory budget for one scene's decoded images in MiB (decode buffers plus 16 bytes per
+    /// texel kept), checked before each allocation.
+    #[arg(long, default_value_t = 2048)]
+    max_texture_mb: u64,
+    /// Scene uploads decoded at once (each may use up to --max-texture-mb); more wait.
+    #[arg(long, default_value_t = 2)]
+    max_scene_decodes: usize,
     /// Refuse jobs with more pixels (width x height) than this. A job's film holds 208 bytes
     /// per pixel (13 channels of 128-bit sums): the default 8192 x 8192 is 13 GiB.
     #[arg(long, default_value_t = 8192 * 8192)]
@@ -89,6 +96,8 @@ fn main() -> anyhow::Result<()> {
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
     cfg.max_triangles = a.max_triangles;
     cfg.max_texture_pixels = a.max_texture_pixels;
+    cfg.max_texture_bytes = a.max_texture_mb.saturating_mul(1 << 20);
+    cfg.max_scene_decodes = a.max_scene_decodes.max(1);
     cfg.farm.limits.max_pixels = a.max_pixels;
     cfg.farm.limits.max_spp = a.max_spp;
     cfg.farm.limits.max_depth = a.max_depth;

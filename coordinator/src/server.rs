@@ -32,6 +32,11 @@ pub struct ServerConfig {
     pub max_upload_bytes: usize,
     pub max_triangles: usize,
     pub max_texture_pixels: u64,
+    /// Memory budget for one scene's decoded images (bytes); see `LoadOptions::max_texture_bytes`.
+    pub max_texture_bytes: u64,
+    /// Scene uploads parsed and decoded at once; more wait (each may use up to
+    /// `max_texture_bytes`).
+    pub max_scene_decodes: usize,
     /// Minimum time between two progressive writes of a job's images.
     pub output_interval: Duration,
     /// How often changed jobs are checkpointed.
@@ -48,6 +53,8 @@ impl ServerConfig {
             max_upload_bytes: 512 << 20,
             max_triangles: 20_000_000,
             max_texture_pixels: 16384 * 16384,
+            max_texture_bytes: 2 << 30,
+            max_scene_decodes: 2,
             output_interval: Duration::from_secs(2),
             checkpoint_interval: Duration::from_secs(1),
             auth: Auth::default(),
@@ -212,6 +219,8 @@ pub struct AppState {
     pub started: Instant,
     /// SQLite and checkpoints.
     pub store: Mutex<Store>,
+    /// Permits for scene decodes (`ServerConfig::max_scene_decodes`).
+    pub scene_decodes: tokio::sync::Semaphore,
 }
 
 impl AppState {
@@ -243,6 +252,7 @@ impl AppState {
             events,
             metrics: Metrics::default(),
             started: Instant::now(),
+            scene_decodes: tokio::sync::Semaphore::new(config.max_scene_decodes.max(1)),
             config,
         })
     }
@@ -251,6 +261,7 @@ impl AppState {
         LoadOptions {
             max_triangles: Some(self.config.max_triangles),
             max_texture_pixels: Some(self.config.max_texture_pixels),
+            max_texture_bytes: Some(self.config.max_texture_bytes),
         }
     }
 

@@ -4,11 +4,12 @@
 //! Needs the release binaries: `cargo build --release -p pathfarm-coordinator -p pathfarm-worker`
 //! then `cargo test --release -p pathfarm-tests --test bad_input`.
 
+use glam::Vec3;
 use pathfarm_common::film::TileAccum;
 use pathfarm_common::protocol::{LeaseGrant, Registered, UnitResultFrame};
 use pathfarm_common::scene::LoadOptions;
 use pathfarm_common::scene::bundle::tar_bundle;
-use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_common::scene::demo::{GltfBuilder, cornell_demo_glb, lambert};
 use pathfarm_common::scene::load_scene_from_slice;
 use pathfarm_tests::procs::{Coordinator, assert_exr_identical, error_code, expect_error, render_local};
 use pathfarm_worker::render::Renderer;
@@ -109,6 +110,42 @@ fn triangle_limit_is_422_naming_the_limit() {
     let r = c.upload(cornell_demo_glb());
     expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["max_triangles", "10"]);
     c.assert_serving();
+}
+
+/// A vertex at 1e25 used to pass the upload and then crash every worker in the BVH build.
+#[test]
+fn huge_coordinates_are_422_naming_the_mesh() {
+    let mut c = start(&[]);
+    let mut b = GltfBuilder::new();
+    let m = b.material(lambert("white", Vec3::ONE));
+    let p = [Vec3::ZERO, Vec3::new(1e25, 0.0, 0.0), Vec3::Y];
+    b.mesh("far-away", &p, &[Vec3::Z; 3], &[0, 1, 2], m);
+    let r = c.upload(b.to_glb());
+    expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["mesh 0", "far-away", "finite and within", "1e7"]);
+    c.assert_serving();
+}
+
+/// Image memory per scene is budgeted before decoding (--max-texture-mb): a 256 x 256 image
+/// needs 1.5 MiB (decode buffer, RGBA copy, linear texels), over a 1 MiB budget.
+#[test]
+fn image_memory_budget_is_422_naming_the_limit() {
+    let mut files = pathfarm_common::scene::demo::cornell_separate_files();
+    let mut png = Vec::new();
+    image::RgbaImage::from_pixel(256, 256, image::Rgba([200, 200, 200, 255]))
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .expect("png");
+    for (name, bytes) in &mut files {
+        if name == "checker.png" {
+            *bytes = png.clone();
+        }
+    }
+    let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
+    let bundle = tar_bundle(&refs).expect("tar");
+    let mut c = start(&["--max-texture-mb", "1"]);
+    let r = c.upload(bundle.clone());
+    expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["max_texture_bytes", "1048576", "image memory"]);
+    c.assert_serving();
+    start(&["--max-texture-mb", "2"]).upload_ok(bundle);
 }
 
 #[test]

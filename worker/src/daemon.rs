@@ -223,11 +223,16 @@ impl Daemon {
     fn work(&mut self, worker: WorkerId, grant: LeaseGrant, shutdown: &AtomicBool) {
         let lease = grant.lease_id;
         tracing::debug!(lease, job = grant.job_id, pass = grant.unit.pass, tile = grant.unit.tile, "rendering unit");
-        let renderer = match self.renderer_for(&grant) {
+        // A panic while loading the scene or building the renderer fails this unit, never
+        // the worker (a worker that exits leaves the unit to crash the next one).
+        let prepared = guarded("preparing the unit", || self.renderer_for(&grant));
+        let renderer = match prepared {
             Ok(r) => r,
-            Err(e) => {
-                tracing::error!(lease, job = grant.job_id, "cannot render: {e:#}");
-                self.release(lease, true, &format!("{e:#}"));
+            Err(reason) => {
+                tracing::error!(lease, job = grant.job_id, "cannot render: {reason}");
+                self.renderer = None;
+                self.scene = None;
+                self.release(lease, true, &reason);
                 return;
             }
         };
@@ -284,14 +289,7 @@ impl Daemon {
         if lost.load(Ordering::Relaxed) {
             self.worker_id = None;
         }
-        result.map_err(|p| {
-            let msg = p
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| p.downcast_ref::<&str>().map(|s| (*s).to_string()))
-                .unwrap_or_else(|| "unknown panic".into());
-            format!("the renderer panicked: {msg}")
-        })
+        result.map_err(|p| format!("the renderer panicked: {}", panic_message(p.as_ref())))
     }
 
     fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {
@@ -395,6 +393,53 @@ impl Daemon {
     }
 }
 
+/// The text of a panic payload.
+fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
+    p.downcast_ref::<String>()
+        .cloned()
+        .or_else(|| p.downcast_ref::<&str>().map(|s| (*s).to_string()))
+        .unwrap_or_else(|| "unknown panic".into())
+}
+
+/// Runs `f`, turning an error or a panic into the reason given to the coordinator.
+fn guarded<T>(what: &str, f: impl FnOnce() -> anyhow::Result<T>) -> Result<T, String> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(format!("{e:#}")),
+        Err(p) => Err(format!("{what} panicked: {}", panic_message(p.as_ref()))),
+    }
+}
+
 fn text(resp: Response) -> String {
     resp.text().unwrap_or_default().chars().take(500).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::Renderer;
+    use pathfarm_common::job::RenderSettings;
+    use pathfarm_common::scene::demo::cornell_demo_glb;
+    use pathfarm_common::scene::load_scene_from_slice;
+
+    #[test]
+    fn a_panic_while_preparing_becomes_the_units_failure_reason() {
+        let r: Result<(), String> = guarded("preparing the unit", || panic!("BVH build: bad bounds"));
+        assert_eq!(r, Err("preparing the unit panicked: BVH build: bad bounds".to_string()));
+        let r: Result<(), String> = guarded("preparing the unit", || anyhow::bail!("scene missing"));
+        assert_eq!(r, Err("scene missing".to_string()));
+        assert_eq!(guarded("x", || Ok(7)), Ok(7));
+    }
+
+    /// A scene that slipped past the loader (built in memory) with a vertex at 1e25: the
+    /// renderer refuses it with a reason instead of panicking in the BVH build.
+    #[test]
+    fn the_renderer_refuses_huge_coordinates() {
+        let mut scene =
+            load_scene_from_slice(&cornell_demo_glb(), "cornell.glb", None, &LoadOptions::default()).expect("demo");
+        scene.meshes[0].positions[0].x = 1e25;
+        let r = guarded("preparing the unit", || Ok(Renderer::new(&scene, &RenderSettings::new(8, 8, 1))?));
+        let reason = r.err().expect("refused");
+        assert!(reason.contains("finite and within"), "{reason}");
+    }
 }

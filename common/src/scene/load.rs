@@ -34,6 +34,7 @@ use gltf::json::validation::Checked;
 use std::collections::HashMap;
 use std::fmt::Display;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Loader options. The defaults have no limits; a server should set them.
 #[derive(Clone, Debug, Default)]
@@ -42,7 +43,16 @@ pub struct LoadOptions {
     pub max_triangles: Option<usize>,
     /// Refuse any image with more pixels (width x height) than this; checked before decoding.
     pub max_texture_pixels: Option<u64>,
+    /// Memory budget for one scene's images, in bytes: decode buffers plus the linear texels
+    /// kept for rendering (16 bytes a texel, shared by every texture of an image in one colour
+    /// space). Checked before each allocation, so a small file naming one huge image many
+    /// times is refused before it costs memory.
+    pub max_texture_bytes: Option<u64>,
 }
+
+/// Largest accepted magnitude of a world-space vertex coordinate. Beyond it single-precision
+/// geometry loses all detail and bounding-box areas overflow (1e25 crashed the BVH build).
+pub const MAX_COORDINATE: f32 = 1e7;
 
 /// Extensions we implement, so a file may require them.
 const SUPPORTED_EXTENSIONS: &[&str] = &[
@@ -128,6 +138,8 @@ pub fn load_scene_from_slice(
         buffers: Vec::new(),
         images: HashMap::new(),
         textures: HashMap::new(),
+        texels: HashMap::new(),
+        texture_bytes: 0,
         scene: Scene::default(),
         triangles: 0,
         default_material: None,
@@ -263,6 +275,10 @@ struct Loader<'a> {
     images: HashMap<usize, Decoded>,
     /// (image, sRGB, wrap_s, wrap_t) -> index into `scene.textures`.
     textures: HashMap<(usize, bool, WrapMode, WrapMode), usize>,
+    /// (image, sRGB) -> linear texels, shared by textures that differ only in wrap modes.
+    texels: HashMap<(usize, bool), Arc<Vec<Vec4>>>,
+    /// Bytes of image memory charged against `max_texture_bytes` so far.
+    texture_bytes: u64,
     scene: Scene,
     triangles: usize,
     default_material: Option<usize>,
@@ -517,7 +533,8 @@ impl Loader<'_> {
                 .with_guessed_format()
                 .map_err(|e| self.invalid(&element, e))
         };
-        let (w, h) = reader()?.into_dimensions().map_err(|e| self.invalid(&element, e))?;
+        let decoder = reader()?.into_decoder().map_err(|e| self.invalid(&element, e))?;
+        let (w, h) = image::ImageDecoder::dimensions(&decoder);
         let pixels = u64::from(w) * u64::from(h);
         if let Some(max) = self.opts.max_texture_pixels.filter(|&m| pixels > m) {
             return Err(SceneError::LimitExceeded {
@@ -528,11 +545,15 @@ impl Loader<'_> {
                 max,
             });
         }
-        let decoded = reader()?.decode().map_err(|e| self.invalid(&element, e))?;
+        let color = image::ImageDecoder::color_type(&decoder);
         let eight_bit = matches!(
-            decoded.color(),
+            color,
             image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8
         );
+        // The decoder's buffer and the RGBA copy we keep, both before either is allocated.
+        let kept = pixels.saturating_mul(if eight_bit { 4 } else { 16 });
+        self.charge_texture_bytes(image::ImageDecoder::total_bytes(&decoder).saturating_add(kept), &element)?;
+        let decoded = image::DynamicImage::from_decoder(decoder).map_err(|e| self.invalid(&element, e))?;
         let d = Decoded {
             width: w,
             height: h,
@@ -563,7 +584,18 @@ impl Loader<'_> {
         if let Some(&i) = self.textures.get(&key) {
             return Ok(Some(i));
         }
+        if let Some(texels) = self.texels.get(&(image, srgb)) {
+            let (width, height) = self.images.get(&image).map_or((0, 0), |d| (d.width, d.height));
+            let name = self.texture_name(image, srgb);
+            let texels = texels.clone();
+            self.scene.textures.push(Texture { name, width, height, texels, wrap_s, wrap_t });
+            let i = self.scene.textures.len() - 1;
+            self.textures.insert(key, i);
+            return Ok(Some(i));
+        }
         self.decode_image(image)?;
+        let pixels = self.images.get(&image).map_or(0, |d| u64::from(d.width) * u64::from(d.height));
+        self.charge_texture_bytes(pixels.saturating_mul(16), &format!("texture {index}"))?;
         let Some(d) = self.images.get(&image) else { return Ok(None) };
         let texels: Vec<Vec4> = if let Some(px) = &d.rgba8 {
             let lut: Vec<f32> = (0..256u16)
@@ -589,15 +621,38 @@ impl Loader<'_> {
                 })
                 .collect()
         };
+        let (width, height) = (d.width, d.height);
+        let texels = Arc::new(texels);
+        self.texels.insert((image, srgb), texels.clone());
+        let name = self.texture_name(image, srgb);
+        self.scene.textures.push(Texture { name, width, height, texels, wrap_s, wrap_t });
+        let i = self.scene.textures.len() - 1;
+        self.textures.insert(key, i);
+        Ok(Some(i))
+    }
+
+    fn texture_name(&self, image: usize, srgb: bool) -> String {
         let img = self.root.images.get(image);
         let base = img
             .and_then(|i| i.name.clone().or(i.uri.clone().filter(|u| !u.starts_with("data:"))))
             .unwrap_or_else(|| format!("image {image}"));
-        let name = format!("{base} ({})", if srgb { "sRGB" } else { "linear" });
-        self.scene.textures.push(Texture { name, width: d.width, height: d.height, texels, wrap_s, wrap_t });
-        let i = self.scene.textures.len() - 1;
-        self.textures.insert(key, i);
-        Ok(Some(i))
+        format!("{base} ({})", if srgb { "sRGB" } else { "linear" })
+    }
+
+    /// Charges `bytes` of image memory against `max_texture_bytes` before they are allocated.
+    fn charge_texture_bytes(&mut self, bytes: u64, element: &str) -> Result<(), SceneError> {
+        let total = self.texture_bytes.saturating_add(bytes);
+        if let Some(max) = self.opts.max_texture_bytes.filter(|&m| total > m) {
+            return Err(SceneError::LimitExceeded {
+                file: self.file.clone(),
+                element: format!("{element}: image memory"),
+                limit: "max_texture_bytes",
+                actual: total,
+                max,
+            });
+        }
+        self.texture_bytes = total;
+        Ok(())
     }
 
     fn texture_ref(
@@ -994,6 +1049,17 @@ impl Loader<'_> {
         let linear = Mat3::from_mat4(world);
         let flip = linear.determinant() < 0.0;
         let positions: Vec<Vec3> = pos.chunks_exact(3).map(|p| world.transform_point3(Vec3::from_slice(p))).collect();
+        let sane = |p: &Vec3| p.is_finite() && p.abs().max_element() <= MAX_COORDINATE;
+        if let Some(&v) = tris.iter().flatten().find(|&&v| !positions.get(v as usize).is_some_and(sane)) {
+            let p = positions.get(v as usize).copied().unwrap_or(Vec3::NAN);
+            return Err(self.invalid(
+                format!("{element} ({node})"),
+                format!(
+                    "vertex {v} is at {p} in world space: coordinates must be finite and within \
+                     +-{MAX_COORDINATE:e} (scale the scene down)"
+                ),
+            ));
+        }
         let normals = normals.map(|v| {
             v.chunks_exact(3).map(|p| (normal_matrix * Vec3::from_slice(p)).normalize_or(Vec3::Z)).collect::<Vec<_>>()
         });

@@ -12,7 +12,7 @@ mod load;
 mod texture;
 
 pub use error::SceneError;
-pub use load::{LoadOptions, load_scene, load_scene_from_slice};
+pub use load::{LoadOptions, MAX_COORDINATE, load_scene, load_scene_from_slice};
 pub use texture::{Texture, TextureTransform, WrapMode};
 
 use glam::{Mat4, Vec2, Vec3, Vec4};

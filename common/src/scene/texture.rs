@@ -41,8 +41,9 @@ pub struct Texture {
     pub name: String,
     pub width: u32,
     pub height: u32,
-    /// Row-major, top row first (glTF UV (0, 0) is the image's top-left corner).
-    pub texels: Vec<Vec4>,
+    /// Row-major, top row first (glTF UV (0, 0) is the image's top-left corner). Shared by the
+    /// textures of one image in one colour space (they differ only in wrap modes).
+    pub texels: std::sync::Arc<Vec<Vec4>>,
     pub wrap_s: WrapMode,
     pub wrap_t: WrapMode,
 }
@@ -101,7 +102,7 @@ mod tests {
             name: "t".into(),
             width: 2,
             height: 1,
-            texels: vec![Vec4::ZERO, Vec4::ONE],
+            texels: std::sync::Arc::new(vec![Vec4::ZERO, Vec4::ONE]),
             wrap_s: WrapMode::ClampToEdge,
             wrap_t: WrapMode::ClampToEdge,
         };

@@ -74,6 +74,16 @@ impl Renderer {
         settings
             .validate(&pathfarm_common::job::Limits::default())
             .map_err(|e| RenderError::Settings(e.to_string()))?;
+        // The loader refuses such scenes; a Scene built another way must not reach the BVH.
+        let limit = pathfarm_common::scene::MAX_COORDINATE;
+        for m in &scene.meshes {
+            if let Some(p) = m.positions.iter().find(|p| !(p.is_finite() && p.abs().max_element() <= limit)) {
+                return Err(RenderError::Scene(format!(
+                    "mesh {:?}: vertex at {p}: coordinates must be finite and within +-{limit:e}",
+                    m.name
+                )));
+            }
+        }
         let camera = match settings.camera {
             Some(i) => {
                 let cam = scene.cameras.get(i).ok_or_else(|| {
