@@ -350,6 +350,9 @@ pub fn encode_srgb8(v: f32) -> u8 {
 
 /// Writes `bytes` to `path` through a temporary file in the same directory and a rename, so
 /// readers never see a half-written file.
+/// Writes `bytes` to `path` atomically and durably: a unique temporary file in the same
+/// directory, fsynced, renamed over `path`, then the directory fsynced. On failure the temporary
+/// file is removed and `path` keeps its old contents.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     let io = |source| ImageError::Io { path: path.display().to_string(), source };
     let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
@@ -359,8 +362,21 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     static SEQ: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let seq = SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}.{}.{seq}.tmp", std::process::id()));
-    std::fs::write(&tmp, bytes).map_err(io)?;
-    std::fs::rename(&tmp, path).map_err(io)
+    let written = (|| {
+        use std::io::Write;
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        // Durable before it replaces the old file: a crash leaves the old or the new bytes.
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)?;
+        // The rename itself is durable once the directory is synced.
+        std::fs::File::open(dir).and_then(|d| d.sync_all())
+    })();
+    if written.is_err() {
+        // A failed write (e.g. a full disk) leaves no temporary file behind.
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written.map_err(io)
 }
 
 /// Named float channels of an EXR file (first layer), for tests and tools.
@@ -397,6 +413,26 @@ pub fn read_exr(path: &Path) -> Result<ExrChannels, ImageError> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_failed_atomic_write_leaves_no_temporary_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let target = dir.path().join("image.exr");
+        write_atomic(&target, b"one").expect("first write");
+        assert_eq!(std::fs::read(&target).expect("read"), b"one");
+        // A directory in the way: the rename fails, the temporary file is removed.
+        let blocked = dir.path().join("blocked");
+        std::fs::create_dir_all(blocked.join("inside")).expect("dir");
+        assert!(write_atomic(&blocked, b"two").is_err());
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .expect("list")
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(left.iter().all(|n| !n.ends_with(".tmp")), "temporary files left: {left:?}");
+        assert_eq!(std::fs::read(&target).expect("read"), b"one");
+    }
+
     use super::*;
 
     #[test]

@@ -7,8 +7,8 @@ use crate::store::{Store, read_checkpoint, write_checkpoint};
 use axum::http::StatusCode;
 use pathfarm_common::film::{ImageLayers, write_atomic};
 use pathfarm_common::protocol::{JobId, JobState, SceneCreated};
-use pathfarm_common::scene::LoadOptions;
-use pathfarm_common::scene::bundle::{is_scene_id, load_bundle, scene_id};
+use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
+use pathfarm_common::scene::{LoadOptions, load_scene};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -79,6 +79,25 @@ impl FarmLock {
     }
 }
 
+/// A failed write on the coordinator's own disk: 507 when the disk is full (the client may retry
+/// later), 500 otherwise; the message names what was not stored, never a server path.
+pub fn storage_error(e: &std::io::Error, what: &str) -> ApiError {
+    tracing::error!(error = %e, "storing {what} failed");
+    if e.kind() == std::io::ErrorKind::StorageFull || e.raw_os_error() == Some(28) {
+        ApiError::new(
+            StatusCode::INSUFFICIENT_STORAGE,
+            "insufficient_storage",
+            format!("the coordinator's disk is full: {what} was not stored; retry later"),
+        )
+    } else {
+        ApiError::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "storage_error",
+            format!("the coordinator could not store {what} ({})", e.kind()),
+        )
+    }
+}
+
 /// What the scene store remembers about a bundle.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneMeta {
@@ -124,8 +143,19 @@ impl SceneStore {
         if let Some(m) = self.meta(&id) {
             return Ok(SceneCreated { scene_id: id, triangles: m.triangles, warnings: m.warnings });
         }
-        let scratch = self.dir.join(format!("unpack-{id}-{}", std::process::id()));
-        let loaded = load_bundle(bytes, &scratch, opts);
+        // A scratch folder per upload: concurrent uploads of the same bytes must not share one.
+        static SCRATCH_SEQ: AtomicU64 = AtomicU64::new(0);
+        let seq = SCRATCH_SEQ.fetch_add(1, Ordering::Relaxed);
+        let scratch = self.dir.join(format!(".unpack-{id}-{}-{seq}", std::process::id()));
+        let loaded = match unpack_bundle(bytes, &scratch) {
+            Ok(main) => load_scene(&main, opts),
+            // Unpacking writes on our disk: its I/O errors are ours, not the client's.
+            Err(pathfarm_common::scene::SceneError::Io { source, .. }) => {
+                let _ = std::fs::remove_dir_all(&scratch);
+                return Err(storage_error(&source, "the scene"));
+            }
+            Err(e) => Err(e),
+        };
         let _ = std::fs::remove_dir_all(&scratch);
         let scene = loaded.map_err(|e| {
             use pathfarm_common::scene::SceneError;
@@ -139,7 +169,10 @@ impl SceneStore {
         })?;
         let meta =
             SceneMeta { triangles: scene.triangle_count(), cameras: scene.cameras.len(), warnings: scene.warnings };
-        let io = |e: pathfarm_common::film::ImageError| ApiError::internal(format!("storing the scene: {e}"));
+        let io = |e: pathfarm_common::film::ImageError| match e {
+            pathfarm_common::film::ImageError::Io { source, .. } => storage_error(&source, "the scene"),
+            _ => ApiError::internal("storing the scene failed"),
+        };
         write_atomic(&self.bundle_path(&id), bytes).map_err(io)?;
         let meta_json = serde_json::to_vec(&meta).map_err(|e| ApiError::internal(e.to_string()))?;
         write_atomic(&self.dir.join(format!("{id}.json")), &meta_json).map_err(io)?;

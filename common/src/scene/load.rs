@@ -95,7 +95,7 @@ pub fn load_scene(path: &Path, opts: &LoadOptions) -> Result<Scene, SceneError> 
     let name = path.file_name().map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned());
     let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
         file: name.clone(),
-        element: format!("reading {}", path.display()),
+        element: format!("reading {name}"),
         source,
     })?;
     let base = path.parent().map(|p| if p.as_os_str().is_empty() { Path::new(".") } else { p });
