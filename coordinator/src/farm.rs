@@ -456,6 +456,11 @@ impl Farm {
         Ok(())
     }
 
+    /// Ids up to `id` are taken (by jobs that existed before, deleted or not).
+    pub fn reserve_job_ids_through(&mut self, id: JobId) {
+        self.next_job = self.next_job.max(id.saturating_add(1));
+    }
+
     // ----------------------------------------------------------------- jobs
 
     /// Adds a job; settings are validated against the configured limits.

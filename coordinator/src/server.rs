@@ -265,6 +265,8 @@ impl AppState {
         let store = Store::open(&config.data_dir)?;
         let epoch = store.next_epoch()?;
         let mut farm = Farm::with_epoch(config.farm.clone(), epoch);
+        // Ids of deleted jobs are never given again (a client may still hold one).
+        farm.reserve_job_ids_through(store.max_job_id()?);
         let now = now_ms();
         for rec in store.jobs()? {
             let id = rec.id;
@@ -305,9 +307,12 @@ impl AppState {
     /// Writes a job's row (state, priority, times) now; used by API actions that must be
     /// durable before they are acknowledged.
     pub fn persist_job(&self, id: JobId) {
+        // Store lock first, then the farm's: a job deleted meanwhile is not written back (a
+        // delete takes the farm's lock, then the store's, to remove the row).
+        let store = self.store();
         let rec = self.farm.lock().job(id).ok().map(|j| j.record(now_ms()));
         if let Some(rec) = rec
-            && let Err(e) = self.store().put_job(&rec)
+            && let Err(e) = store.put_job(&rec)
         {
             tracing::error!(job = id, "persisting the job failed: {e:#}");
         }
@@ -490,7 +495,16 @@ async fn checkpoint_loop(state: Arc<AppState>) {
             let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
                 let path = st.store().checkpoint_path(id);
                 write_checkpoint(&path, &cp)?;
-                st.store().put_job(&rec)?;
+                // Only a job that still exists gets its row written back: a DELETE that ran
+                // during the snapshot or the write must not be undone (it came back after a
+                // restart). Lock order: store, then farm (as in persist_job).
+                let store = st.store();
+                if st.farm.lock().job(id).is_ok() {
+                    store.put_job(&rec)?;
+                } else {
+                    drop(store);
+                    let _ = std::fs::remove_dir_all(st.job_dir(id));
+                }
                 Ok(())
             })
             .await;

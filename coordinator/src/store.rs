@@ -102,7 +102,21 @@ impl Store {
         Ok(())
     }
 
+    /// The highest job id ever written (deleted jobs included), 0 if none.
+    pub fn max_job_id(&self) -> anyhow::Result<JobId> {
+        let v: Option<i64> =
+            self.conn.query_row("SELECT value FROM meta WHERE key = 'max_job_id'", [], |r| r.get(0)).optional()?;
+        let rows: Option<i64> = self.conn.query_row("SELECT MAX(id) FROM jobs", [], |r| r.get(0))?;
+        Ok(v.unwrap_or(0).max(rows.unwrap_or(0)).max(0) as JobId)
+    }
+
     pub fn delete_job(&self, id: JobId) -> anyhow::Result<()> {
+        // Remember the id, so a restart never hands it out again.
+        self.conn.execute(
+            "INSERT INTO meta (key, value) VALUES ('max_job_id', ?1)
+             ON CONFLICT(key) DO UPDATE SET value = MAX(value, excluded.value)",
+            params![id as i64],
+        )?;
         self.conn.execute("DELETE FROM jobs WHERE id = ?1", params![id as i64])?;
         Ok(())
     }
