@@ -182,6 +182,11 @@ pub struct ImageLayers {
 }
 
 impl Film {
+    /// Bytes a film of this size holds: the channel sums and the splat sums, 128 bits each.
+    pub fn bytes_for(width: u32, height: u32) -> u64 {
+        u64::from(width) * u64::from(height) * (ch::COUNT as u64 + 3) * std::mem::size_of::<Fixed>() as u64
+    }
+
     pub fn new(width: u32, height: u32) -> Self {
         Self {
             width,

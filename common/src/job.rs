@@ -181,15 +181,43 @@ pub struct Limits {
     pub max_dimension: u32,
     pub max_spp: u32,
     pub max_depth: u32,
+    /// Most work units (tiles x passes) of one job: the coordinator keeps a state per unit.
+    pub max_units: u64,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        Self { max_pixels: 8192 * 8192, max_dimension: 16384, max_spp: 1 << 20, max_depth: 1024 }
+        Self { max_pixels: 8192 * 8192, max_dimension: 16384, max_spp: 1 << 20, max_depth: 1024, max_units: 1 << 22 }
     }
 }
 
 impl RenderSettings {
+    /// Tiles of the plan, without building it.
+    pub fn tile_count(&self) -> u64 {
+        let ts = u64::from(self.tile_size.max(1));
+        u64::from(self.width).div_ceil(ts) * u64::from(self.height).div_ceil(ts)
+    }
+
+    /// Passes of the plan, without building it (the schedule of [`Plan::new`]).
+    pub fn pass_count(&self) -> u64 {
+        match self.passes {
+            PassSchedule::Fixed { spp } => u64::from(self.spp).div_ceil(u64::from(spp.max(1))),
+            PassSchedule::Doubling { first, max } => {
+                let (mut s0, mut next, mut n) = (0u64, u64::from(first.max(1)), 0u64);
+                while s0 < u64::from(self.spp) {
+                    s0 += next;
+                    n += 1;
+                    next = (next * 2).min(u64::from(max.max(1)));
+                    if next == u64::from(max.max(1)) {
+                        // Constant from here on: the rest is a division.
+                        return n + (u64::from(self.spp).saturating_sub(s0)).div_ceil(next);
+                    }
+                }
+                n
+            }
+        }
+    }
+
     /// A settings value with defaults for everything but the size and the sample count.
     pub fn new(width: u32, height: u32, spp: u32) -> Self {
         Self {
@@ -229,6 +257,8 @@ impl RenderSettings {
             }
             PassSchedule::Fixed { spp } => at_least("passes.spp", spp.into(), 1)?,
         }
+        // Counted, not built: 8192^2 in 8-px tiles with 1-spp passes of 2^20 spp would be 10^12.
+        at_most("units (tiles x passes)", self.tile_count().saturating_mul(self.pass_count()), limits.max_units)?;
         match &self.integrator {
             IntegratorSettings::Path { max_depth, .. }
             | IntegratorSettings::Bdpt { max_depth, .. }
@@ -364,6 +394,32 @@ impl Plan {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn unit_counts_match_the_plan_and_are_bounded() {
+        for (w, h, spp, ts, passes) in [
+            (100, 60, 256, 32, PassSchedule::Doubling { first: 1, max: 64 }),
+            (64, 64, 1000, 8, PassSchedule::Doubling { first: 3, max: 7 }),
+            (64, 64, 10, 64, PassSchedule::Doubling { first: 16, max: 8 }),
+            (33, 17, 999, 16, PassSchedule::Fixed { spp: 10 }),
+            (1, 1, 1, 8, PassSchedule::Fixed { spp: 1 }),
+        ] {
+            let mut s = RenderSettings::new(w, h, spp);
+            s.tile_size = ts;
+            s.passes = passes;
+            let plan = Plan::new(&s);
+            assert_eq!(s.tile_count(), plan.tiles.len() as u64, "{s:?}");
+            assert_eq!(s.pass_count(), plan.passes.len() as u64, "{s:?}");
+        }
+        // 8192^2 in 8-px tiles, 2^20 spp in 1-spp passes: 10^12 units (the coordinator tried to
+        // allocate 16 TiB). Refused before any plan is built.
+        let mut s = RenderSettings::new(8192, 8192, 1 << 20);
+        s.tile_size = 8;
+        s.passes = PassSchedule::Fixed { spp: 1 };
+        let e = s.validate(&Limits::default()).expect_err("too many units");
+        assert!(e.to_string().contains("units (tiles x passes)"), "{e}");
+    }
+
     use super::*;
 
     #[test]

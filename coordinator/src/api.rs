@@ -62,6 +62,7 @@ impl From<FarmError> for ApiError {
             FarmError::ResultMismatch { .. } => (StatusCode::UNPROCESSABLE_ENTITY, "result_mismatch"),
             FarmError::BadState { .. } => (StatusCode::CONFLICT, "bad_state"),
             FarmError::InvalidJob(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid_job"),
+            FarmError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over_budget"),
         };
         ApiError::new(status, code, e.to_string())
     }

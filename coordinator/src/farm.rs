@@ -32,6 +32,9 @@ pub struct FarmConfig {
     /// A worker that failed this many units of a job is blocklisted for it.
     pub blocklist_after: u32,
     pub limits: Limits,
+    /// Memory for the films of all jobs the farm holds (each `Film::bytes_for` its size); a job
+    /// that does not fit is refused. `None`: unbounded.
+    pub film_budget_bytes: Option<u64>,
 }
 
 impl Default for FarmConfig {
@@ -42,6 +45,7 @@ impl Default for FarmConfig {
             max_unit_failures: 3,
             blocklist_after: 2,
             limits: Limits::default(),
+            film_budget_bytes: None,
         }
     }
 }
@@ -61,6 +65,8 @@ pub enum FarmError {
     BadState { id: JobId, state: &'static str, action: &'static str },
     #[error("invalid job: {0}")]
     InvalidJob(String),
+    #[error("{0}")]
+    OverBudget(String),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -473,6 +479,23 @@ impl Farm {
         now_ms: u64,
     ) -> Result<JobId, FarmError> {
         settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
+        if let Some(budget) = self.cfg.film_budget_bytes {
+            let need = Film::bytes_for(settings.width, settings.height);
+            let used: u64 = self.jobs.values().map(|j| Film::bytes_for(j.film.width, j.film.height)).sum();
+            if used.saturating_add(need) > budget {
+                let mib = |b: u64| b.div_ceil(1 << 20);
+                return Err(FarmError::OverBudget(format!(
+                    "the job's film needs {} MiB ({}x{} pixels, 256 bytes each); {} MiB of the coordinator's film \
+                     budget of {} MiB (--film-memory-mb) are held by {} jobs: delete finished jobs or lower the resolution",
+                    mib(need),
+                    settings.width,
+                    settings.height,
+                    mib(used),
+                    mib(budget),
+                    self.jobs.len()
+                )));
+            }
+        }
         let id = self.next_job;
         self.next_job += 1;
         let job = Job::new(id, scene_id, name, priority, settings, now_ms);

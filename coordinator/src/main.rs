@@ -67,8 +67,7 @@ struct ServeArgs {
     /// Scene uploads decoded at once (each may use up to --max-texture-mb); more wait.
     #[arg(long, default_value_t = 2)]
     max_scene_decodes: usize,
-    /// Refuse jobs with more pixels (width x height) than this. A job's film holds 208 bytes
-    /// per pixel (13 channels of 128-bit sums): the default 8192 x 8192 is 13 GiB.
+    /// Refuse jobs with more pixels (width x height) than this (see also --film-memory-mb).
     #[arg(long, default_value_t = 8192 * 8192)]
     max_pixels: u64,
     /// Refuse jobs with more samples per pixel than this.
@@ -77,6 +76,14 @@ struct ServeArgs {
     /// Refuse jobs whose integrator max_depth exceeds this.
     #[arg(long, default_value_t = 1024)]
     max_depth: u32,
+    /// Refuse jobs with more work units (tiles x passes) than this.
+    #[arg(long, default_value_t = 1 << 22)]
+    max_units: u64,
+    /// Memory for the films of all jobs held (queued, running and finished until deleted), in
+    /// MiB; a film takes 256 bytes per pixel (a 1080p job 506 MiB). A job that does not fit is
+    /// refused with 422. Checkpoints copy one film at a time on top.
+    #[arg(long, default_value_t = 16384)]
+    film_memory_mb: u64,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -101,6 +108,8 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.limits.max_pixels = a.max_pixels;
     cfg.farm.limits.max_spp = a.max_spp;
     cfg.farm.limits.max_depth = a.max_depth;
+    cfg.farm.limits.max_units = a.max_units;
+    cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
     cfg.auth = auth(&a)?;
     let worker_token = cfg.auth.worker.clone();
     let rt = tokio::runtime::Runtime::new()?;
