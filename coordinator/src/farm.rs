@@ -50,6 +50,25 @@ impl Default for FarmConfig {
     }
 }
 
+/// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
+/// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
+fn sample_count_mismatch(accum: &TileAccum, spp: u32) -> Option<String> {
+    use pathfarm_common::film::{ch, to_fixed};
+    let weight = to_fixed(1.0).wrapping_mul(i128::from(spp));
+    accum.sums.chunks_exact(ch::COUNT).enumerate().find_map(|(i, p)| {
+        let (w, hits) = (p[ch::WEIGHT], p[ch::HITS]);
+        (w != weight || !(0..=weight).contains(&hits)).then(|| {
+            let x = accum.rect.x0 + i as u32 % accum.rect.width();
+            let y = accum.rect.y0 + i as u32 / accum.rect.width();
+            format!(
+                "pixel ({x}, {y}) holds {:.3} samples and {:.3} hits; the pass has {spp} samples per pixel",
+                pathfarm_common::film::from_fixed(w),
+                pathfarm_common::film::from_fixed(hits)
+            )
+        })
+    })
+}
+
 /// Errors of farm operations; the API maps each to a status code.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FarmError {
@@ -811,7 +830,7 @@ impl Farm {
         } else if frame.splats.as_ref().is_some_and(|s| (s.width, s.height) != (job.film.width, job.film.height)) {
             Some("splat buffer size differs from the image".into())
         } else {
-            None
+            sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp())
         };
         if let Some(reason) = mismatch {
             // The worker holds the lease but sent something else: give the unit to someone else.
@@ -960,6 +979,36 @@ mod tests {
         let job = farm.job(id).expect("job");
         assert_eq!(job.state, JobState::Completed);
         assert_eq!(job.film, reference);
+    }
+
+    /// A result claiming more samples than its pass (1,000 for 1: R = 1000 was merged) or
+    /// fewer is refused and its unit handed out again; the honest result then merges.
+    #[test]
+    fn results_with_the_wrong_sample_count_are_refused() {
+        let s = settings();
+        let mut farm = Farm::new(FarmConfig::default());
+        farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        assert_eq!(g.pass.spp(), 1);
+        let mut inflated = fake_result(&g);
+        let v = SampleValue { radiance: [1.0; 3], ..Default::default() };
+        for _ in 0..999 {
+            pathfarm_common::film::add_sample(inflated.accum.pixel_mut(0, 0), &v);
+        }
+        match farm.accept(g.lease_id, inflated, 0) {
+            Err(FarmError::ResultMismatch { reason, .. }) => {
+                assert!(reason.contains("1000.000 samples") && reason.contains("1 samples per pixel"), "{reason}")
+            }
+            r => panic!("accepted: {r:?}"),
+        }
+        let mut empty = fake_result(&g);
+        empty.accum = TileAccum::new(g.tile);
+        let g = farm.lease(w, 0).expect("lease").expect("requeued");
+        empty.lease_id = g.lease_id;
+        assert!(matches!(farm.accept(g.lease_id, empty, 0), Err(FarmError::ResultMismatch { .. })));
+        let g = farm.lease(w, 0).expect("lease").expect("requeued again");
+        farm.accept(g.lease_id, fake_result(&g), 0).expect("the honest result merges");
     }
 
     #[test]
