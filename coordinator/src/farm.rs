@@ -456,6 +456,12 @@ impl Farm {
         Ok(())
     }
 
+    /// New jobs get ids above `id` (ids of rows the store skipped are never reused: their rows
+    /// are still there).
+    pub fn skip_job_ids_through(&mut self, id: JobId) {
+        self.next_job = self.next_job.max(id.saturating_add(1));
+    }
+
     // ----------------------------------------------------------------- jobs
 
     /// Adds a job; settings are validated against the configured limits.

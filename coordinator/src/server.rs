@@ -232,6 +232,9 @@ impl AppState {
                 farm.restore(rec, None, now).map_err(anyhow::Error::msg)?;
             }
         }
+        if let Some(max) = store.max_job_id()? {
+            farm.skip_job_ids_through(max);
+        }
         tracing::info!(epoch, jobs = farm.jobs().count(), "state restored");
         Ok(Self {
             store: Mutex::new(store),
