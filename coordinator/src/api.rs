@@ -14,8 +14,8 @@ use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
-    API, ErrorBody, ErrorDetail, JobCreated, JobId, JobRequest, LeaseId, RegisterRequest, Registered, ReleaseRequest,
-    ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
+    API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
+    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -319,14 +319,62 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
     get,
     path = "/api/v1/jobs",
     tag = "jobs",
-    summary = "List jobs with their progress",
+    summary = "List jobs with their progress, a page at a time",
+    description = "Jobs in id order, at most `limit` (default 100, at most 1000) with ids above `after`. \
+        When more follow, the `Link` header holds the next page's URL (`rel=\"next\"`); a page shorter \
+        than `limit` is the last.",
+    params(PageQuery),
     security(("client_token" = [])),
-    responses((status = 200, description = "Every job", body = Vec<pathfarm_common::protocol::JobInfo>), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "A page of jobs", body = Vec<pathfarm_common::protocol::JobInfo>, headers(("link" = String, description = "`<URL>; rel=\"next\"` when more jobs follow"))), (status = 422, description = "`limit` out of range", body = ErrorBody), (status = 400, description = "`limit` or `after` is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-async fn list_jobs(State(state): State<Arc<AppState>>) -> impl IntoResponse {
-    let farm = state.farm.lock();
-    let now = now_ms();
-    Json(farm.jobs().map(|j| j.info(now)).collect::<Vec<_>>())
+async fn list_jobs(State(state): State<Arc<AppState>>, Query(q): Query<PageQuery>) -> ApiResult<Response> {
+    let limit = q.limit()?;
+    let mut page: Vec<JobInfo> = {
+        let farm = state.farm.lock();
+        let now = now_ms();
+        farm.jobs_after(q.after).take(limit + 1).map(|j| j.info(now)).collect()
+    };
+    let more = page.len() > limit;
+    page.truncate(limit);
+    let last = page.last().map(|j| j.id);
+    Ok(paged(Json(page), "/jobs", limit, more, last))
+}
+
+/// Query of the list routes: `?limit=N&after=ID`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct PageQuery {
+    /// Items per page: 1 to 1000, default 100.
+    #[param(minimum = 1, maximum = 1000)]
+    pub limit: Option<usize>,
+    /// Only items with an id above this: the last id of the previous page.
+    pub after: Option<u64>,
+}
+
+impl PageQuery {
+    fn limit(&self) -> ApiResult<usize> {
+        let limit = self.limit.unwrap_or(DEFAULT_PAGE_LIMIT);
+        if !(1..=MAX_PAGE_LIMIT).contains(&limit) {
+            return Err(ApiError::unprocessable(
+                "invalid_query",
+                format!("limit must be between 1 and {MAX_PAGE_LIMIT}, got {limit}"),
+            ));
+        }
+        Ok(limit)
+    }
+}
+
+/// A page of a list: ids ascending; when more items follow, a `Link: <...>; rel="next"` header
+/// gives the next page's URL.
+fn paged(body: impl IntoResponse, path: &str, limit: usize, more: bool, last: Option<u64>) -> Response {
+    let mut resp = body.into_response();
+    if more
+        && let Some(last) = last
+        && let Ok(v) = HeaderValue::from_str(&format!("<{API}{path}?limit={limit}&after={last}>; rel=\"next\""))
+    {
+        resp.headers_mut().insert(header::LINK, v);
+    }
+    resp
 }
 
 #[utoipa::path(
@@ -586,12 +634,21 @@ async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
     get,
     path = "/api/v1/workers",
     tag = "workers",
-    summary = "List workers",
+    summary = "List workers, a page at a time",
+    description = "Workers in id order, paged like `GET /jobs`: `limit` (default 100, at most 1000), `after`, \
+        and a `Link` header to the next page.",
+    params(PageQuery),
     security(("client_token" = [])),
-    responses((status = 200, description = "Every registered worker", body = Vec<pathfarm_common::protocol::WorkerInfo>), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "A page of registered workers", body = Vec<pathfarm_common::protocol::WorkerInfo>, headers(("link" = String, description = "`<URL>; rel=\"next\"` when more workers follow"))), (status = 422, description = "`limit` out of range", body = ErrorBody), (status = 400, description = "`limit` or `after` is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-async fn list_workers(State(state): State<Arc<AppState>>) -> impl IntoResponse {
-    Json(state.farm.lock().workers(now_ms()))
+async fn list_workers(State(state): State<Arc<AppState>>, Query(q): Query<PageQuery>) -> ApiResult<Response> {
+    let limit = q.limit()?;
+    let mut page = state.farm.lock().workers(now_ms());
+    page.retain(|w| q.after.is_none_or(|a| w.id > a));
+    let more = page.len() > limit;
+    page.truncate(limit);
+    let last = page.last().map(|w| w.id);
+    Ok(paged(Json(page), "/workers", limit, more, last))
 }
 
 #[utoipa::path(
@@ -812,6 +869,79 @@ mod tests {
     use super::*;
     use crate::server::ServerConfig;
     use pathfarm_common::job::RenderSettings;
+
+    async fn get(app: &Router, uri: &str) -> (StatusCode, Option<String>, serde_json::Value) {
+        use tower::ServiceExt;
+        let req = axum::http::Request::builder().uri(uri).body(axum::body::Body::empty()).expect("request");
+        let resp = app.clone().oneshot(req).await.expect("response");
+        let status = resp.status();
+        let link = resp.headers().get(header::LINK).and_then(|v| v.to_str().ok()).map(str::to_string);
+        let body = axum::body::to_bytes(resp.into_body(), 64 << 20).await.expect("body");
+        (status, link, serde_json::from_slice(&body).expect("JSON"))
+    }
+
+    fn ids(v: &serde_json::Value) -> Vec<u64> {
+        v.as_array().expect("array").iter().map(|j| j["id"].as_u64().expect("id")).collect()
+    }
+
+    #[tokio::test]
+    async fn list_routes_are_paged() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        for _ in 0..7 {
+            state.farm.lock().submit("s".into(), None, 0, RenderSettings::new(8, 8, 1), 0).expect("submit");
+        }
+        for i in 0..3 {
+            state.farm.lock().register(format!("w{i}"), 1, 0);
+        }
+        let app = router(state.clone());
+        let (status, link, v) = get(&app, "/api/v1/jobs?limit=3").await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(ids(&v), vec![1, 2, 3]);
+        assert_eq!(link.as_deref(), Some("</api/v1/jobs?limit=3&after=3>; rel=\"next\""));
+        let (_, link, v) = get(&app, "/api/v1/jobs?limit=3&after=3").await;
+        assert_eq!(ids(&v), vec![4, 5, 6]);
+        assert!(link.is_some());
+        let (_, link, v) = get(&app, "/api/v1/jobs?limit=3&after=6").await;
+        assert_eq!((ids(&v), link), (vec![7], None));
+        // Exactly a full last page: no next link.
+        let (_, link, v) = get(&app, "/api/v1/jobs?limit=7").await;
+        assert_eq!((ids(&v).len(), link), (7, None));
+        // The default page holds all 7.
+        let (_, link, v) = get(&app, "/api/v1/jobs").await;
+        assert_eq!((ids(&v), link), ((1..=7).collect(), None));
+        for bad in ["limit=0", "limit=1001"] {
+            let (status, _, v) = get(&app, &format!("/api/v1/jobs?{bad}")).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{bad}");
+            assert!(v["error"]["message"].as_str().is_some_and(|m| m.contains("1000")), "{v}");
+        }
+        let (status, _, _) = get(&app, "/api/v1/jobs?after=x").await;
+        assert_eq!(status, StatusCode::BAD_REQUEST);
+        let first_worker = state.farm.lock().workers(0)[0].id;
+        let (_, link, v) = get(&app, "/api/v1/workers?limit=2").await;
+        assert_eq!(ids(&v), vec![first_worker, first_worker + 1]);
+        assert!(link.is_some_and(|l| l.contains(&format!("after={}", first_worker + 1))));
+        let (_, link, v) = get(&app, &format!("/api/v1/workers?limit=2&after={}", first_worker + 1)).await;
+        assert_eq!((ids(&v), link), (vec![first_worker + 2], None));
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_client_reads_every_page() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let server = crate::server::Server::start(cfg).await.expect("server");
+        let n = pathfarm_common::protocol::MAX_PAGE_LIMIT + 5;
+        for _ in 0..n {
+            server.state.farm.lock().submit("s".into(), None, 0, RenderSettings::new(8, 8, 1), 0).expect("submit");
+        }
+        let url = server.url();
+        let jobs = tokio::task::spawn_blocking(move || crate::client::Client::new(&url, None).expect("client").jobs())
+            .await
+            .expect("task")
+            .expect("jobs");
+        assert_eq!(jobs.iter().map(|j| j.id).collect::<Vec<_>>(), (1..=n as u64).collect::<Vec<_>>());
+    }
 
     #[test]
     fn banded_resolve_equals_whole_resolve() {

@@ -493,6 +493,13 @@ impl Farm {
         self.jobs.values()
     }
 
+    /// Jobs with ids above `after`, in id order.
+    pub fn jobs_after(&self, after: Option<JobId>) -> impl Iterator<Item = &Job> {
+        use std::ops::Bound;
+        let from = after.map_or(Bound::Unbounded, Bound::Excluded);
+        self.jobs.range((from, Bound::Unbounded)).map(|(_, j)| j)
+    }
+
     pub fn jobs_mut(&mut self) -> impl Iterator<Item = &mut Job> {
         self.jobs.values_mut()
     }

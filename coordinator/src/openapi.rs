@@ -26,6 +26,8 @@ use utoipa::openapi::security::{Http, HttpAuthScheme, SecurityScheme};
 pub struct JobRequestBody {
     /// Id returned by `POST /scenes`.
     pub scene_id: String,
+    /// At most 256 bytes (UTF-8).
+    #[schema(max_length = 256)]
     pub name: Option<String>,
     /// Higher runs first; equal priorities share the workers.
     #[serde(default)]

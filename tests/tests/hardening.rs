@@ -7,9 +7,14 @@
 mod support;
 
 use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_tests::procs::Coordinator;
 use reqwest::StatusCode;
 use serde_json::json;
 use std::time::{Duration, Instant};
+
+fn start(extra: &[&str]) -> Coordinator {
+    Coordinator::start(extra).expect("start the coordinator")
+}
 
 // ------------------------------------------------------------------------------- database
 
@@ -60,4 +65,20 @@ fn a_job_row_with_an_unknown_state_is_skipped_on_start() {
     let created: serde_json::Value =
         http.post(api(&coord, "/jobs")).json(&job).send().expect("submit").json().expect("created");
     assert_eq!(created["id"], 4, "{created}");
+}
+
+// ------------------------------------------------------------------------------- job names
+
+#[test]
+fn long_job_names_are_422_naming_the_limit() {
+    let mut c = start(&[]);
+    let scene = c.upload_ok(cornell_demo_glb());
+    let job = |name: String| json!({"scene_id": scene, "name": name, "width": 16, "height": 16, "spp": 1});
+    let r = c.submit(&job("x".repeat(1 << 20)));
+    pathfarm_tests::procs::expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["name", "256 bytes"]);
+    let r = c.submit(&job("x".repeat(257)));
+    pathfarm_tests::procs::expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["name", "257", "256 bytes"]);
+    let id = c.submit_ok(&job("x".repeat(256)));
+    assert_eq!(c.job(id).name.len(), 256);
+    c.assert_serving();
 }
