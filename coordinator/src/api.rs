@@ -81,9 +81,10 @@ pub enum Role {
     Worker,
 }
 
-fn token_matches(given: &str, expected: &str) -> bool {
+/// Constant-time comparison; an empty token never matches (not even an empty one configured).
+pub fn token_matches(given: &str, expected: &str) -> bool {
     use subtle::ConstantTimeEq;
-    given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
+    !expected.is_empty() && given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
 }
 
 /// The bearer token of a request, if any.
@@ -97,7 +98,9 @@ pub fn authorize_token(auth: &Auth, token: Option<&str>, allowed: &[Role]) -> Ap
     if auth.client.is_none() && auth.worker.is_none() {
         return Ok(());
     }
-    let token = token.ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
+    let token = token
+        .filter(|t| !t.is_empty())
+        .ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
     let role = if auth.client.as_deref().is_some_and(|t| token_matches(token, t)) {
         Role::Client
     } else if auth.worker.as_deref().is_some_and(|t| token_matches(token, t)) {
@@ -857,11 +860,29 @@ async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, bod
     path = "/metrics",
     tag = "service",
     summary = "Prometheus metrics",
-    responses((status = 200, description = "Prometheus text exposition", body = String, content_type = "text/plain; version=0.0.4")),
+    description = "Open unless the coordinator runs with `--metrics-token`; then it takes only that token \
+        (`Authorization: Bearer`), not the client or worker token.",
+    security((), ("metrics_token" = [])),
+    responses((status = 200, description = "Prometheus text exposition", body = String, content_type = "text/plain; version=0.0.4"), (status = 401, description = "`--metrics-token` is set and the request does not carry it", body = ErrorBody)),
 )]
-async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+async fn metrics(State(state): State<Arc<AppState>>, headers: HeaderMap) -> ApiResult<Response> {
+    if let Some(expected) = state.config.metrics_token.as_deref() {
+        match bearer(&headers) {
+            Some(t) if token_matches(t, expected) => {}
+            Some(t) if !t.is_empty() => {
+                return Err(ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "invalid metrics token"));
+            }
+            _ => {
+                return Err(ApiError::new(
+                    StatusCode::UNAUTHORIZED,
+                    "unauthorized",
+                    "missing bearer token: /metrics needs the metrics token",
+                ));
+            }
+        }
+    }
     let text = state.metrics_text();
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text)
+    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
 }
 
 #[cfg(test)]
@@ -941,6 +962,67 @@ mod tests {
             .expect("task")
             .expect("jobs");
         assert_eq!(jobs.iter().map(|j| j.id).collect::<Vec<_>>(), (1..=n as u64).collect::<Vec<_>>());
+    }
+
+    #[tokio::test]
+    async fn metrics_token_guards_metrics() {
+        use tower::ServiceExt;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.auth = Auth { client: Some("client-secret".into()), worker: Some("worker-secret".into()) };
+        cfg.metrics_token = Some("metrics-secret".into());
+        let app = router(Arc::new(AppState::new(cfg).expect("state")));
+        let metrics = |auth: Option<&str>| {
+            let mut b = axum::http::Request::builder().uri("/metrics");
+            if let Some(a) = auth {
+                b = b.header(header::AUTHORIZATION, a);
+            }
+            app.clone().oneshot(b.body(axum::body::Body::empty()).expect("request"))
+        };
+        for (auth, want) in [
+            (None, StatusCode::UNAUTHORIZED),
+            (Some("Bearer "), StatusCode::UNAUTHORIZED),
+            (Some("Bearer metrics-secreT"), StatusCode::UNAUTHORIZED),
+            (Some("Bearer client-secret"), StatusCode::UNAUTHORIZED),
+            (Some("Bearer worker-secret"), StatusCode::UNAUTHORIZED),
+            (Some("Basic metrics-secret"), StatusCode::UNAUTHORIZED),
+            (Some("Bearer metrics-secret"), StatusCode::OK),
+        ] {
+            let resp = metrics(auth).await.expect("response");
+            assert_eq!(resp.status(), want, "{auth:?}");
+            let body = axum::body::to_bytes(resp.into_body(), 1 << 20).await.expect("body");
+            let text = String::from_utf8_lossy(&body);
+            if want == StatusCode::OK {
+                assert!(text.contains("pathfarm_jobs{state=\"queued\"} 0"), "{text}");
+            } else {
+                assert!(text.contains("\"unauthorized\"") && !text.contains("pathfarm_jobs"), "{text}");
+            }
+        }
+        // Without the flag, /metrics stays open (as the README says), whatever the API tokens.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.auth = Auth { client: Some("client-secret".into()), worker: None };
+        let app = router(Arc::new(AppState::new(cfg).expect("state")));
+        let req = axum::http::Request::builder().uri("/metrics").body(axum::body::Body::empty()).expect("request");
+        assert_eq!(app.oneshot(req).await.expect("response").status(), StatusCode::OK);
+    }
+
+    #[test]
+    fn empty_tokens_never_authenticate() {
+        // Even when an empty token is configured (main refuses that at start-up).
+        let auth = Auth { client: Some(String::new()), worker: Some("worker-secret".into()) };
+        for given in [Some(""), None] {
+            let e = authorize_token(&auth, given, &[Role::Client]).expect_err("empty token");
+            assert_eq!(e.status, StatusCode::UNAUTHORIZED, "{given:?}");
+        }
+        let e = crate::events::authorize_client(&auth, &HeaderMap::new(), Some("")).expect_err("?token=");
+        assert_eq!(e.status, StatusCode::UNAUTHORIZED);
+        let mut h = HeaderMap::new();
+        h.insert(header::AUTHORIZATION, HeaderValue::from_static("Bearer "));
+        let e = crate::events::authorize_client(&auth, &h, None).expect_err("Bearer with nothing");
+        assert_eq!(e.status, StatusCode::UNAUTHORIZED);
+        assert!(!token_matches("", ""));
+        assert!(authorize_token(&auth, Some("worker-secret"), &[Role::Worker]).is_ok());
     }
 
     #[test]
