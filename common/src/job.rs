@@ -273,8 +273,9 @@ impl RenderSettings {
                     "integrator.mis must be balance or power for bdpt, got {mis:?}"
                 )));
             }
+            // Checked: [u32::MAX, u32::MAX] must not wrap around to a sum that passes.
             if let Some([s, t]) = strategy
-                && (*t < 1 || s + t < 2)
+                && (*t < 1 || s.checked_add(*t).is_none_or(|n| n < 2))
             {
                 return Err(SettingsError::Invalid(format!(
                     "integrator.strategy [{s}, {t}] does not exist: t >= 1 and s + t >= 2"
@@ -476,6 +477,20 @@ mod tests {
         s.integrator =
             IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: Some([0, 1]) };
         assert!(s.validate(&Limits::default()).expect_err("no (0, 1)").to_string().contains("strategy"));
+        // The sum s + t overflows u32: refused, not wrapped around.
+        for strategy in [[u32::MAX, u32::MAX], [u32::MAX, 1], [1, u32::MAX]] {
+            s.integrator = IntegratorSettings::Bdpt {
+                max_depth: 8,
+                mis: MisHeuristic::Power,
+                rr_depth: 3,
+                strategy: Some(strategy),
+            };
+            let e = s.validate(&Limits::default()).expect_err("overflowing strategy");
+            assert!(e.to_string().contains("strategy"), "{e}");
+        }
+        s.integrator =
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: Some([2, 1]) };
+        assert!(s.validate(&Limits::default()).is_ok());
         s.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Light, rr_depth: 3, strategy: None };
         assert!(s.validate(&Limits::default()).expect_err("light only").to_string().contains("mis"));
         let json = serde_json::to_string(&p).expect("serialize");

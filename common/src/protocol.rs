@@ -11,6 +11,14 @@ use serde::{Deserialize, Serialize};
 /// API path prefix.
 pub const API: &str = "/api/v1";
 
+/// Longest job name, in bytes (UTF-8).
+pub const MAX_JOB_NAME_BYTES: usize = 256;
+
+/// Items per page of the list routes (`GET /jobs`, `GET /workers`) when `limit` is not given.
+pub const DEFAULT_PAGE_LIMIT: usize = 100;
+/// Largest `limit` of the list routes.
+pub const MAX_PAGE_LIMIT: usize = 1000;
+
 /// Job identifier (a decimal number in URLs).
 pub type JobId = u64;
 /// Worker identifier assigned at registration.
@@ -104,6 +112,9 @@ impl JobRequest {
         };
         let name = match o.remove("name") {
             None | Some(serde_json::Value::Null) => None,
+            Some(serde_json::Value::String(s)) if s.len() > MAX_JOB_NAME_BYTES => {
+                return Err(format!("name is {} bytes long; the limit is {MAX_JOB_NAME_BYTES} bytes", s.len()));
+            }
             Some(serde_json::Value::String(s)) => Some(s),
             Some(_) => return Err("name must be a string".into()),
         };
@@ -500,6 +511,15 @@ mod tests {
         assert!(e.contains("wdth"), "{e}");
         let e = JobRequest::from_json(serde_json::json!({"width": 4})).expect_err("no scene");
         assert!(e.contains("scene_id"), "{e}");
+    }
+
+    #[test]
+    fn job_names_are_bounded() {
+        let job = |name: String| serde_json::json!({"scene_id": "x", "name": name, "width": 4, "height": 4, "spp": 1});
+        let ok = JobRequest::from_json(job("é".repeat(MAX_JOB_NAME_BYTES / 2))).expect("256 bytes");
+        assert_eq!(ok.name.map(|n| n.len()), Some(MAX_JOB_NAME_BYTES));
+        let e = JobRequest::from_json(job("x".repeat(2 << 20))).expect_err("2 MB name");
+        assert!(e.contains("name") && e.contains("256 bytes") && e.contains("2097152"), "{e}");
     }
 }
 

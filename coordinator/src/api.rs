@@ -14,8 +14,8 @@ use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
-    API, ErrorBody, ErrorDetail, JobCreated, JobId, JobRequest, LeaseId, RegisterRequest, Registered, ReleaseRequest,
-    ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
+    API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
+    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -82,9 +82,10 @@ pub enum Role {
     Worker,
 }
 
-fn token_matches(given: &str, expected: &str) -> bool {
+/// Constant-time comparison; an empty token never matches (not even an empty one configured).
+pub fn token_matches(given: &str, expected: &str) -> bool {
     use subtle::ConstantTimeEq;
-    given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
+    !expected.is_empty() && given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
 }
 
 /// The bearer token of a request, if any.
@@ -98,7 +99,9 @@ pub fn authorize_token(auth: &Auth, token: Option<&str>, allowed: &[Role]) -> Ap
     if auth.client.is_none() && auth.worker.is_none() {
         return Ok(());
     }
-    let token = token.ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
+    let token = token
+        .filter(|t| !t.is_empty())
+        .ok_or_else(|| ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "missing bearer token"))?;
     let role = if auth.client.as_deref().is_some_and(|t| token_matches(token, t)) {
         Role::Client
     } else if auth.worker.as_deref().is_some_and(|t| token_matches(token, t)) {
@@ -322,14 +325,62 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
     get,
     path = "/api/v1/jobs",
     tag = "jobs",
-    summary = "List jobs with their progress",
+    summary = "List jobs with their progress, a page at a time",
+    description = "Jobs in id order, at most `limit` (default 100, at most 1000) with ids above `after`. \
+        When more follow, the `Link` header holds the next page's URL (`rel=\"next\"`); a page shorter \
+        than `limit` is the last.",
+    params(PageQuery),
     security(("client_token" = [])),
-    responses((status = 200, description = "Every job", body = Vec<pathfarm_common::protocol::JobInfo>), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "A page of jobs", body = Vec<pathfarm_common::protocol::JobInfo>, headers(("link" = String, description = "`<URL>; rel=\"next\"` when more jobs follow"))), (status = 422, description = "`limit` out of range", body = ErrorBody), (status = 400, description = "`limit` or `after` is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-async fn list_jobs(State(state): State<Arc<AppState>>) -> impl IntoResponse {
-    let farm = state.farm.lock();
-    let now = now_ms();
-    Json(farm.jobs().map(|j| j.info(now)).collect::<Vec<_>>())
+async fn list_jobs(State(state): State<Arc<AppState>>, Query(q): Query<PageQuery>) -> ApiResult<Response> {
+    let limit = q.limit()?;
+    let mut page: Vec<JobInfo> = {
+        let farm = state.farm.lock();
+        let now = now_ms();
+        farm.jobs_after(q.after).take(limit + 1).map(|j| j.info(now)).collect()
+    };
+    let more = page.len() > limit;
+    page.truncate(limit);
+    let last = page.last().map(|j| j.id);
+    Ok(paged(Json(page), "/jobs", limit, more, last))
+}
+
+/// Query of the list routes: `?limit=N&after=ID`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct PageQuery {
+    /// Items per page: 1 to 1000, default 100.
+    #[param(minimum = 1, maximum = 1000)]
+    pub limit: Option<usize>,
+    /// Only items with an id above this: the last id of the previous page.
+    pub after: Option<u64>,
+}
+
+impl PageQuery {
+    fn limit(&self) -> ApiResult<usize> {
+        let limit = self.limit.unwrap_or(DEFAULT_PAGE_LIMIT);
+        if !(1..=MAX_PAGE_LIMIT).contains(&limit) {
+            return Err(ApiError::unprocessable(
+                "invalid_query",
+                format!("limit must be between 1 and {MAX_PAGE_LIMIT}, got {limit}"),
+            ));
+        }
+        Ok(limit)
+    }
+}
+
+/// A page of a list: ids ascending; when more items follow, a `Link: <...>; rel="next"` header
+/// gives the next page's URL.
+fn paged(body: impl IntoResponse, path: &str, limit: usize, more: bool, last: Option<u64>) -> Response {
+    let mut resp = body.into_response();
+    if more
+        && let Some(last) = last
+        && let Ok(v) = HeaderValue::from_str(&format!("<{API}{path}?limit={limit}&after={last}>; rel=\"next\""))
+    {
+        resp.headers_mut().insert(header::LINK, v);
+    }
+    resp
 }
 
 #[utoipa::path(
@@ -589,12 +640,21 @@ async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
     get,
     path = "/api/v1/workers",
     tag = "workers",
-    summary = "List workers",
+    summary = "List workers, a page at a time",
+    description = "Workers in id order, paged like `GET /jobs`: `limit` (default 100, at most 1000), `after`, \
+        and a `Link` header to the next page.",
+    params(PageQuery),
     security(("client_token" = [])),
-    responses((status = 200, description = "Every registered worker", body = Vec<pathfarm_common::protocol::WorkerInfo>), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "A page of registered workers", body = Vec<pathfarm_common::protocol::WorkerInfo>, headers(("link" = String, description = "`<URL>; rel=\"next\"` when more workers follow"))), (status = 422, description = "`limit` out of range", body = ErrorBody), (status = 400, description = "`limit` or `after` is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-async fn list_workers(State(state): State<Arc<AppState>>) -> impl IntoResponse {
-    Json(state.farm.lock().workers(now_ms()))
+async fn list_workers(State(state): State<Arc<AppState>>, Query(q): Query<PageQuery>) -> ApiResult<Response> {
+    let limit = q.limit()?;
+    let mut page = state.farm.lock().workers(now_ms());
+    page.retain(|w| q.after.is_none_or(|a| w.id > a));
+    let more = page.len() > limit;
+    page.truncate(limit);
+    let last = page.last().map(|w| w.id);
+    Ok(paged(Json(page), "/workers", limit, more, last))
 }
 
 #[utoipa::path(
@@ -803,11 +863,29 @@ async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, bod
     path = "/metrics",
     tag = "service",
     summary = "Prometheus metrics",
-    responses((status = 200, description = "Prometheus text exposition", body = String, content_type = "text/plain; version=0.0.4")),
+    description = "Open unless the coordinator runs with `--metrics-token`; then it takes only that token \
+        (`Authorization: Bearer`), not the client or worker token.",
+    security((), ("metrics_token" = [])),
+    responses((status = 200, description = "Prometheus text exposition", body = String, content_type = "text/plain; version=0.0.4"), (status = 401, description = "`--metrics-token` is set and the request does not carry it", body = ErrorBody)),
 )]
-async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+async fn metrics(State(state): State<Arc<AppState>>, headers: HeaderMap) -> ApiResult<Response> {
+    if let Some(expected) = state.config.metrics_token.as_deref() {
+        match bearer(&headers) {
+            Some(t) if token_matches(t, expected) => {}
+            Some(t) if !t.is_empty() => {
+                return Err(ApiError::new(StatusCode::UNAUTHORIZED, "unauthorized", "invalid metrics token"));
+            }
+            _ => {
+                return Err(ApiError::new(
+                    StatusCode::UNAUTHORIZED,
+                    "unauthorized",
+                    "missing bearer token: /metrics needs the metrics token",
+                ));
+            }
+        }
+    }
     let text = state.metrics_text();
-    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text)
+    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
 }
 
 #[cfg(test)]
@@ -815,6 +893,140 @@ mod tests {
     use super::*;
     use crate::server::ServerConfig;
     use pathfarm_common::job::RenderSettings;
+
+    async fn get(app: &Router, uri: &str) -> (StatusCode, Option<String>, serde_json::Value) {
+        use tower::ServiceExt;
+        let req = axum::http::Request::builder().uri(uri).body(axum::body::Body::empty()).expect("request");
+        let resp = app.clone().oneshot(req).await.expect("response");
+        let status = resp.status();
+        let link = resp.headers().get(header::LINK).and_then(|v| v.to_str().ok()).map(str::to_string);
+        let body = axum::body::to_bytes(resp.into_body(), 64 << 20).await.expect("body");
+        (status, link, serde_json::from_slice(&body).expect("JSON"))
+    }
+
+    fn ids(v: &serde_json::Value) -> Vec<u64> {
+        v.as_array().expect("array").iter().map(|j| j["id"].as_u64().expect("id")).collect()
+    }
+
+    #[tokio::test]
+    async fn list_routes_are_paged() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        for _ in 0..7 {
+            state.farm.lock().submit("s".into(), None, 0, RenderSettings::new(8, 8, 1), 0).expect("submit");
+        }
+        for i in 0..3 {
+            state.farm.lock().register(format!("w{i}"), 1, 0);
+        }
+        let app = router(state.clone());
+        let (status, link, v) = get(&app, "/api/v1/jobs?limit=3").await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(ids(&v), vec![1, 2, 3]);
+        assert_eq!(link.as_deref(), Some("</api/v1/jobs?limit=3&after=3>; rel=\"next\""));
+        let (_, link, v) = get(&app, "/api/v1/jobs?limit=3&after=3").await;
+        assert_eq!(ids(&v), vec![4, 5, 6]);
+        assert!(link.is_some());
+        let (_, link, v) = get(&app, "/api/v1/jobs?limit=3&after=6").await;
+        assert_eq!((ids(&v), link), (vec![7], None));
+        // Exactly a full last page: no next link.
+        let (_, link, v) = get(&app, "/api/v1/jobs?limit=7").await;
+        assert_eq!((ids(&v).len(), link), (7, None));
+        // The default page holds all 7.
+        let (_, link, v) = get(&app, "/api/v1/jobs").await;
+        assert_eq!((ids(&v), link), ((1..=7).collect(), None));
+        for bad in ["limit=0", "limit=1001"] {
+            let (status, _, v) = get(&app, &format!("/api/v1/jobs?{bad}")).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{bad}");
+            assert!(v["error"]["message"].as_str().is_some_and(|m| m.contains("1000")), "{v}");
+        }
+        let (status, _, _) = get(&app, "/api/v1/jobs?after=x").await;
+        assert_eq!(status, StatusCode::BAD_REQUEST);
+        let first_worker = state.farm.lock().workers(0)[0].id;
+        let (_, link, v) = get(&app, "/api/v1/workers?limit=2").await;
+        assert_eq!(ids(&v), vec![first_worker, first_worker + 1]);
+        assert!(link.is_some_and(|l| l.contains(&format!("after={}", first_worker + 1))));
+        let (_, link, v) = get(&app, &format!("/api/v1/workers?limit=2&after={}", first_worker + 1)).await;
+        assert_eq!((ids(&v), link), (vec![first_worker + 2], None));
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_client_reads_every_page() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let server = crate::server::Server::start(cfg).await.expect("server");
+        let n = pathfarm_common::protocol::MAX_PAGE_LIMIT + 5;
+        for _ in 0..n {
+            server.state.farm.lock().submit("s".into(), None, 0, RenderSettings::new(8, 8, 1), 0).expect("submit");
+        }
+        let url = server.url();
+        let jobs = tokio::task::spawn_blocking(move || crate::client::Client::new(&url, None).expect("client").jobs())
+            .await
+            .expect("task")
+            .expect("jobs");
+        assert_eq!(jobs.iter().map(|j| j.id).collect::<Vec<_>>(), (1..=n as u64).collect::<Vec<_>>());
+    }
+
+    #[tokio::test]
+    async fn metrics_token_guards_metrics() {
+        use tower::ServiceExt;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.auth = Auth { client: Some("client-secret".into()), worker: Some("worker-secret".into()) };
+        cfg.metrics_token = Some("metrics-secret".into());
+        let app = router(Arc::new(AppState::new(cfg).expect("state")));
+        let metrics = |auth: Option<&str>| {
+            let mut b = axum::http::Request::builder().uri("/metrics");
+            if let Some(a) = auth {
+                b = b.header(header::AUTHORIZATION, a);
+            }
+            app.clone().oneshot(b.body(axum::body::Body::empty()).expect("request"))
+        };
+        for (auth, want) in [
+            (None, StatusCode::UNAUTHORIZED),
+            (Some("Bearer "), StatusCode::UNAUTHORIZED),
+            (Some("Bearer metrics-secreT"), StatusCode::UNAUTHORIZED),
+            (Some("Bearer client-secret"), StatusCode::UNAUTHORIZED),
+            (Some("Bearer worker-secret"), StatusCode::UNAUTHORIZED),
+            (Some("Basic metrics-secret"), StatusCode::UNAUTHORIZED),
+            (Some("Bearer metrics-secret"), StatusCode::OK),
+        ] {
+            let resp = metrics(auth).await.expect("response");
+            assert_eq!(resp.status(), want, "{auth:?}");
+            let body = axum::body::to_bytes(resp.into_body(), 1 << 20).await.expect("body");
+            let text = String::from_utf8_lossy(&body);
+            if want == StatusCode::OK {
+                assert!(text.contains("pathfarm_jobs{state=\"queued\"} 0"), "{text}");
+            } else {
+                assert!(text.contains("\"unauthorized\"") && !text.contains("pathfarm_jobs"), "{text}");
+            }
+        }
+        // Without the flag, /metrics stays open (as the README says), whatever the API tokens.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.auth = Auth { client: Some("client-secret".into()), worker: None };
+        let app = router(Arc::new(AppState::new(cfg).expect("state")));
+        let req = axum::http::Request::builder().uri("/metrics").body(axum::body::Body::empty()).expect("request");
+        assert_eq!(app.oneshot(req).await.expect("response").status(), StatusCode::OK);
+    }
+
+    #[test]
+    fn empty_tokens_never_authenticate() {
+        // Even when an empty token is configured (main refuses that at start-up).
+        let auth = Auth { client: Some(String::new()), worker: Some("worker-secret".into()) };
+        for given in [Some(""), None] {
+            let e = authorize_token(&auth, given, &[Role::Client]).expect_err("empty token");
+            assert_eq!(e.status, StatusCode::UNAUTHORIZED, "{given:?}");
+        }
+        let e = crate::events::authorize_client(&auth, &HeaderMap::new(), Some("")).expect_err("?token=");
+        assert_eq!(e.status, StatusCode::UNAUTHORIZED);
+        let mut h = HeaderMap::new();
+        h.insert(header::AUTHORIZATION, HeaderValue::from_static("Bearer "));
+        let e = crate::events::authorize_client(&auth, &h, None).expect_err("Bearer with nothing");
+        assert_eq!(e.status, StatusCode::UNAUTHORIZED);
+        assert!(!token_matches("", ""));
+        assert!(authorize_token(&auth, Some("worker-secret"), &[Role::Worker]).is_ok());
+    }
 
     #[test]
     fn banded_resolve_equals_whole_resolve() {

@@ -1,7 +1,9 @@
 //! A blocking client of the REST API, used by the `pathfarm` CLI, the demo and the tests.
 
 use anyhow::{Context, bail};
-use pathfarm_common::protocol::{API, ErrorBody, JobCreated, JobId, JobInfo, JobRequest, JobState, SceneCreated};
+use pathfarm_common::protocol::{
+    API, ErrorBody, JobCreated, JobId, JobInfo, JobRequest, JobState, MAX_PAGE_LIMIT, SceneCreated,
+};
 use reqwest::blocking::{Client as Http, RequestBuilder, Response};
 use std::time::Duration;
 
@@ -54,8 +56,21 @@ impl Client {
         Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}"))))?.json()?)
     }
 
+    /// Every job: the list is paged, so this asks page after page.
     pub fn jobs(&self) -> anyhow::Result<Vec<JobInfo>> {
-        Ok(self.req(self.http.get(self.url("/jobs")))?.json()?)
+        let mut all: Vec<JobInfo> = Vec::new();
+        loop {
+            let mut path = format!("/jobs?limit={MAX_PAGE_LIMIT}");
+            if let Some(last) = all.last() {
+                path.push_str(&format!("&after={}", last.id));
+            }
+            let page: Vec<JobInfo> = self.req(self.http.get(self.url(&path)))?.json()?;
+            let done = page.len() < MAX_PAGE_LIMIT;
+            all.extend(page);
+            if done {
+                return Ok(all);
+            }
+        }
     }
 
     pub fn cancel(&self, id: JobId) -> anyhow::Result<JobInfo> {

@@ -481,7 +481,8 @@ impl Farm {
         Ok(())
     }
 
-    /// Ids up to `id` are taken (by jobs that existed before, deleted or not).
+    /// New jobs get ids above `id`: ids of deleted jobs, and of rows the store skipped (their
+    /// rows are still there), are never given again.
     pub fn reserve_job_ids_through(&mut self, id: JobId) {
         self.next_job = self.next_job.max(id.saturating_add(1));
     }
@@ -532,6 +533,13 @@ impl Farm {
 
     pub fn jobs(&self) -> impl Iterator<Item = &Job> {
         self.jobs.values()
+    }
+
+    /// Jobs with ids above `after`, in id order.
+    pub fn jobs_after(&self, after: Option<JobId>) -> impl Iterator<Item = &Job> {
+        use std::ops::Bound;
+        let from = after.map_or(Bound::Unbounded, Bound::Excluded);
+        self.jobs.range((from, Bound::Unbounded)).map(|(_, j)| j)
     }
 
     pub fn jobs_mut(&mut self) -> impl Iterator<Item = &mut Job> {

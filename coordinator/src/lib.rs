@@ -3,6 +3,7 @@
 
 pub mod api;
 pub mod client;
+pub mod conn;
 pub mod dashboard;
 pub mod demo;
 pub mod events;

@@ -38,6 +38,10 @@ struct ServeArgs {
     /// Bearer token for workers.
     #[arg(long, env = "PATHFARM_WORKER_TOKEN", hide_env_values = true)]
     worker_token: Option<String>,
+    /// Bearer token for `GET /metrics` (open when not given; the client and worker tokens do
+    /// not open it).
+    #[arg(long, env = "PATHFARM_METRICS_TOKEN", hide_env_values = true)]
+    metrics_token: Option<String>,
     /// Run without authentication (only allowed on a loopback address).
     #[arg(long)]
     no_auth: bool,
@@ -84,6 +88,18 @@ struct ServeArgs {
     /// refused with 422. Checkpoints copy one film at a time on top.
     #[arg(long, default_value_t = 16384)]
     film_memory_mb: u64,
+    /// A connection must send a complete request head within this long of being opened (or, on
+    /// a kept-alive connection, of the head's first byte); otherwise it is closed.
+    #[arg(long, default_value_t = 10_000)]
+    header_timeout_ms: u64,
+    /// A kept-alive connection on which nothing moves for this long between requests is closed.
+    /// A request being handled (a lease long poll, an event stream) is never idle.
+    #[arg(long, default_value_t = 60_000)]
+    idle_timeout_ms: u64,
+    /// Open connections at most (lowered to fit the open-file limit). Beyond it, the quietest
+    /// connection that is not handling a request is closed to make room.
+    #[arg(long, default_value_t = 4096)]
+    max_connections: usize,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -110,6 +126,22 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.limits.max_depth = a.max_depth;
     cfg.farm.limits.max_units = a.max_units;
     cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
+    if a.header_timeout_ms == 0 || a.idle_timeout_ms == 0 || a.max_connections == 0 {
+        anyhow::bail!("--header-timeout-ms, --idle-timeout-ms and --max-connections must be at least 1");
+    }
+    cfg.conn = pathfarm_coordinator::conn::ConnLimits {
+        header_timeout: std::time::Duration::from_millis(a.header_timeout_ms),
+        idle_timeout: std::time::Duration::from_millis(a.idle_timeout_ms),
+        max_connections: a.max_connections,
+    };
+    let metrics_empty =
+        std::env::var_os("PATHFARM_METRICS_TOKEN").is_some_and(|v| v.to_string_lossy().trim().is_empty());
+    if a.metrics_token.as_deref().is_some_and(|t| t.trim().is_empty()) || (a.metrics_token.is_none() && metrics_empty) {
+        anyhow::bail!(
+            "--metrics-token / PATHFARM_METRICS_TOKEN is empty: an empty token is refused; give a secret or unset it"
+        );
+    }
+    cfg.metrics_token = a.metrics_token.clone();
     cfg.auth = auth(&a)?;
     let worker_token = cfg.auth.worker.clone();
     let rt = tokio::runtime::Runtime::new()?;
@@ -131,6 +163,20 @@ fn auth(a: &ServeArgs) -> anyhow::Result<Auth> {
         }
         return Ok(Auth::default());
     }
+    // An empty token would let an empty `?token=` or `Bearer ` in: refuse it, whether it came
+    // from a flag or from an environment variable that is set but empty.
+    for (flag, var, value) in [
+        ("--client-token", "PATHFARM_CLIENT_TOKEN", &a.client_token),
+        ("--worker-token", "PATHFARM_WORKER_TOKEN", &a.worker_token),
+    ] {
+        let env_empty = std::env::var_os(var).is_some_and(|v| v.to_string_lossy().trim().is_empty());
+        if value.as_deref().is_some_and(|t| t.trim().is_empty()) || (value.is_none() && env_empty) {
+            anyhow::bail!(
+                "{flag} / {var} is empty: an empty token is refused; give a secret, or unset it to use the \
+                 tokens in DATA_DIR/tokens.json"
+            );
+        }
+    }
     if a.client_token.is_some() || a.worker_token.is_some() {
         return Ok(Auth { client: a.client_token.clone(), worker: a.worker_token.clone() });
     }
@@ -138,8 +184,12 @@ fn auth(a: &ServeArgs) -> anyhow::Result<Auth> {
     if let Ok(bytes) = std::fs::read(&path) {
         let t: serde_json::Value = serde_json::from_slice(&bytes)?;
         let get = |k: &str| t.get(k).and_then(|v| v.as_str()).map(str::to_string);
+        let tokens = Auth { client: get("client_token"), worker: get("worker_token") };
+        if [&tokens.client, &tokens.worker].iter().any(|t| t.as_deref().is_none_or(|t| t.trim().is_empty())) {
+            anyhow::bail!("{} lacks a client_token or a worker_token (or one is empty)", path.display());
+        }
         tracing::info!(path = %path.display(), "using the tokens made on the first start");
-        return Ok(Auth { client: get("client_token"), worker: get("worker_token") });
+        return Ok(tokens);
     }
     let tokens = Auth { client: Some(random_token()?), worker: Some(random_token()?) };
     std::fs::create_dir_all(&a.data_dir)?;

@@ -26,6 +26,8 @@ use utoipa::openapi::security::{Http, HttpAuthScheme, SecurityScheme};
 pub struct JobRequestBody {
     /// Id returned by `POST /scenes`.
     pub scene_id: String,
+    /// At most 256 bytes (UTF-8).
+    #[schema(max_length = 256)]
     pub name: Option<String>,
     /// Higher runs first; equal priorities share the workers.
     #[serde(default)]
@@ -156,7 +158,7 @@ struct SecuritySchemes;
 impl utoipa::Modify for SecuritySchemes {
     fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
         let components = openapi.components.get_or_insert_with(Default::default);
-        for name in ["client_token", "worker_token"] {
+        for name in ["client_token", "worker_token", "metrics_token"] {
             components.add_security_scheme(name, SecurityScheme::Http(Http::new(HttpAuthScheme::Bearer)));
         }
     }

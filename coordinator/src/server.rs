@@ -42,6 +42,10 @@ pub struct ServerConfig {
     /// How often changed jobs are checkpointed.
     pub checkpoint_interval: Duration,
     pub auth: Auth,
+    /// Header and idle timeouts, connection cap.
+    pub conn: crate::conn::ConnLimits,
+    /// When set, `/metrics` requires `Authorization: Bearer <it>`.
+    pub metrics_token: Option<String>,
 }
 
 impl ServerConfig {
@@ -58,6 +62,8 @@ impl ServerConfig {
             output_interval: Duration::from_secs(2),
             checkpoint_interval: Duration::from_secs(1),
             auth: Auth::default(),
+            conn: crate::conn::ConnLimits::default(),
+            metrics_token: None,
         }
     }
 }
@@ -224,6 +230,14 @@ impl Histogram {
 #[derive(Default)]
 pub struct Metrics {
     pub bytes_received: AtomicU64,
+    /// Open TCP connections.
+    pub connections_open: AtomicU64,
+    /// Connections closed by the header or idle timeout.
+    pub connections_timed_out: AtomicU64,
+    /// Quiet connections closed to make room under the connection cap.
+    pub connections_evicted: AtomicU64,
+    /// New connections closed because the cap was reached and every connection was busy.
+    pub connections_refused: AtomicU64,
     pub merge_latency: Histogram,
     pub lease_latency: Histogram,
 }
@@ -265,7 +279,7 @@ impl AppState {
         let store = Store::open(&config.data_dir)?;
         let epoch = store.next_epoch()?;
         let mut farm = Farm::with_epoch(config.farm.clone(), epoch);
-        // Ids of deleted jobs are never given again (a client may still hold one).
+        // Ids of deleted jobs and of skipped rows are never given again.
         farm.reserve_job_ids_through(store.max_job_id()?);
         let now = now_ms();
         for rec in store.jobs()? {
@@ -387,6 +401,21 @@ impl AppState {
                 "Request body bytes received (scenes and results).",
                 self.metrics.bytes_received.load(Ordering::Relaxed),
             ),
+            (
+                "pathfarm_connections_timed_out_total",
+                "Connections closed by the header or idle timeout.",
+                self.metrics.connections_timed_out.load(Ordering::Relaxed),
+            ),
+            (
+                "pathfarm_connections_evicted_total",
+                "Quiet connections closed to make room under --max-connections.",
+                self.metrics.connections_evicted.load(Ordering::Relaxed),
+            ),
+            (
+                "pathfarm_connections_refused_total",
+                "New connections closed at --max-connections with every connection busy.",
+                self.metrics.connections_refused.load(Ordering::Relaxed),
+            ),
         ];
         for (name, help, v) in counters {
             let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
@@ -394,6 +423,11 @@ impl AppState {
         let _ = writeln!(
             out,
             "# HELP pathfarm_leases_held Leases currently held.\n# TYPE pathfarm_leases_held gauge\npathfarm_leases_held {leases}"
+        );
+        let _ = writeln!(
+            out,
+            "# HELP pathfarm_connections_open Open TCP connections.\n# TYPE pathfarm_connections_open gauge\npathfarm_connections_open {}",
+            self.metrics.connections_open.load(Ordering::Relaxed)
         );
         self.metrics.merge_latency.render("pathfarm_merge_seconds", "Time to decode and merge a result.", &mut out);
         self.metrics.lease_latency.render("pathfarm_lease_seconds", "Time to pick a unit for a lease.", &mut out);
@@ -538,12 +572,17 @@ impl Server {
         tokio::spawn(output_loop(state.clone()));
         tokio::spawn(checkpoint_loop(state.clone()));
         let app = crate::api::router(state.clone());
-        let task = tokio::spawn(async move {
-            if let Err(e) = axum::serve(listener, app).await {
-                tracing::error!("server stopped: {e}");
-            }
-        });
-        tracing::info!(%addr, data_dir = %config.data_dir.display(), "coordinator listening");
+        let mut limits = config.conn;
+        limits.max_connections = crate::conn::fit_to_fd_limit(limits.max_connections);
+        let task = tokio::spawn(crate::conn::serve(listener, app, limits, state.clone()));
+        tracing::info!(
+            %addr,
+            data_dir = %config.data_dir.display(),
+            max_connections = limits.max_connections,
+            header_timeout_ms = limits.header_timeout.as_millis() as u64,
+            idle_timeout_ms = limits.idle_timeout.as_millis() as u64,
+            "coordinator listening"
+        );
         Ok(Self { addr, state, task })
     }
 

@@ -102,7 +102,7 @@ impl Store {
         Ok(())
     }
 
-    /// The highest job id ever written (deleted jobs included), 0 if none.
+    /// The highest job id ever written (deleted jobs and rows `jobs` skips included), 0 if none.
     pub fn max_job_id(&self) -> anyhow::Result<JobId> {
         let v: Option<i64> =
             self.conn.query_row("SELECT value FROM meta WHERE key = 'max_job_id'", [], |r| r.get(0)).optional()?;
@@ -140,17 +140,33 @@ impl Store {
             ))
         })?;
         let mut out = Vec::new();
-        for row in rows {
-            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms) = row?;
-            let settings: RenderSettings =
-                serde_json::from_str(&settings).with_context(|| format!("settings of job {id}"))?;
+        for (i, row) in rows.enumerate() {
+            // One damaged row (a state this version does not know, settings that do not parse,
+            // a column of the wrong type) must not stop the coordinator: skip it, loudly.
+            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms) = match row {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::warn!(row = i, "skipping an unreadable job row in the database: {e}");
+                    continue;
+                }
+            };
+            let parsed = serde_json::from_str::<RenderSettings>(&settings)
+                .map_err(|e| anyhow::anyhow!("settings do not parse: {e}"))
+                .and_then(|settings| Ok((settings, state_from_str(&state)?)));
+            let (settings, state) = match parsed {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::warn!(job = id, "skipping job {id} from the database: {e:#}");
+                    continue;
+                }
+            };
             out.push(JobRecord {
                 id: id as u64,
                 name,
                 scene_id,
                 priority,
                 settings,
-                state: state_from_str(&state)?,
+                state,
                 created_ms: created as u64,
                 finished_ms: finished.map(|v| v as u64),
                 error,
@@ -315,5 +331,40 @@ mod tests {
         assert_eq!(jobs.len(), 1);
         assert_eq!(jobs[0].state, JobState::Paused);
         assert_eq!(jobs[0].settings, rec.settings);
+    }
+
+    #[test]
+    fn damaged_job_rows_are_skipped() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        let mut rec = JobRecord {
+            id: 1,
+            name: "good".into(),
+            scene_id: "s".into(),
+            priority: 0,
+            settings: RenderSettings::new(8, 8, 4),
+            state: JobState::Queued,
+            created_ms: 10,
+            finished_ms: None,
+            error: None,
+            run_ms: 0,
+        };
+        store.put_job(&rec).expect("put");
+        rec.id = 4;
+        store.put_job(&rec).expect("put");
+        store
+            .conn
+            .execute_batch(
+                "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms)
+                     VALUES (2, 'bad state', 's', 0, '{\"width\":8,\"height\":8,\"spp\":4}', 'exploded', 0);
+                 INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms)
+                     VALUES (3, 'bad settings', 's', 0, 'not json', 'queued', 0);
+                 INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms)
+                     VALUES (5, 'bad type', 's', 'high', '{}', 'queued', 0);",
+            )
+            .expect("bad rows");
+        let ids: Vec<JobId> = store.jobs().expect("jobs").iter().map(|j| j.id).collect();
+        assert_eq!(ids, vec![1, 4]);
+        assert_eq!(store.max_job_id().expect("max id"), 5);
     }
 }

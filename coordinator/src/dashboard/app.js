@@ -399,8 +399,19 @@ function renderWorkers() {
 }
 
 // ------------------------------------------------------------------ live updates
+// The list routes are paged (ids ascending, at most 1000 per page): ask until a short page.
+async function fetchList(path) {
+  const out = [];
+  for (;;) {
+    const after = out.length ? `&after=${out[out.length - 1].id}` : '';
+    const page = await api(`${path}?limit=1000${after}`).then((r) => r.json());
+    out.push(...page);
+    if (page.length < 1000) return out;
+  }
+}
+
 async function fetchAll() {
-  const [jobs, workers] = await Promise.all([api('/jobs').then((r) => r.json()), api('/workers').then((r) => r.json())]);
+  const [jobs, workers] = await Promise.all([fetchList('/jobs'), fetchList('/workers')]);
   applySnapshot({ jobs, workers });
 }
 

@@ -1,0 +1,252 @@
+//! Attacks that got through on a running farm (the hardening issue), against real coordinator
+//! processes: each test shows the attack is refused and the farm keeps serving.
+//!
+//! Needs the release binaries: `cargo build --release -p pathfarm-coordinator -p pathfarm-worker`
+//! then `cargo test --release -p pathfarm-tests --test hardening`.
+
+mod support;
+
+use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_tests::procs::Coordinator;
+use reqwest::StatusCode;
+use serde_json::json;
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+
+fn start(extra: &[&str]) -> Coordinator {
+    Coordinator::start(extra).expect("start the coordinator")
+}
+
+/// Reads until the server closes the connection; the time it took (None: still open after
+/// `limit`).
+fn time_to_close(s: &mut TcpStream, limit: Duration) -> Option<Duration> {
+    let t0 = Instant::now();
+    s.set_read_timeout(Some(limit)).expect("read timeout");
+    let mut buf = [0u8; 4096];
+    loop {
+        match s.read(&mut buf) {
+            Ok(0) => return Some(t0.elapsed()),
+            Ok(_) => continue,
+            Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {
+                return None;
+            }
+            // Reset by the server: closed as well.
+            Err(_) => return Some(t0.elapsed()),
+        }
+    }
+}
+
+/// A metric's value from `/metrics`.
+fn metric(c: &Coordinator, name: &str) -> u64 {
+    let text = c.http.get(format!("{}/metrics", c.url)).send().expect("metrics").text().expect("text");
+    text.lines()
+        .find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok()))
+        .unwrap_or_else(|| panic!("no {name} in\n{text}"))
+}
+
+// ------------------------------------------------------------------------------- slowloris
+
+#[test]
+fn idle_and_half_sent_connections_do_not_lock_out_the_farm() {
+    let c = start(&["--max-connections", "64", "--header-timeout-ms", "1000", "--idle-timeout-ms", "1500"]);
+    let addr = c.url.trim_start_matches("http://").to_string();
+    // 400 connections, six times the cap: three in four send nothing, one in four half a request.
+    let mut held: Vec<TcpStream> = (0..400)
+        .map(|i| {
+            let mut s = TcpStream::connect(&addr).expect("connect");
+            if i % 4 == 0 {
+                s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n").expect("half a request");
+            }
+            s
+        })
+        .collect();
+    // Health, scene upload and job submission answer at once (one connection per request: a
+    // pooled connection may be the quietest one when the next attacker comes in).
+    let fresh = reqwest::blocking::Client::builder()
+        .timeout(Duration::from_secs(10))
+        .pool_max_idle_per_host(0)
+        .build()
+        .expect("client");
+    let t0 = Instant::now();
+    let r = fresh.get(format!("{}/healthz", c.url)).send().expect("healthz under attack");
+    assert_eq!(r.status(), StatusCode::OK);
+    let r = fresh.post(c.api("/scenes")).body(cornell_demo_glb()).send().expect("upload under attack");
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let scene: serde_json::Value = r.json().expect("scene");
+    let r = fresh
+        .post(c.api("/jobs"))
+        .json(&json!({"scene_id": scene["scene_id"], "width": 16, "height": 16, "spp": 1}))
+        .send()
+        .expect("submit under attack");
+    assert_eq!(r.status(), StatusCode::CREATED);
+    assert!(t0.elapsed() < Duration::from_secs(5), "answers took {:?}", t0.elapsed());
+    // Every attacking connection is closed by the server (evicted or timed out), none is left.
+    for (i, s) in held.iter_mut().enumerate() {
+        assert!(time_to_close(s, Duration::from_secs(5)).is_some(), "connection {i} is still open");
+    }
+    let closed = metric(&c, "pathfarm_connections_evicted_total") + metric(&c, "pathfarm_connections_timed_out_total");
+    assert!(closed >= 400, "{closed} connections closed by the server");
+
+    // Half a request line is closed after the header timeout (1 s; checked every 250 ms).
+    let mut s = TcpStream::connect(&addr).expect("connect");
+    s.write_all(b"GET /heal").expect("half a request line");
+    let t = time_to_close(&mut s, Duration::from_secs(10)).expect("the half request is never closed");
+    assert!(t >= Duration::from_millis(800) && t < Duration::from_secs(5), "closed after {t:?}");
+
+    // A kept-alive connection after an answer: closed after the idle timeout (1.5 s), not the
+    // header timeout.
+    let mut s = TcpStream::connect(&addr).expect("connect");
+    s.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").expect("request");
+    let mut buf = [0u8; 1024];
+    let n = s.read(&mut buf).expect("answer");
+    assert!(String::from_utf8_lossy(&buf[..n]).starts_with("HTTP/1.1 200"), "{}", String::from_utf8_lossy(&buf[..n]));
+    let t = time_to_close(&mut s, Duration::from_secs(10)).expect("the idle connection is never closed");
+    assert!(t >= Duration::from_millis(1300) && t < Duration::from_secs(5), "closed after {t:?}");
+
+    // A lease long poll (3 s) outlives both timeouts: a request being handled is not idle.
+    let reg: serde_json::Value = fresh
+        .post(c.api("/workers/register"))
+        .json(&json!({"name": "w", "threads": 1}))
+        .send()
+        .expect("register")
+        .json()
+        .expect("registered");
+    let worker = reg["worker_id"].as_u64().expect("worker id");
+    // Take the one unit of the job, so the next lease request waits.
+    let r = fresh.post(c.api(&format!("/workers/{worker}/lease"))).send().expect("lease");
+    assert_eq!(r.status(), StatusCode::OK);
+    let t0 = Instant::now();
+    let r = fresh.post(c.api(&format!("/workers/{worker}/lease?wait_ms=3000"))).send().expect("long poll");
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    assert!(t0.elapsed() >= Duration::from_millis(2900), "the long poll returned after {:?}", t0.elapsed());
+}
+
+// ------------------------------------------------------------------------------- empty tokens
+
+/// Runs the coordinator until it exits (it must, within 20 s); its exit status and stderr.
+fn run_to_exit(args: &[&str], env: &[(&str, &str)]) -> (std::process::ExitStatus, String) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut cmd = std::process::Command::new(pathfarm_tests::procs::bin("pathfarm-coordinator"));
+    cmd.args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(dir.path())
+        .args(args)
+        .env_remove("PATHFARM_CLIENT_TOKEN")
+        .env_remove("PATHFARM_WORKER_TOKEN")
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped());
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let mut child = pathfarm_tests::procs::Proc { child: cmd.spawn().expect("spawn") };
+    let t0 = Instant::now();
+    let status = loop {
+        if let Some(s) = child.child.try_wait().expect("try_wait") {
+            break s;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "the coordinator started with {args:?} {env:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    if let Some(mut e) = child.child.stderr.take() {
+        let _ = e.read_to_string(&mut err);
+    }
+    (status, err)
+}
+
+#[test]
+fn empty_tokens_are_refused_at_start_up() {
+    type Case<'a> = (&'a [&'a str], &'a [(&'a str, &'a str)]);
+    let cases: [Case<'_>; 6] = [
+        (&["--client-token", "", "--worker-token", "w"], &[]),
+        (&["--no-auth", "--metrics-token", ""], &[]),
+        (&["--no-auth"], &[("PATHFARM_METRICS_TOKEN", " ")]),
+        (&["--client-token", "c", "--worker-token", ""], &[]),
+        (&[], &[("PATHFARM_CLIENT_TOKEN", ""), ("PATHFARM_WORKER_TOKEN", "w")]),
+        (&["--client-token", "c"], &[("PATHFARM_WORKER_TOKEN", "")]),
+    ];
+    for (args, env) in cases {
+        let (status, err) = run_to_exit(args, env);
+        assert!(!status.success(), "{args:?} {env:?}");
+        assert!(err.contains("empty") && err.contains("token"), "{args:?} {env:?}: {err}");
+    }
+}
+
+#[test]
+fn an_empty_presented_token_opens_nothing() {
+    let c = start(&["--client-token", "client-secret", "--worker-token", "worker-secret"]);
+    let r = c.http.get(c.api("/events?token=")).send().expect("events");
+    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+    let r = c.http.get(c.api("/jobs")).header("authorization", "Bearer ").send().expect("jobs");
+    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+    let r = c.http.get(c.api("/events")).bearer_auth("client-secret").send().expect("events");
+    assert_eq!(r.status(), StatusCode::OK);
+}
+
+// ------------------------------------------------------------------------------- database
+
+#[test]
+fn a_job_row_with_an_unknown_state_is_skipped_on_start() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let mut coord = support::start_coordinator(&data, &[]);
+    let http = pathfarm_tests::procs::http();
+    let api = |c: &support::Coordinator, p: &str| format!("{}/api/v1{p}", c.url);
+    let scene: serde_json::Value =
+        http.post(api(&coord, "/scenes")).body(cornell_demo_glb()).send().expect("upload").json().expect("scene");
+    let job = json!({"scene_id": scene["scene_id"], "width": 16, "height": 16, "spp": 1});
+    for _ in 0..2 {
+        let r = http.post(api(&coord, "/jobs")).json(&job).send().expect("submit");
+        assert_eq!(r.status(), StatusCode::CREATED);
+    }
+    assert!(coord.proc.terminate(Duration::from_secs(10)).is_some(), "the coordinator did not stop");
+    // A row this version cannot read: a state it does not know.
+    let db = rusqlite::Connection::open(data.join("pathfarm.db")).expect("open the database");
+    db.execute(
+        "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms) \
+         VALUES (3, 'from the future', ?1, 0, '{\"width\":16,\"height\":16,\"spp\":1}', 'exploded', 0)",
+        [scene["scene_id"].as_str().expect("scene id")],
+    )
+    .expect("insert the bad row");
+    drop(db);
+    let coord = support::start_coordinator(&data, &[]);
+    let t0 = Instant::now();
+    let healthy = loop {
+        if let Ok(r) = http.get(format!("{}/healthz", coord.url)).send()
+            && r.status() == StatusCode::OK
+        {
+            break true;
+        }
+        if t0.elapsed() > Duration::from_secs(20) {
+            break false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let log = std::fs::read_to_string(data.join("coordinator.log")).unwrap_or_default();
+    assert!(healthy, "the coordinator does not serve after the bad row: {log}");
+    let jobs: Vec<serde_json::Value> = http.get(api(&coord, "/jobs")).send().expect("jobs").json().expect("list");
+    let ids: Vec<u64> = jobs.iter().filter_map(|j| j["id"].as_u64()).collect();
+    assert_eq!(ids, vec![1, 2], "{jobs:?}");
+    assert!(log.contains("skipping job 3") && log.contains("exploded"), "{log}");
+    // The skipped row's id is not handed out again.
+    let created: serde_json::Value =
+        http.post(api(&coord, "/jobs")).json(&job).send().expect("submit").json().expect("created");
+    assert_eq!(created["id"], 4, "{created}");
+}
+
+// ------------------------------------------------------------------------------- job names
+
+#[test]
+fn long_job_names_are_422_naming_the_limit() {
+    let mut c = start(&[]);
+    let scene = c.upload_ok(cornell_demo_glb());
+    let job = |name: String| json!({"scene_id": scene, "name": name, "width": 16, "height": 16, "spp": 1});
+    let r = c.submit(&job("x".repeat(1 << 20)));
+    pathfarm_tests::procs::expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["name", "256 bytes"]);
+    let r = c.submit(&job("x".repeat(257)));
+    pathfarm_tests::procs::expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["name", "257", "256 bytes"]);
+    let id = c.submit_ok(&job("x".repeat(256)));
+    assert_eq!(c.job(id).name.len(), 256);
+    c.assert_serving();
+}
