@@ -315,7 +315,11 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
         farm.submit(req.scene_id, req.name, req.priority, req.settings, now_ms())?
     };
     tracing::info!(job = id, "job submitted");
-    state.persist_job(id);
+    if let Err(e) = state.persist_job(id) {
+        // Not durable, so not accepted: the job goes away again.
+        state.farm.lock().withdraw(id);
+        return Err(e);
+    }
     state.work_ready.notify_waiters();
     state.publish("job", id);
     Ok((StatusCode::CREATED, Json(JobCreated { id })))
@@ -444,7 +448,8 @@ async fn job_action(
         action(&mut farm, id, now_ms())?;
         farm.job(id)?.info(now_ms())
     };
-    state.persist_job(id);
+    // The change is in effect; if it could not be saved, say so (the checkpoint loop retries).
+    state.persist_job(id)?;
     state.work_ready.notify_waiters();
     state.publish("job", id);
     Ok(Json(info))
@@ -527,7 +532,7 @@ async fn set_priority(
 async fn delete_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id = parse_id("job", &id)?;
     state.farm.lock().delete(id)?;
-    state.forget_job(id);
+    state.forget_job(id)?;
     state.delete_job_files(id);
     state.publish("job", id);
     Ok(StatusCode::NO_CONTENT)
@@ -906,6 +911,55 @@ mod tests {
 
     fn ids(v: &serde_json::Value) -> Vec<u64> {
         v.as_array().expect("array").iter().map(|j| j["id"].as_u64().expect("id")).collect()
+    }
+
+    async fn send(app: &Router, method: &str, uri: &str, body: Vec<u8>) -> (StatusCode, serde_json::Value) {
+        use tower::ServiceExt;
+        let req = axum::http::Request::builder()
+            .method(method)
+            .uri(uri)
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(axum::body::Body::from(body))
+            .expect("request");
+        let resp = app.clone().oneshot(req).await.expect("response");
+        let status = resp.status();
+        let body = axum::body::to_bytes(resp.into_body(), 64 << 20).await.expect("body");
+        (status, serde_json::from_slice(&body).unwrap_or(serde_json::Value::Null))
+    }
+
+    /// Only what is durable is acknowledged: once the database refuses writes, a submission is
+    /// 503 and the job is not there, a cancel is 503 naming the job; a full disk is 507.
+    #[tokio::test]
+    async fn changes_that_cannot_be_saved_are_not_acknowledged() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        let app = router(state.clone());
+        let glb = pathfarm_common::scene::demo::cornell_demo_glb();
+        let (status, scene) = send(&app, "POST", "/api/v1/scenes", glb).await;
+        assert_eq!(status, StatusCode::CREATED);
+        let job = serde_json::json!({"scene_id": scene["scene_id"], "width": 16, "height": 16, "spp": 1});
+        let body = serde_json::to_vec(&job).expect("json");
+        let (status, created) = send(&app, "POST", "/api/v1/jobs", body.clone()).await;
+        assert_eq!(status, StatusCode::CREATED);
+        let first = created["id"].as_u64().expect("id");
+
+        state.store.lock().expect("store").refuse_writes();
+        let (status, err) = send(&app, "POST", "/api/v1/jobs", body).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{err}");
+        assert_eq!(err["error"]["code"], "storage_unavailable");
+        let (_, _, list) = get(&app, "/api/v1/jobs").await;
+        assert_eq!(ids(&list), vec![first], "the unsaved job must not exist");
+        let (status, err) = send(&app, "POST", &format!("/api/v1/jobs/{first}/cancel"), Vec::new()).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{err}");
+        assert!(err["error"]["message"].as_str().is_some_and(|m| m.contains(&format!("job {first}"))), "{err}");
+
+        let full = rusqlite::Error::SqliteFailure(
+            rusqlite::ffi::Error { code: rusqlite::ErrorCode::DiskFull, extended_code: 13 },
+            None,
+        );
+        let e = crate::server::database_error(&anyhow::Error::from(full), "job 7");
+        assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
     }
 
     #[tokio::test]

@@ -625,6 +625,16 @@ impl Farm {
         self.jobs.remove(&id).ok_or(FarmError::NoJob(id))
     }
 
+    /// Takes back a job that was just submitted but could not be saved, whatever its state (its
+    /// leases, if a worker was quick, are dropped: their results will be refused).
+    pub fn withdraw(&mut self, id: JobId) {
+        let leases: Vec<LeaseId> = self.leases.iter().filter(|(_, l)| l.job == id).map(|(&k, _)| k).collect();
+        for lease in leases {
+            self.take_lease(lease);
+        }
+        self.jobs.remove(&id);
+    }
+
     // ----------------------------------------------------------------- workers
 
     pub fn register(&mut self, name: String, threads: u32, now_ms: u64) -> WorkerId {

@@ -104,6 +104,28 @@ pub fn storage_error(e: &std::io::Error, what: &str) -> ApiError {
     }
 }
 
+/// A failed database write: 507 when the disk is full, 503 otherwise; the message says what was
+/// not saved.
+pub fn database_error(e: &anyhow::Error, what: &str) -> ApiError {
+    tracing::error!(error = %format!("{e:#}"), "saving {what} failed");
+    let full = e.downcast_ref::<rusqlite::Error>().and_then(rusqlite::Error::sqlite_error_code)
+        == Some(rusqlite::ErrorCode::DiskFull)
+        || e.downcast_ref::<std::io::Error>().is_some_and(|io| io.raw_os_error() == Some(28));
+    if full {
+        ApiError::new(
+            StatusCode::INSUFFICIENT_STORAGE,
+            "insufficient_storage",
+            format!("the coordinator's disk is full: {what} was not saved; retry later"),
+        )
+    } else {
+        ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "storage_unavailable",
+            format!("the coordinator could not save {what}; retry later"),
+        )
+    }
+}
+
 /// What the scene store remembers about a bundle.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneMeta {
@@ -319,16 +341,16 @@ impl AppState {
     }
 
     /// Writes a job's row (state, priority, times) now; used by API actions that must be
-    /// durable before they are acknowledged.
-    pub fn persist_job(&self, id: JobId) {
+    /// durable before they are acknowledged: an error here is the request's answer (507 when
+    /// the disk is full).
+    pub fn persist_job(&self, id: JobId) -> Result<(), ApiError> {
         // Store lock first, then the farm's: a job deleted meanwhile is not written back (a
         // delete takes the farm's lock, then the store's, to remove the row).
         let store = self.store();
         let rec = self.farm.lock().job(id).ok().map(|j| j.record(now_ms()));
-        if let Some(rec) = rec
-            && let Err(e) = store.put_job(&rec)
-        {
-            tracing::error!(job = id, "persisting the job failed: {e:#}");
+        match rec {
+            Some(rec) => store.put_job(&rec).map_err(|e| database_error(&e, &format!("job {id}"))),
+            None => Ok(()),
         }
     }
 
@@ -338,10 +360,8 @@ impl AppState {
         }
     }
 
-    pub fn forget_job(&self, id: JobId) {
-        if let Err(e) = self.store().delete_job(id) {
-            tracing::error!(job = id, "deleting the job row failed: {e:#}");
-        }
+    pub fn forget_job(&self, id: JobId) -> Result<(), ApiError> {
+        self.store().delete_job(id).map_err(|e| database_error(&e, &format!("the deletion of job {id}")))
     }
 
     pub fn publish(&self, kind: &'static str, id: u64) {

@@ -42,7 +42,9 @@ impl Store {
         let path = data_dir.join("pathfarm.db");
         let conn = Connection::open(&path).with_context(|| format!("opening {}", path.display()))?;
         conn.pragma_update(None, "journal_mode", "WAL")?;
-        conn.pragma_update(None, "synchronous", "NORMAL")?;
+        // FULL: a transaction is on disk before the API acknowledges it (NORMAL in WAL mode may
+        // lose the last commits on power loss).
+        conn.pragma_update(None, "synchronous", "FULL")?;
         conn.execute_batch(
             "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
              CREATE TABLE IF NOT EXISTS jobs (
@@ -100,6 +102,12 @@ impl Store {
             ],
         )?;
         Ok(())
+    }
+
+    /// Refuses every later write (tests: a disk that stopped taking writes).
+    #[cfg(test)]
+    pub fn refuse_writes(&self) {
+        let _ = self.conn.pragma_update(None, "query_only", "ON");
     }
 
     /// The highest job id ever written (deleted jobs and rows `jobs` skips included), 0 if none.
