@@ -27,7 +27,7 @@ fn check(resp: Response) -> anyhow::Result<Response> {
 
 impl Client {
     pub fn new(base: &str, token: Option<String>) -> anyhow::Result<Self> {
-        let http = Http::builder().timeout(Duration::from_secs(300)).build()?;
+        let http = pathfarm_worker::daemon::with_ca_cert(Http::builder().timeout(Duration::from_secs(300)))?.build()?;
         Ok(Self { base: base.trim_end_matches('/').to_string(), token, http })
     }
 

@@ -273,7 +273,14 @@ async fn watchdog(st: Arc<ConnState>, clock: Arc<Clock>, limits: ConnLimits) -> 
 }
 
 /// Serves `app` on `listener` until the task is dropped or aborted.
-pub async fn serve(listener: TcpListener, app: Router, limits: ConnLimits, state: Arc<AppState>) {
+/// With `tls`, every connection is a TLS connection (HTTP/1.1 inside).
+pub async fn serve(
+    listener: TcpListener,
+    app: Router,
+    limits: ConnLimits,
+    state: Arc<AppState>,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+) {
     let clock = Arc::new(Clock(Instant::now()));
     let slots = Arc::new(Semaphore::new(limits.max_connections.max(1)));
     let registry = Arc::new(Registry::default());
@@ -323,9 +330,49 @@ pub async fn serve(listener: TcpListener, app: Router, limits: ConnLimits, state
         let id = next_id;
         next_id += 1;
         registry.conns().insert(id, st.clone());
-        let io = TokioIo::new(Tracked { io: stream, st: st.clone(), clock: clock.clone() });
+        let tracked = Tracked { io: stream, st: st.clone(), clock: clock.clone() };
+        let (registry, state, clock, app, builder, tls) =
+            (registry.clone(), state.clone(), clock.clone(), app.clone(), builder.clone(), tls.clone());
+        tokio::spawn(async move {
+            let _permit = permit;
+            state.metrics.connections_open.fetch_add(1, Ordering::Relaxed);
+            let conn = Conn { app, builder, st, clock, limits, peer };
+            match tls {
+                None => conn.drive(tracked, &state).await,
+                // The handshake counts against the header timeout, like a slow request head.
+                Some(acceptor) => match tokio::time::timeout(limits.header_timeout, acceptor.accept(tracked)).await {
+                    Ok(Ok(tls_stream)) => conn.drive(tls_stream, &state).await,
+                    Ok(Err(e)) => tracing::debug!(%peer, "TLS handshake failed: {e}"),
+                    Err(_) => {
+                        state.metrics.connections_timed_out.fetch_add(1, Ordering::Relaxed);
+                        tracing::debug!(%peer, "closing the connection: TLS handshake not complete in time");
+                    }
+                },
+            }
+            state.metrics.connections_open.fetch_sub(1, Ordering::Relaxed);
+            registry.conns().remove(&id);
+        });
+    }
+}
+
+/// One accepted connection, ready to serve HTTP/1 over a plain or TLS stream.
+struct Conn {
+    app: Router,
+    builder: hyper::server::conn::http1::Builder,
+    st: Arc<ConnState>,
+    clock: Arc<Clock>,
+    limits: ConnLimits,
+    peer: std::net::SocketAddr,
+}
+
+impl Conn {
+    async fn drive<I>(self, io: I, state: &AppState)
+    where
+        I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    {
+        let Conn { app, builder, st, clock, limits, peer } = self;
         let svc = {
-            let (app, st, clock) = (app.clone(), st.clone(), clock.clone());
+            let (st, clock) = (st.clone(), clock.clone());
             hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
                 let (app, guard) = (app.clone(), InFlight::new(st.clone(), clock.clone()));
                 async move {
@@ -334,30 +381,45 @@ pub async fn serve(listener: TcpListener, app: Router, limits: ConnLimits, state
                 }
             })
         };
-        let conn = builder.serve_connection(io, svc);
-        let (registry, state, clock) = (registry.clone(), state.clone(), clock.clone());
-        tokio::spawn(async move {
-            let _permit = permit;
-            state.metrics.connections_open.fetch_add(1, Ordering::Relaxed);
-            tokio::pin!(conn);
-            tokio::select! {
-                r = conn.as_mut() => {
-                    if let Err(e) = r {
-                        tracing::debug!(%peer, "connection ended: {e}");
-                    }
-                }
-                why = watchdog(st.clone(), clock, limits) => {
-                    state.metrics.connections_timed_out.fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!(%peer, "closing the connection: {why}");
-                }
-                () = st.close.notified() => {
-                    tracing::debug!(%peer, "closing a quiet connection to make room (connection cap)");
+        let conn = builder.serve_connection(TokioIo::new(io), svc);
+        tokio::pin!(conn);
+        tokio::select! {
+            r = conn.as_mut() => {
+                if let Err(e) = r {
+                    tracing::debug!(%peer, "connection ended: {e}");
                 }
             }
-            state.metrics.connections_open.fetch_sub(1, Ordering::Relaxed);
-            registry.conns().remove(&id);
-        });
+            why = watchdog(st.clone(), clock, limits) => {
+                state.metrics.connections_timed_out.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(%peer, "closing the connection: {why}");
+            }
+            () = st.close.notified() => {
+                tracing::debug!(%peer, "closing a quiet connection to make room (connection cap)");
+            }
+        }
     }
+}
+
+/// A TLS acceptor for `cert` (PEM chain, leaf first) and `key` (PEM private key).
+pub fn tls_acceptor(cert: &std::path::Path, key: &std::path::Path) -> anyhow::Result<tokio_rustls::TlsAcceptor> {
+    use anyhow::Context as _;
+    use rustls_pki_types::pem::PemObject;
+    use rustls_pki_types::{CertificateDer, PrivateKeyDer};
+    use tokio_rustls::rustls;
+    let certs = CertificateDer::pem_file_iter(cert)
+        .and_then(|it| it.collect::<Result<Vec<_>, _>>())
+        .with_context(|| format!("reading the TLS certificate chain {}", cert.display()))?;
+    anyhow::ensure!(!certs.is_empty(), "{} holds no PEM certificate", cert.display());
+    let key = PrivateKeyDer::from_pem_file(key).with_context(|| format!("reading the TLS key {}", key.display()))?;
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .context("TLS protocol versions")?
+        .with_no_client_auth()
+        .with_single_cert(certs, key)
+        .context("the TLS certificate and key do not form a valid pair")?;
+    cfg.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(tokio_rustls::TlsAcceptor::from(Arc::new(cfg)))
 }
 
 #[cfg(test)]

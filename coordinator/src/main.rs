@@ -80,6 +80,13 @@ struct ServeArgs {
     /// Refuse jobs whose integrator max_depth exceeds this.
     #[arg(long, default_value_t = 1024)]
     max_depth: u32,
+    /// Serve HTTPS: the certificate chain (PEM, leaf first). Needs --tls-key. Workers and
+    /// clients that do not trust its issuer take `PATHFARM_CA_CERT=ca.pem`.
+    #[arg(long, env = "PATHFARM_TLS_CERT", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, env = "PATHFARM_TLS_KEY", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
     /// Refuse jobs with more work units (tiles x passes) than this.
     #[arg(long, default_value_t = 1 << 22)]
     max_units: u64,
@@ -125,6 +132,7 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.limits.max_spp = a.max_spp;
     cfg.farm.limits.max_depth = a.max_depth;
     cfg.farm.limits.max_units = a.max_units;
+    cfg.tls = a.tls_cert.clone().zip(a.tls_key.clone());
     cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
     if a.header_timeout_ms == 0 || a.idle_timeout_ms == 0 || a.max_connections == 0 {
         anyhow::bail!("--header-timeout-ms, --idle-timeout-ms and --max-connections must be at least 1");

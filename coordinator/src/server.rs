@@ -46,6 +46,8 @@ pub struct ServerConfig {
     pub conn: crate::conn::ConnLimits,
     /// When set, `/metrics` requires `Authorization: Bearer <it>`.
     pub metrics_token: Option<String>,
+    /// Serve HTTPS with this certificate chain and private key (PEM files).
+    pub tls: Option<(PathBuf, PathBuf)>,
 }
 
 impl ServerConfig {
@@ -63,6 +65,7 @@ impl ServerConfig {
             checkpoint_interval: Duration::from_secs(1),
             auth: Auth::default(),
             conn: crate::conn::ConnLimits::default(),
+            tls: None,
             metrics_token: None,
         }
     }
@@ -591,23 +594,30 @@ impl Server {
         tokio::spawn(maintenance_loop(state.clone()));
         tokio::spawn(output_loop(state.clone()));
         tokio::spawn(checkpoint_loop(state.clone()));
+        let tls = match &config.tls {
+            Some((cert, key)) => Some(crate::conn::tls_acceptor(cert, key)?),
+            None => None,
+        };
         let app = crate::api::router(state.clone());
         let mut limits = config.conn;
         limits.max_connections = crate::conn::fit_to_fd_limit(limits.max_connections);
-        let task = tokio::spawn(crate::conn::serve(listener, app, limits, state.clone()));
+        let scheme = if tls.is_some() { "https" } else { "http" };
+        let task = tokio::spawn(crate::conn::serve(listener, app, limits, state.clone(), tls));
         tracing::info!(
             %addr,
             data_dir = %config.data_dir.display(),
             max_connections = limits.max_connections,
             header_timeout_ms = limits.header_timeout.as_millis() as u64,
             idle_timeout_ms = limits.idle_timeout.as_millis() as u64,
+            scheme,
             "coordinator listening"
         );
         Ok(Self { addr, state, task })
     }
 
     pub fn url(&self) -> String {
-        format!("http://{}", self.addr)
+        let scheme = if self.state.config.tls.is_some() { "https" } else { "http" };
+        format!("{scheme}://{}", self.addr)
     }
 
     /// Serves until the process gets SIGINT or SIGTERM.

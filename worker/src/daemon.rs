@@ -114,11 +114,10 @@ pub struct Daemon {
 
 impl Daemon {
     pub fn new(cfg: DaemonConfig) -> anyhow::Result<Self> {
-        let http = Client::builder()
-            .timeout(Duration::from_secs(120))
-            .connect_timeout(Duration::from_secs(5))
-            .build()
-            .context("building the HTTP client")?;
+        let http =
+            with_ca_cert(Client::builder().timeout(Duration::from_secs(120)).connect_timeout(Duration::from_secs(5)))?
+                .build()
+                .context("building the HTTP client")?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cfg.threads)
             .thread_name(|i| format!("render-{i}"))
@@ -391,6 +390,18 @@ impl Daemon {
         self.scene = Some((id.to_string(), scene.clone()));
         Ok(scene)
     }
+}
+
+/// Trusts the PEM certificate(s) in `PATHFARM_CA_CERT` as well as the system's roots, for a
+/// coordinator serving HTTPS with a private CA or a self-signed certificate.
+pub fn with_ca_cert(builder: reqwest::blocking::ClientBuilder) -> anyhow::Result<reqwest::blocking::ClientBuilder> {
+    let Some(path) = std::env::var_os("PATHFARM_CA_CERT").filter(|p| !p.is_empty()) else { return Ok(builder) };
+    let path = PathBuf::from(path);
+    let pem = std::fs::read(&path).with_context(|| format!("PATHFARM_CA_CERT: reading {}", path.display()))?;
+    let certs = reqwest::Certificate::from_pem_bundle(&pem)
+        .with_context(|| format!("PATHFARM_CA_CERT: {} is not a PEM certificate", path.display()))?;
+    anyhow::ensure!(!certs.is_empty(), "PATHFARM_CA_CERT: {} holds no certificate", path.display());
+    Ok(certs.into_iter().fold(builder, |b, c| b.add_root_certificate(c)))
 }
 
 /// The text of a panic payload.
