@@ -208,12 +208,18 @@ fn auth(a: &ServeArgs) -> anyhow::Result<Auth> {
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600))?;
     }
-    eprintln!(
-        "pathfarm-coordinator: generated tokens (kept in {}):\n  client token: {}\n  worker token: {}",
-        path.display(),
-        tokens.client.as_deref().unwrap_or_default(),
-        tokens.worker.as_deref().unwrap_or_default()
-    );
+    // Secrets go to a person at a terminal only: under systemd or in a container stderr is a
+    // log (the journal) that others may read.
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        eprintln!(
+            "pathfarm-coordinator: generated tokens (kept in {}):\n  client token: {}\n  worker token: {}",
+            path.display(),
+            tokens.client.as_deref().unwrap_or_default(),
+            tokens.worker.as_deref().unwrap_or_default()
+        );
+    } else {
+        tracing::info!(path = %path.display(), "generated client and worker tokens; read them in this file (mode 0600)");
+    }
     Ok(tokens)
 }
 

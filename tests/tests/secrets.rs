@@ -1,0 +1,44 @@
+//! Secrets stay out of logs: a coordinator that generates its tokens on the first start, with
+//! stderr going to a file (as under systemd, where it is the journal), writes them only to
+//! DATA_DIR/tokens.json (mode 0600), never to its log.
+
+mod support;
+
+use std::os::unix::fs::PermissionsExt;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+use support::*;
+
+#[test]
+fn generated_tokens_are_not_logged() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let log_path = dir.path().join("coordinator.log");
+    let log = std::fs::File::create(&log_path).expect("log");
+    let child = Command::new(bin("pathfarm-coordinator"))
+        .args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(&data)
+        .env_remove("PATHFARM_CLIENT_TOKEN")
+        .env_remove("PATHFARM_WORKER_TOKEN")
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .expect("spawn");
+    let _coordinator = Proc { child };
+    let tokens: serde_json::Value = wait_for("tokens.json", Duration::from_secs(30), || {
+        serde_json::from_slice(&std::fs::read(data.join("tokens.json")).ok()?).ok()
+    });
+    wait_for("the coordinator to listen", Duration::from_secs(30), || {
+        std::fs::read_to_string(data.join("coordinator.addr")).ok().filter(|a| !a.is_empty())
+    });
+    let mode = std::fs::metadata(data.join("tokens.json")).expect("meta").permissions().mode() & 0o777;
+    assert_eq!(mode, 0o600, "tokens.json must be private");
+    let log = std::fs::read_to_string(&log_path).expect("read log");
+    for key in ["client_token", "worker_token"] {
+        let token = tokens[key].as_str().expect("token");
+        assert!(token.len() >= 32, "{key} too short");
+        assert!(!log.contains(token), "the {key} is in the log:\n{log}");
+    }
+    assert!(log.contains("tokens.json"), "the log should say where the tokens are:\n{log}");
+}
