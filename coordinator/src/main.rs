@@ -19,6 +19,15 @@ struct Cli {
 enum Command {
     /// Start a coordinator with local workers, render the bundled demo scene, write an EXR.
     Demo(pathfarm_coordinator::demo::DemoArgs),
+    /// Exit 0 if the coordinator at URL answers `/healthz`, 1 otherwise (container health checks).
+    Healthcheck {
+        /// The coordinator's base URL (https:// trusts PATHFARM_CA_CERT too).
+        #[arg(long, default_value = "http://127.0.0.1:8080")]
+        url: String,
+        /// Give up after this long.
+        #[arg(long, default_value_t = 3_000)]
+        timeout_ms: u64,
+    },
 }
 
 #[derive(Args, Debug)]
@@ -38,6 +47,13 @@ struct ServeArgs {
     /// Bearer token for workers.
     #[arg(long, env = "PATHFARM_WORKER_TOKEN", hide_env_values = true)]
     worker_token: Option<String>,
+    /// Read the client token from this file (first line; e.g. a systemd credential or a
+    /// Kubernetes secret volume), so it appears in no process listing or environment.
+    #[arg(long, env = "PATHFARM_CLIENT_TOKEN_FILE", conflicts_with = "client_token")]
+    client_token_file: Option<PathBuf>,
+    /// Read the worker token from this file.
+    #[arg(long, env = "PATHFARM_WORKER_TOKEN_FILE", conflicts_with = "worker_token")]
+    worker_token_file: Option<PathBuf>,
     /// Bearer token for `GET /metrics` (open when not given; the client and worker tokens do
     /// not open it).
     #[arg(long, env = "PATHFARM_METRICS_TOKEN", hide_env_values = true)]
@@ -115,10 +131,18 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
-    if let Some(Command::Demo(args)) = cli.command {
-        return pathfarm_coordinator::demo::run(args);
+    match cli.command {
+        Some(Command::Demo(args)) => return pathfarm_coordinator::demo::run(args),
+        Some(Command::Healthcheck { url, timeout_ms }) => return healthcheck(&url, timeout_ms),
+        None => {}
     }
-    let a = cli.serve;
+    let mut a = cli.serve;
+    if let Some(path) = &a.client_token_file {
+        a.client_token = Some(read_token_file(path)?);
+    }
+    if let Some(path) = &a.worker_token_file {
+        a.worker_token = Some(read_token_file(path)?);
+    }
     let mut cfg = ServerConfig::new(a.listen, a.data_dir.clone());
     cfg.farm.lease_timeout_ms = a.lease_timeout_ms;
     cfg.farm.heartbeat_ms = a.heartbeat_ms;
@@ -221,6 +245,25 @@ fn auth(a: &ServeArgs) -> anyhow::Result<Auth> {
         tracing::info!(path = %path.display(), "generated client and worker tokens; read them in this file (mode 0600)");
     }
     Ok(tokens)
+}
+
+/// A token kept in a file: its first line, trimmed; an empty one is refused.
+fn read_token_file(path: &std::path::Path) -> anyhow::Result<String> {
+    use anyhow::Context;
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading the token file {}", path.display()))?;
+    let token = text.lines().next().unwrap_or_default().trim().to_string();
+    anyhow::ensure!(!token.is_empty(), "the token file {} is empty: an empty token is refused", path.display());
+    Ok(token)
+}
+
+/// `pathfarm-coordinator healthcheck`: GET /healthz.
+fn healthcheck(url: &str, timeout_ms: u64) -> anyhow::Result<()> {
+    let timeout = std::time::Duration::from_millis(timeout_ms.max(1));
+    let http = pathfarm_worker::daemon::with_ca_cert(reqwest::blocking::Client::builder().timeout(timeout))?.build()?;
+    let url = format!("{}/healthz", url.trim_end_matches('/'));
+    let resp = http.get(&url).send().map_err(|e| anyhow::anyhow!("{url}: {e}"))?;
+    anyhow::ensure!(resp.status().is_success(), "{url}: {}", resp.status());
+    Ok(())
 }
 
 /// 192 random bits from the OS, hex-encoded.

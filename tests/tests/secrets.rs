@@ -42,3 +42,60 @@ fn generated_tokens_are_not_logged() {
     }
     assert!(log.contains("tokens.json"), "the log should say where the tokens are:\n{log}");
 }
+
+/// Tokens read from files (`--client-token-file`, `--worker-token-file`: no secret in argv or
+/// the environment), and `pathfarm-coordinator healthcheck` for container health checks.
+#[test]
+fn token_files_and_the_healthcheck_subcommand() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let (client_file, worker_file) = (dir.path().join("client"), dir.path().join("worker"));
+    std::fs::write(&client_file, "client-secret-from-a-file-0123456789\n").expect("write");
+    std::fs::write(&worker_file, "worker-secret-from-a-file-0123456789\n").expect("write");
+    let child = Command::new(bin("pathfarm-coordinator"))
+        .args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(&data)
+        .arg("--client-token-file")
+        .arg(&client_file)
+        .arg("--worker-token-file")
+        .arg(&worker_file)
+        .env_remove("PATHFARM_CLIENT_TOKEN")
+        .env_remove("PATHFARM_WORKER_TOKEN")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn");
+    let _coordinator = Proc { child };
+    let addr = wait_for("the coordinator to listen", Duration::from_secs(30), || {
+        std::fs::read_to_string(data.join("coordinator.addr")).ok().filter(|a| !a.is_empty())
+    });
+    let url = format!("http://{addr}");
+    let healthcheck = |url: &str| {
+        let mut cmd = Command::new(bin("pathfarm-coordinator"));
+        cmd.args(["healthcheck", "--url", url]).stderr(Stdio::null()).status().expect("healthcheck")
+    };
+    wait_for("the healthcheck to pass", Duration::from_secs(30), || healthcheck(&url).success().then_some(()));
+    let http = reqwest::blocking::Client::new();
+    let jobs = format!("{url}/api/v1/jobs");
+    assert_eq!(http.get(&jobs).send().expect("GET").status(), reqwest::StatusCode::UNAUTHORIZED);
+    let ok = http.get(&jobs).bearer_auth("client-secret-from-a-file-0123456789").send().expect("GET");
+    assert_eq!(ok.status(), reqwest::StatusCode::OK);
+    // Nothing listens on the port of a closed listener.
+    let closed = std::net::TcpListener::bind("127.0.0.1:0").expect("bind").local_addr().expect("addr");
+    assert!(!healthcheck(&format!("http://{closed}")).success(), "the healthcheck passed with no coordinator");
+    // An empty token file is refused at start-up.
+    std::fs::write(&client_file, "\n").expect("write");
+    let out = Command::new(bin("pathfarm-coordinator"))
+        .args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(dir.path().join("data2"))
+        .arg("--client-token-file")
+        .arg(&client_file)
+        .arg("--worker-token-file")
+        .arg(&worker_file)
+        .env_remove("PATHFARM_CLIENT_TOKEN")
+        .env_remove("PATHFARM_WORKER_TOKEN")
+        .output()
+        .expect("run");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("is empty"), "{}", String::from_utf8_lossy(&out.stderr));
+}
