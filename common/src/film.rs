@@ -179,6 +179,9 @@ pub struct ImageLayers {
     pub depth: Vec<f32>,
     pub samples: Vec<f32>,
     pub variance: Vec<f32>,
+    /// The colour denoised (OIDN, from colour, albedo and normal), when asked for: written as
+    /// the EXR layer `denoised` and shown by the PNG preview.
+    pub denoised: Option<Vec<[f32; 3]>>,
 }
 
 impl Film {
@@ -235,6 +238,7 @@ impl Film {
             depth: vec![f32::INFINITY; n],
             samples: vec![0.0; n],
             variance: vec![0.0; n],
+            denoised: None,
         };
         let splat_scale = if self.splat_spp > 0 { 1.0 / f64::from(self.splat_spp) } else { 0.0 };
         for i in 0..n {
@@ -299,6 +303,13 @@ impl ImageLayers {
             ("samples.Y", self.samples.clone()),
             ("variance.Y", self.variance.clone()),
         ]
+        .into_iter()
+        .chain(
+            self.denoised
+                .iter()
+                .flat_map(|d| [("denoised.R", c3(d, 0)), ("denoised.G", c3(d, 1)), ("denoised.B", c3(d, 2))]),
+        )
+        .collect()
     }
 
     /// Encodes the layers as a float32 OpenEXR file in memory (ZIP compression, lossless).
@@ -320,12 +331,14 @@ impl ImageLayers {
         write_atomic(path, &bytes)
     }
 
-    /// An 8-bit sRGB preview: `exposure` in stops, clamped, sRGB-encoded.
+    /// An 8-bit sRGB preview of the denoised colour if there is one, else of the colour:
+    /// `exposure` in stops, clamped, sRGB-encoded.
     pub fn preview_rgb8(&self, exposure: f32) -> image::RgbImage {
         let scale = exposure.exp2();
         let mut img = image::RgbImage::new(self.width, self.height);
+        let shown = self.denoised.as_deref().unwrap_or(&self.rgb);
         for (i, px) in img.pixels_mut().enumerate() {
-            let c = self.rgb[i];
+            let c = shown[i];
             *px = image::Rgb([encode_srgb8(c[0] * scale), encode_srgb8(c[1] * scale), encode_srgb8(c[2] * scale)]);
         }
         img

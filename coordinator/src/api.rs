@@ -562,6 +562,7 @@ pub fn resolve_banded(state: &AppState, id: JobId) -> ApiResult<ImageLayers> {
         depth: Vec::with_capacity(n),
         samples: Vec::with_capacity(n),
         variance: Vec::with_capacity(n),
+        denoised: None,
     };
     let mut y0 = 0;
     while y0 < h {

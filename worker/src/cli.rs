@@ -171,12 +171,20 @@ pub struct RenderArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Also write a `denoised` layer (Intel Open Image Denoise, from colour, albedo and normal);
+    /// the PNG shows it. Needs a binary built with the `denoise` feature.
+    #[arg(long)]
+    pub denoise: bool,
 }
 
 /// Runs `pathfarm-worker render`.
 pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     if let Some(n) = args.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global().context("thread pool")?;
+    }
+    if args.denoise {
+        // Before the render, not after it.
+        crate::denoise::ensure_available()?;
     }
     let settings = args.settings.to_settings();
     settings.validate(&pathfarm_common::job::Limits::default()).context("invalid settings")?;
@@ -200,7 +208,12 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
     let samples = f64::from(settings.width) * f64::from(settings.height) * f64::from(settings.spp);
-    let image = film.resolve();
+    let mut image = film.resolve();
+    if args.denoise {
+        let t = Instant::now();
+        image.denoised = Some(crate::denoise::denoise(&image)?);
+        tracing::info!(denoise_s = t.elapsed().as_secs_f64(), "denoised (OIDN)");
+    }
     image.write_exr(&args.out)?;
     if let Some(png) = &args.png {
         image.write_png(png, args.exposure)?;

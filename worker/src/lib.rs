@@ -2,4 +2,5 @@
 
 pub mod cli;
 pub mod daemon;
+pub mod denoise;
 pub mod render;

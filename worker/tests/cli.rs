@@ -81,3 +81,19 @@ fn bad_flags_and_files_fail_cleanly() {
     assert!(!zero.status.success());
     assert!(String::from_utf8_lossy(&zero.stderr).contains("spp"), "the error names the setting");
 }
+
+/// A binary built without the `denoise` feature refuses `--denoise` before rendering, saying
+/// how to get one that can.
+#[cfg(not(feature = "denoise"))]
+#[test]
+fn denoise_without_the_feature_is_a_clear_error() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = worker()
+        .args(["render", "no-such-scene.glb", "--denoise", "--out"])
+        .arg(dir.path().join("x.exr"))
+        .output()
+        .expect("run");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot denoise") && err.contains("pyoidn"), "{err}");
+}
