@@ -7,7 +7,7 @@
 //! a grazing `wo` with `wo.z == 0`.
 
 use super::geometry::Frame;
-use super::microfacet::{Fresnel, MicrofacetDistribution, fr_dielectric};
+use super::microfacet::{Fresnel, MicrofacetDistribution, SMOOTH_ALPHA, fr_dielectric};
 use super::sampling::sample_cosine_hemisphere;
 use glam::{Vec2, Vec3A};
 use std::f32::consts::FRAC_1_PI;
@@ -90,7 +90,14 @@ pub enum Bxdf {
     /// `F_m = c + (1 - c)(1 - |wo.h|)^5` (metal tinted by the base colour), `c` the base colour,
     /// `m` metallic and `s` the specular factor (1 in core glTF; 0 leaves a pure diffuse dielectric).
     /// Samples a mix of the GGX visible normals and a cosine hemisphere.
+    /// Below [`SMOOTH_ALPHA`] use [`Bxdf::gltf_lobe`], which returns delta lobes.
     GltfMetalRough { base_color: Vec3A, metallic: f32, alpha: f32, specular_factor: f32 },
+    /// The diffuse base of glTF metallic-roughness under a smooth (delta) dielectric layer of
+    /// specular factor `s`: `f = r / pi (1 - F(mu_o))(1 - F(mu_i)) / (1 - F_avg)` with the
+    /// Schlick `F(mu) = s (0.04 + 0.96 (1 - mu)^5)` and `F_avg = s (0.04 + 0.96 / 21)`, so it reflects
+    /// `r (1 - F(mu_o))`. Sampled with a cosine hemisphere. [`Bxdf::gltf_lobe`] picks it or the
+    /// layer's mirror reflection.
+    GltfSmoothBase { r: Vec3A, specular_factor: f32 },
     /// Perfect specular reflection with reflectance `r` (a delta lobe).
     Mirror { r: Vec3A },
     /// A smooth dielectric interface: delta reflection and refraction chosen by the Fresnel
@@ -108,6 +115,49 @@ impl Bxdf {
     /// The glTF metallic-roughness lobe from the material's perceptual `roughness` (`alpha = roughness^2`).
     pub fn gltf(base_color: Vec3A, metallic: f32, roughness: f32, specular_factor: f32) -> Self {
         Self::GltfMetalRough { base_color, metallic, alpha: roughness * roughness, specular_factor }
+    }
+
+    /// The glTF metallic-roughness lobe for outgoing cosine `cos_o` (to the shading normal):
+    /// [`Bxdf::GltfMetalRough`] when `roughness^2` is at least [`SMOOTH_ALPHA`]; below it the
+    /// surface is smooth and one of its two lobes is picked by `u` in proportion to its
+    /// directional albedo (mean over channels): the specular one, a [`Bxdf::Mirror`] reflecting
+    /// `(1 - m) F_d(mu_o) + m F_m(mu_o)`, or the diffuse base, a [`Bxdf::GltfSmoothBase`] reflecting
+    /// `(1 - m) c (1 - F_d(mu_o))`, each divided by the probability of picking it, so that the
+    /// expected lobe is the whole BSDF (pbrt's stochastic lobe selection). Integrators then treat
+    /// the mirror as specular: no next-event estimation or MIS on it, no VPLs.
+    pub fn gltf_lobe(
+        base_color: Vec3A,
+        metallic: f32,
+        roughness: f32,
+        specular_factor: f32,
+        cos_o: f32,
+        u: f32,
+    ) -> Self {
+        let alpha = roughness * roughness;
+        if alpha >= SMOOTH_ALPHA {
+            return Self::GltfMetalRough { base_color, metallic, alpha, specular_factor };
+        }
+        let m = metallic.clamp(0.0, 1.0);
+        let s = specular_factor.clamp(0.0, 1.0);
+        let schlick = (1.0 - cos_o.abs().min(1.0)).powi(5);
+        let fd = s * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick);
+        let fm = base_color + (Vec3A::ONE - base_color) * schlick;
+        let spec = Vec3A::splat((1.0 - m) * fd) + m * fm;
+        let base = base_color * (1.0 - m);
+        let diffuse = base * (1.0 - fd);
+        let (ws, wd) = (spec.element_sum(), diffuse.element_sum());
+        let p_spec = if !(wd > 0.0) {
+            1.0
+        } else if !(ws > 0.0) {
+            0.0
+        } else {
+            ws / (ws + wd)
+        };
+        if u < p_spec {
+            Self::Mirror { r: spec / p_spec }
+        } else {
+            Self::GltfSmoothBase { r: base / (1.0 - p_spec), specular_factor: s }
+        }
     }
 
     /// True for the delta lobes ([`Bxdf::Mirror`], [`Bxdf::Dielectric`]): `f` and `pdf` are zero
@@ -128,6 +178,7 @@ impl Bxdf {
                 let dielectric = base_color * (1.0 - fd) + Vec3A::splat(fd);
                 dielectric * (1.0 - m) + base_color * m
             }
+            Self::GltfSmoothBase { r, specular_factor } => r * (1.0 - specular_factor * DIELECTRIC_F0),
             Self::Mirror { r } => r,
             Self::Dielectric { tint, .. } => tint,
         }
@@ -150,6 +201,7 @@ impl Bxdf {
                 let Some(wm) = half_vector(wo, wi) else { return Vec3A::ZERO };
                 gltf_f(base_color, metallic, alpha, specular_factor, wo, wi, wm)
             }
+            Self::GltfSmoothBase { r, specular_factor } => smooth_base_f(r, specular_factor, wo.z, wi.z),
             Self::Mirror { .. } | Self::Dielectric { .. } => Vec3A::ZERO,
         }
     }
@@ -161,7 +213,7 @@ impl Bxdf {
         }
         let (wo, wi) = upper(wo, wi);
         match *self {
-            Self::Lambertian { .. } => wi.z * FRAC_1_PI,
+            Self::Lambertian { .. } | Self::GltfSmoothBase { .. } => wi.z * FRAC_1_PI,
             Self::TorranceSparrow { distribution, .. } => {
                 let Some(wm) = half_vector(wo, wi) else { return 0.0 };
                 microfacet_pdf(&distribution, wo, wm)
@@ -224,6 +276,15 @@ impl Bxdf {
                 }
                 let f = gltf_f(base_color, metallic, alpha, specular_factor, wo_up, wi, wm);
                 Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::GLOSSY_REFLECTION, eta: 1.0 })
+            }
+            Self::GltfSmoothBase { r, specular_factor } => {
+                let wi = sample_cosine_hemisphere(u);
+                let pdf = wi.z * FRAC_1_PI;
+                if !(pdf > 0.0) {
+                    return None;
+                }
+                let f = smooth_base_f(r, specular_factor, wo_up.z, wi.z);
+                Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::DIFFUSE_REFLECTION, eta: 1.0 })
             }
             Self::Mirror { r } => {
                 let wi = Vec3A::new(-wo.x, -wo.y, wo.z);
@@ -372,6 +433,16 @@ fn gltf_specular_probability(base_color: Vec3A, metallic: f32, specular_factor: 
     }
 }
 
+/// [`Bxdf::GltfSmoothBase`] for upper-side cosines.
+fn smooth_base_f(r: Vec3A, specular_factor: f32, cos_o: f32, cos_i: f32) -> Vec3A {
+    if !(cos_o > 0.0) || !(cos_i > 0.0) {
+        return Vec3A::ZERO;
+    }
+    let f = |mu: f32| specular_factor * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * (1.0 - mu.min(1.0)).powi(5));
+    let f_avg = specular_factor * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) / 21.0);
+    r * (FRAC_1_PI * (1.0 - f(cos_o)) * (1.0 - f(cos_i)) / (1.0 - f_avg))
+}
+
 /// A BSDF at a surface hit: the shading frame and the lobe. Converts world-space directions to
 /// the local frame and back.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -437,7 +508,7 @@ pub(crate) mod tests {
     /// Cosines of the incident angles every non-delta lobe is tested at (0.05 is grazing).
     const COS_THETA_O: [f32; 4] = [1.0, 0.7, 0.2, 0.05];
     /// Non-delta lobes in the suite (see `smooth_cases`).
-    const SMOOTH_CASES: usize = 17;
+    const SMOOTH_CASES: usize = 18;
     /// Lower-hemisphere chi-square cases (`chi2_lower_hemisphere`).
     const LOWER_CASES: usize = 5;
     /// Every chi-square test that must pass, across bsdf.rs and microfacet.rs: the Sidak
@@ -487,9 +558,12 @@ pub(crate) mod tests {
     }
 
     fn gltf() -> Vec<(String, Bxdf)> {
-        [(0.0, 0.5), (1.0, 0.3), (0.5, 0.9), (0.0, 0.1)]
+        let mut v: Vec<_> = [(0.0, 0.5), (1.0, 0.3), (0.5, 0.9), (0.0, 0.1)]
             .map(|(m, r)| (format!("gltf metallic={m} roughness={r}"), Bxdf::gltf(Vec3A::ONE, m, r, 1.0)))
-            .to_vec()
+            .to_vec();
+        // The diffuse base of a smooth (delta) glTF surface.
+        v.push(("gltf smooth base".into(), Bxdf::GltfSmoothBase { r: Vec3A::ONE, specular_factor: 1.0 }));
+        v
     }
 
     fn smooth_cases() -> Vec<(String, Bxdf)> {
@@ -869,5 +943,43 @@ pub(crate) mod tests {
         let dielectric = Bxdf::gltf(c, 0.0, 0.5, 1.0).albedo();
         assert!((dielectric - (c * 0.96 + Vec3A::splat(0.04))).abs().max_element() < 1e-6);
         assert_eq!(Bxdf::Dielectric { eta: 1.5, tint: c }.albedo(), c);
+    }
+    #[test]
+    fn smooth_gltf_picks_its_lobe_by_albedo() {
+        // A smooth surface picks the mirror with probability (specular albedo) / (total), the
+        // diffuse base otherwise, each divided by its probability: over 1e5 stratified u the
+        // mirror's frequency is within 5 binomial sigma of its probability, and the expected
+        // mirror weight plus the diffuse lobe's albedo (quadrature) is the BSDF's albedo.
+        let base = Vec3A::new(0.8, 0.6, 0.3);
+        for (m, cos) in [(0.0f32, 1.0f32), (0.0, 0.1), (0.5, 0.6), (1.0, 0.3)] {
+            let n = 100_000usize;
+            let (mut mirrors, mut expected, mut base_lobe) = (0usize, Vec3A::ZERO, None);
+            for k in 0..n {
+                let u = (k as f32 + 0.5) / n as f32;
+                match Bxdf::gltf_lobe(base, m, 0.0, 1.0, cos, u) {
+                    Bxdf::Mirror { r } => {
+                        mirrors += 1;
+                        expected += r / n as f32;
+                    }
+                    lobe @ Bxdf::GltfSmoothBase { .. } => base_lobe = Some(lobe),
+                    other => panic!("smooth lobe {other:?}"),
+                }
+            }
+            if let Some(lobe) = base_lobe {
+                let wo = dir(cos, 0.2);
+                let albedo: [f32; 3] =
+                    std::array::from_fn(|c| chi2::sphere_integral(|wi| lobe.f(wo, wi)[c] * wi.z.abs()) as f32);
+                expected += Vec3A::from(albedo) * ((n - mirrors) as f32 / n as f32);
+            }
+            let schlick = (1.0 - cos).powi(5);
+            let fd = DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick;
+            let spec = Vec3A::splat((1.0 - m) * fd) + m * (base + (Vec3A::ONE - base) * schlick);
+            let diffuse = base * (1.0 - m) * (1.0 - fd);
+            let p = f64::from(spec.element_sum() / (spec + diffuse).element_sum());
+            let freq = mirrors as f64 / n as f64;
+            assert!((freq - p).abs() <= 5.0 * (p * (1.0 - p) / n as f64).sqrt() + 1e-5, "m {m}: {freq} vs {p}");
+            let total = spec + diffuse;
+            assert!((expected - total).abs().max_element() < 5e-3, "m {m}, cos {cos}: {expected} vs {total}");
+        }
     }
 }

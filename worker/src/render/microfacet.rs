@@ -184,6 +184,11 @@ impl MicrofacetDistribution {
     }
 }
 
+/// GGX roughness below which a lobe is treated as a perfect (delta) reflection, as pbrt-v4's
+/// `EffectivelySmooth` and Mitsuba do: such a lobe is too narrow to evaluate or to light by
+/// next-event estimation, and only sampling it finds what it reflects.
+pub const SMOOTH_ALPHA: f32 = 1e-3;
+
 /// The Ashikhmin-Shirley exponent `e_x cos^2(phi) + e_y sin^2(phi)` at microfacet normal `wm`.
 fn as_exponent(ex: f32, ey: f32, wm: Vec3A) -> f32 {
     let sin2 = wm.x * wm.x + wm.y * wm.y;
