@@ -402,6 +402,30 @@ pub fn caustics_glb() -> Vec<u8> {
     b.to_glb()
 }
 
+/// Base colour of the mirror in [`gltf_mirror_glb`] (its albedo AOV tags the mirror's pixels).
+pub const GLTF_MIRROR_BASE: Vec3 = Vec3::new(0.9, 0.85, 0.8);
+
+/// A glTF mirror (core metallic-roughness: metallic 1, roughness 0, base colour
+/// [`GLTF_MIRROR_BASE`]) lying on the floor of the Mitsuba Cornell box walls (Lambertian,
+/// one ceiling light of radiance (18.387, 13.9873, 6.75357)). From the camera the mirror shows
+/// the lower back wall.
+pub fn gltf_mirror_glb() -> Vec<u8> {
+    let white_rgb = Vec3::new(0.885_809, 0.698_859, 0.666_422);
+    let mut b = GltfBuilder::new();
+    let white = b.material(lambert("white", white_rgb));
+    let red = b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6)));
+    let green = b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425)));
+    let light = b.material(emitter("light", white_rgb, Vec3::new(18.387, 13.9873, 6.753_57)));
+    let c = GLTF_MIRROR_BASE;
+    let mirror = b.material(json!({"name": "gltf-mirror",
+        "pbrMetallicRoughness": {"baseColorFactor": [c.x, c.y, c.z, 1.0], "metallicFactor": 1.0, "roughnessFactor": 0.0}}));
+    cornell_walls(&mut b, white, red, green, light);
+    let v = Vec3::new;
+    let (s, y) = (0.7, -0.995);
+    quad(&mut b, "mirror", [v(-s, y, s), v(s, y, s), v(s, y, -s), v(-s, y, -s)], mirror);
+    b.to_glb()
+}
+
 /// Veach's multiple-importance-sampling scene, flattened: four floor strips from rough to near
 /// mirror (Blinn exponents 2, 40, 600, 12000; base colours tagged 0.5, 0.6, 0.7, 0.8 in red so
 /// tests can tell them apart by the albedo layer), lit by a small bright and a large dim light.

@@ -149,6 +149,9 @@ pub fn load_scene_from_slice(
     loader.check_textures();
     loader.load_materials()?;
     loader.traverse()?;
+    if !loader.scene.has_emitters() {
+        loader.warn(super::NO_LIGHT_WARNING.to_string());
+    }
     Ok(loader.scene)
 }
 
@@ -1217,6 +1220,29 @@ mod tests {
         glb.extend(2u32.to_le_bytes());
         glb.extend(4u32.to_le_bytes()); // shorter than the header itself
         assert!(split_glb(&glb).is_err());
+    }
+
+    #[test]
+    fn a_scene_without_emitters_warns() {
+        // Nothing emits: one warning saying it renders black; an emissive surface or a point
+        // light silences it.
+        use super::super::demo::{GltfBuilder, emitter, lambert, point_furnace_glb};
+        use super::super::{NO_LIGHT_WARNING, load_scene_from_slice};
+        let load = |bytes: &[u8]| load_scene_from_slice(bytes, "t.glb", None, &LoadOptions::default()).expect("loads");
+        let tri = [glam::Vec3::ZERO, glam::Vec3::X, glam::Vec3::Y];
+        let scene_with = |m: serde_json::Value| {
+            let mut b = GltfBuilder::new();
+            let m = b.material(m);
+            b.mesh("tri", &tri, &[glam::Vec3::Z; 3], &[0, 1, 2], m);
+            b.to_glb()
+        };
+        let dark = load(&scene_with(lambert("grey", glam::Vec3::splat(0.5))));
+        assert!(!dark.has_emitters());
+        assert_eq!(dark.warnings.iter().filter(|w| *w == NO_LIGHT_WARNING).count(), 1, "{:?}", dark.warnings);
+        let lit = load(&scene_with(emitter("light", glam::Vec3::ONE, glam::Vec3::splat(2.0))));
+        assert!(lit.has_emitters() && !lit.warnings.iter().any(|w| w == NO_LIGHT_WARNING), "{:?}", lit.warnings);
+        let point = load(&point_furnace_glb(1.0, 0.5, 1.0));
+        assert!(point.has_emitters() && !point.warnings.iter().any(|w| w == NO_LIGHT_WARNING));
     }
 
     #[test]

@@ -184,7 +184,21 @@ pub struct PunctualLight {
     pub range: Option<f32>,
 }
 
+/// The loader's warning for a scene in which nothing emits light (see [`Scene::has_emitters`]).
+pub const NO_LIGHT_WARNING: &str = "the scene has no lights or emissive materials: it renders black";
+
 impl Scene {
+    /// Whether anything emits light: a punctual light with nonzero intensity, or a mesh whose
+    /// material has a nonzero emissive factor or is unlit (it emits its base colour).
+    pub fn has_emitters(&self) -> bool {
+        self.lights.iter().any(|l| l.intensity.max_element() > 0.0)
+            || self.meshes.iter().any(|m| {
+                self.materials
+                    .get(m.material)
+                    .is_some_and(|mat| !m.indices.is_empty() && (mat.emissive.max_element() > 0.0 || mat.unlit))
+            })
+    }
+
     /// Axis-aligned bounds of all mesh vertices; `None` for an empty scene.
     pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
         let mut it = self.meshes.iter().flat_map(|m| m.positions.iter().copied());

@@ -7,7 +7,7 @@
 //! a grazing `wo` with `wo.z == 0`.
 
 use super::geometry::Frame;
-use super::microfacet::{Fresnel, MicrofacetDistribution, fr_dielectric};
+use super::microfacet::{Fresnel, GgxAlbedo, MicrofacetDistribution, SMOOTH_ALPHA, fr_dielectric};
 use super::sampling::sample_cosine_hemisphere;
 use glam::{Vec2, Vec3A};
 use std::f32::consts::FRAC_1_PI;
@@ -84,13 +84,29 @@ pub enum Bxdf {
     TorranceSparrow { r: Vec3A, distribution: MicrofacetDistribution, fresnel: Fresnel },
     /// glTF 2.0 metallic-roughness (glTF spec appendix B, with KHR_materials_specular's
     /// `specular` factor): GGX with `alpha = roughness^2`, Smith height-correlated masking-shadowing,
+    /// made energy-conserving (the glTF reference's `fresnel_mix` is not: see below):
     ///
-    /// `f = (1 - m) [(1 - s F_d) c / pi + s F_d spec] + m F_m spec`, with
-    /// `spec = D G / (4 |cos_o| |cos_i|)`, `F_d = 0.04 + 0.96 (1 - |wo.h|)^5` (dielectric, `F0 = 0.04`),
-    /// `F_m = c + (1 - c)(1 - |wo.h|)^5` (metal tinted by the base colour), `c` the base colour,
-    /// `m` metallic and `s` the specular factor (1 in core glTF; 0 leaves a pure diffuse dielectric).
-    /// Samples a mix of the GGX visible normals and a cosine hemisphere.
+    /// `f = (1 - m) [c / pi (1 - E_d(mu_o))(1 - E_d(mu_i)) / (1 - E_d,avg) + F_d spec]
+    ///    + m [F_m spec + F_ms (1 - E(mu_o))(1 - E(mu_i)) / (pi (1 - E_avg))]`, with
+    /// `spec = D G / (4 |cos_o| |cos_i|)`, `F_d = s (0.04 + 0.96 (1 - |wo.h|)^5)` (dielectric layer,
+    /// `F0 = 0.04`), `F_m = c + (1 - c)(1 - |wo.h|)^5` (metal tinted by the base colour), `c` the base
+    /// colour, `m` metallic and `s` the specular factor (1 in core glTF; 0 leaves a pure diffuse
+    /// dielectric). `E_d(mu)` is the dielectric layer's directional albedo, so the diffuse base gets
+    /// exactly the energy the layer does not reflect (a white dielectric reflects 1 at every angle;
+    /// the reference's `1 - F(wo.h)` weight reflected up to 1.8 at grazing), in a reciprocal form.
+    /// The metal's second term is Kulla and Conty's (2017) multiple-scattering compensation: `E`
+    /// is the single-scattering albedo with `F = 1` and `F_ms = F_avg^2 E_avg / (1 - F_avg (1 - E_avg))`
+    /// with `F_avg = c + (1 - c) / 21` the Schlick Fresnel's hemispherical average, so a white
+    /// metal reflects 1 at every roughness and angle. The albedos come from [`GgxAlbedo`].
+    /// Samples a mix of the GGX visible normals and a cosine hemisphere. Below
+    /// [`SMOOTH_ALPHA`] use [`Bxdf::gltf_lobe`], which returns delta lobes.
     GltfMetalRough { base_color: Vec3A, metallic: f32, alpha: f32, specular_factor: f32 },
+    /// The diffuse base of glTF metallic-roughness under a smooth (delta) dielectric layer of
+    /// specular factor `s`: `f = r / pi (1 - F(mu_o))(1 - F(mu_i)) / (1 - F_avg)` with the
+    /// Schlick `F(mu) = s (0.04 + 0.96 (1 - mu)^5)` and `F_avg = s (0.04 + 0.96 / 21)`, so it reflects
+    /// `r (1 - F(mu_o))`. Sampled with a cosine hemisphere. [`Bxdf::gltf_lobe`] picks it or the
+    /// layer's mirror reflection.
+    GltfSmoothBase { r: Vec3A, specular_factor: f32 },
     /// Perfect specular reflection with reflectance `r` (a delta lobe).
     Mirror { r: Vec3A },
     /// A smooth dielectric interface: delta reflection and refraction chosen by the Fresnel
@@ -108,6 +124,49 @@ impl Bxdf {
     /// The glTF metallic-roughness lobe from the material's perceptual `roughness` (`alpha = roughness^2`).
     pub fn gltf(base_color: Vec3A, metallic: f32, roughness: f32, specular_factor: f32) -> Self {
         Self::GltfMetalRough { base_color, metallic, alpha: roughness * roughness, specular_factor }
+    }
+
+    /// The glTF metallic-roughness lobe for outgoing cosine `cos_o` (to the shading normal):
+    /// [`Bxdf::GltfMetalRough`] when `roughness^2` is at least [`SMOOTH_ALPHA`]; below it the
+    /// surface is smooth and one of its two lobes is picked by `u` in proportion to its
+    /// directional albedo (mean over channels): the specular one, a [`Bxdf::Mirror`] reflecting
+    /// `(1 - m) F_d(mu_o) + m F_m(mu_o)`, or the diffuse base, a [`Bxdf::GltfSmoothBase`] reflecting
+    /// `(1 - m) c (1 - F_d(mu_o))`, each divided by the probability of picking it, so that the
+    /// expected lobe is the whole BSDF (pbrt's stochastic lobe selection). Integrators then treat
+    /// the mirror as specular: no next-event estimation or MIS on it, no VPLs.
+    pub fn gltf_lobe(
+        base_color: Vec3A,
+        metallic: f32,
+        roughness: f32,
+        specular_factor: f32,
+        cos_o: f32,
+        u: f32,
+    ) -> Self {
+        let alpha = roughness * roughness;
+        if alpha >= SMOOTH_ALPHA {
+            return Self::GltfMetalRough { base_color, metallic, alpha, specular_factor };
+        }
+        let m = metallic.clamp(0.0, 1.0);
+        let s = specular_factor.clamp(0.0, 1.0);
+        let schlick = (1.0 - cos_o.abs().min(1.0)).powi(5);
+        let fd = s * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick);
+        let fm = base_color + (Vec3A::ONE - base_color) * schlick;
+        let spec = Vec3A::splat((1.0 - m) * fd) + m * fm;
+        let base = base_color * (1.0 - m);
+        let diffuse = base * (1.0 - fd);
+        let (ws, wd) = (spec.element_sum(), diffuse.element_sum());
+        let p_spec = if !(wd > 0.0) {
+            1.0
+        } else if !(ws > 0.0) {
+            0.0
+        } else {
+            ws / (ws + wd)
+        };
+        if u < p_spec {
+            Self::Mirror { r: spec / p_spec }
+        } else {
+            Self::GltfSmoothBase { r: base / (1.0 - p_spec), specular_factor: s }
+        }
     }
 
     /// True for the delta lobes ([`Bxdf::Mirror`], [`Bxdf::Dielectric`]): `f` and `pdf` are zero
@@ -128,6 +187,7 @@ impl Bxdf {
                 let dielectric = base_color * (1.0 - fd) + Vec3A::splat(fd);
                 dielectric * (1.0 - m) + base_color * m
             }
+            Self::GltfSmoothBase { r, specular_factor } => r * (1.0 - specular_factor * DIELECTRIC_F0),
             Self::Mirror { r } => r,
             Self::Dielectric { tint, .. } => tint,
         }
@@ -150,6 +210,7 @@ impl Bxdf {
                 let Some(wm) = half_vector(wo, wi) else { return Vec3A::ZERO };
                 gltf_f(base_color, metallic, alpha, specular_factor, wo, wi, wm)
             }
+            Self::GltfSmoothBase { r, specular_factor } => smooth_base_f(r, specular_factor, wo.z, wi.z),
             Self::Mirror { .. } | Self::Dielectric { .. } => Vec3A::ZERO,
         }
     }
@@ -161,14 +222,14 @@ impl Bxdf {
         }
         let (wo, wi) = upper(wo, wi);
         match *self {
-            Self::Lambertian { .. } => wi.z * FRAC_1_PI,
+            Self::Lambertian { .. } | Self::GltfSmoothBase { .. } => wi.z * FRAC_1_PI,
             Self::TorranceSparrow { distribution, .. } => {
                 let Some(wm) = half_vector(wo, wi) else { return 0.0 };
                 microfacet_pdf(&distribution, wo, wm)
             }
             Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } => {
                 let Some(wm) = half_vector(wo, wi) else { return 0.0 };
-                let p_spec = gltf_specular_probability(base_color, metallic, specular_factor, wo.z);
+                let p_spec = gltf_specular_probability(base_color, metallic, alpha, specular_factor, wo.z);
                 let spec = microfacet_pdf(&MicrofacetDistribution::ggx(alpha), wo, wm);
                 p_spec * spec + (1.0 - p_spec) * wi.z * FRAC_1_PI
             }
@@ -209,7 +270,7 @@ impl Bxdf {
                 Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::GLOSSY_REFLECTION, eta: 1.0 })
             }
             Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } => {
-                let p_spec = gltf_specular_probability(base_color, metallic, specular_factor, wo_up.z);
+                let p_spec = gltf_specular_probability(base_color, metallic, alpha, specular_factor, wo_up.z);
                 let ggx = MicrofacetDistribution::ggx(alpha);
                 let wi =
                     if uc < p_spec { reflect(wo_up, ggx.sample_wm(wo_up, u)) } else { sample_cosine_hemisphere(u) };
@@ -224,6 +285,15 @@ impl Bxdf {
                 }
                 let f = gltf_f(base_color, metallic, alpha, specular_factor, wo_up, wi, wm);
                 Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::GLOSSY_REFLECTION, eta: 1.0 })
+            }
+            Self::GltfSmoothBase { r, specular_factor } => {
+                let wi = sample_cosine_hemisphere(u);
+                let pdf = wi.z * FRAC_1_PI;
+                if !(pdf > 0.0) {
+                    return None;
+                }
+                let f = smooth_base_f(r, specular_factor, wo_up.z, wi.z);
+                Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::DIFFUSE_REFLECTION, eta: 1.0 })
             }
             Self::Mirror { r } => {
                 let wi = Vec3A::new(-wo.x, -wo.y, wo.z);
@@ -344,25 +414,85 @@ fn gltf_f(
         return Vec3A::ZERO;
     }
     let m = metallic.clamp(0.0, 1.0);
+    let s = specular_factor.clamp(0.0, 1.0);
     let ggx = MicrofacetDistribution::ggx(alpha);
     let spec = ggx.d(wm) * ggx.g(wo, wi, wm) / (4.0 * cos_o * cos_i);
     let schlick = (1.0 - wo.dot(wm).abs().min(1.0)).powi(5);
-    let fd = specular_factor * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick);
+    let fd = s * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick);
     let fm = base_color + (Vec3A::ONE - base_color) * schlick;
-    let dielectric = base_color * ((1.0 - fd) * FRAC_1_PI) + Vec3A::splat(fd * spec);
-    dielectric * (1.0 - m) + fm * (m * spec)
+    let albedo = GltfAlbedo::new(base_color, alpha, s);
+    let (o, i) = (albedo.at(cos_o), albedo.at(cos_i));
+    let dielectric = base_color * (FRAC_1_PI * o.diffuse * i.diffuse / albedo.diffuse_avg) + Vec3A::splat(fd * spec);
+    let ms = albedo.f_ms * (FRAC_1_PI * o.ms * i.ms / albedo.ms_avg);
+    dielectric * (1.0 - m) + (fm * spec + ms) * m
 }
 
-/// Probability of sampling the GGX lobe rather than the diffuse one: the lobes' weights at
-/// normal-to-`wo` Fresnel, kept within [0.1, 0.9] while both lobes are present, so that neither
-/// is starved where the estimate is poor.
-fn gltf_specular_probability(base_color: Vec3A, metallic: f32, specular_factor: f32, cos_o: f32) -> f32 {
+/// [`Bxdf::GltfSmoothBase`] for upper-side cosines.
+fn smooth_base_f(r: Vec3A, specular_factor: f32, cos_o: f32, cos_i: f32) -> Vec3A {
+    if !(cos_o > 0.0) || !(cos_i > 0.0) {
+        return Vec3A::ZERO;
+    }
+    let f = |mu: f32| specular_factor * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * (1.0 - mu.min(1.0)).powi(5));
+    let f_avg = specular_factor * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) / 21.0);
+    r * (FRAC_1_PI * (1.0 - f(cos_o)) * (1.0 - f(cos_i)) / (1.0 - f_avg))
+}
+
+/// The tabulated albedos the energy-conserving glTF lobe needs at one roughness.
+struct GltfAlbedo {
+    alpha: f32,
+    s: f32,
+    /// `1 - E_d,avg` of the dielectric layer.
+    diffuse_avg: f32,
+    /// `1 - E_avg` (single scattering, `F = 1`); 1 where the lobe is too smooth to lose energy.
+    ms_avg: f32,
+    /// Kulla-Conty's tint `F_avg^2 E_avg / (1 - F_avg (1 - E_avg))`; zero where `1 - E_avg` vanishes.
+    f_ms: Vec3A,
+}
+
+/// Per-direction factors of [`GltfAlbedo`]: `1 - E_d(mu)` and `1 - E(mu)`.
+struct GltfAlbedoAt {
+    diffuse: f32,
+    ms: f32,
+    /// Single-scattering albedos: `E(mu)` (`F = 1`) and the dielectric layer's `E_d(mu)`.
+    e: f32,
+    e_d: f32,
+}
+
+impl GltfAlbedo {
+    fn new(base_color: Vec3A, alpha: f32, s: f32) -> Self {
+        let (a1, a5) = GgxAlbedo::get().average(alpha);
+        let diffuse_avg = 1.0 - s * (DIELECTRIC_F0 * a1 + (1.0 - DIELECTRIC_F0) * a5);
+        let lost = 1.0 - a1;
+        let (ms_avg, f_ms) = if lost > 1e-5 {
+            let f_avg = base_color + (Vec3A::ONE - base_color) / 21.0;
+            (lost, f_avg * f_avg * a1 / (Vec3A::ONE - f_avg * lost))
+        } else {
+            (1.0, Vec3A::ZERO)
+        };
+        Self { alpha, s, diffuse_avg, ms_avg, f_ms }
+    }
+
+    fn at(&self, mu: f32) -> GltfAlbedoAt {
+        let (e1, e5) = GgxAlbedo::get().e(mu, self.alpha);
+        let e_d = self.s * (DIELECTRIC_F0 * e1 + (1.0 - DIELECTRIC_F0) * e5);
+        GltfAlbedoAt { diffuse: 1.0 - e_d, ms: 1.0 - e1, e: e1, e_d }
+    }
+}
+
+/// Probability of sampling the GGX lobe rather than the cosine-sampled ones (the diffuse base
+/// and the metal's multiple scattering): the lobes' directional albedos at `wo` (the GGX lobe's
+/// with the Fresnel factor at normal-to-`wo` incidence), kept within [0.1, 0.9] while both are
+/// present, so that neither is starved where the estimate is poor.
+fn gltf_specular_probability(base_color: Vec3A, metallic: f32, alpha: f32, specular_factor: f32, cos_o: f32) -> f32 {
     let m = metallic.clamp(0.0, 1.0);
+    let s = specular_factor.clamp(0.0, 1.0);
     let schlick = (1.0 - cos_o.abs().min(1.0)).powi(5);
-    let fd = specular_factor * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick);
     let fm = base_color + (Vec3A::ONE - base_color) * schlick;
-    let spec = (1.0 - m) * fd + m * fm.element_sum() / 3.0;
-    let diffuse = (1.0 - m) * (1.0 - fd) * base_color.element_sum() / 3.0;
+    let albedo = GltfAlbedo::new(base_color, alpha, s);
+    let o = albedo.at(cos_o);
+    let spec = (1.0 - m) * o.e_d + m * o.e * fm.element_sum() / 3.0;
+    let ms = if albedo.f_ms == Vec3A::ZERO { 0.0 } else { o.ms * albedo.f_ms.element_sum() / 3.0 };
+    let diffuse = (1.0 - m) * o.diffuse * base_color.element_sum() / 3.0 + m * ms;
     if !(diffuse > 0.0) {
         1.0
     } else if !(spec > 0.0) {
@@ -437,7 +567,7 @@ pub(crate) mod tests {
     /// Cosines of the incident angles every non-delta lobe is tested at (0.05 is grazing).
     const COS_THETA_O: [f32; 4] = [1.0, 0.7, 0.2, 0.05];
     /// Non-delta lobes in the suite (see `smooth_cases`).
-    const SMOOTH_CASES: usize = 17;
+    const SMOOTH_CASES: usize = 19;
     /// Lower-hemisphere chi-square cases (`chi2_lower_hemisphere`).
     const LOWER_CASES: usize = 5;
     /// Every chi-square test that must pass, across bsdf.rs and microfacet.rs: the Sidak
@@ -487,9 +617,12 @@ pub(crate) mod tests {
     }
 
     fn gltf() -> Vec<(String, Bxdf)> {
-        [(0.0, 0.5), (1.0, 0.3), (0.5, 0.9), (0.0, 0.1)]
+        let mut v: Vec<_> = [(0.0, 0.5), (1.0, 0.3), (0.5, 0.9), (0.0, 0.1), (1.0, 1.0)]
             .map(|(m, r)| (format!("gltf metallic={m} roughness={r}"), Bxdf::gltf(Vec3A::ONE, m, r, 1.0)))
-            .to_vec()
+            .to_vec();
+        // The diffuse base of a smooth (delta) glTF surface.
+        v.push(("gltf smooth base".into(), Bxdf::GltfSmoothBase { r: Vec3A::ONE, specular_factor: 1.0 }));
+        v
     }
 
     fn smooth_cases() -> Vec<(String, Bxdf)> {
@@ -653,20 +786,10 @@ pub(crate) mod tests {
         (mean, ((sum2 / n as f64 - mean * mean).max(0.0) / n as f64).sqrt())
     }
 
-    /// Whether the lobe must conserve energy at `wo`. glTF's dielectric `fresnel_mix` weights the
-    /// diffuse base by `1 - F(wo.h)`, which at grazing angles removes far less than the specular
-    /// layer reflects (see `gltf_spec_model_gains_energy_at_grazing`), so its bound is only
-    /// asserted away from grazing.
-    fn must_conserve_energy(bxdf: &Bxdf, wo: Vec3A) -> bool {
-        match *bxdf {
-            Bxdf::GltfMetalRough { metallic, .. } => metallic >= 1.0 || wo.z.abs() >= 0.7,
-            _ => true,
-        }
-    }
-
     #[test]
     fn directional_albedo_is_at_most_one_and_unbiased() {
-        // E[f cos / pdf] with 1e5 samples per case, white lobes: at most 1 + 4 sigma, and equal to
+        // E[f cos / pdf] with 1e5 samples per case, white lobes: at most 1 + 4 sigma (+ 3e-3 for
+        // the interpolation error of the glTF lobe's albedo tables, see GgxAlbedo), and equal to
         // a quadrature of the integral of f |cos| within 4 sigma (plus 2e-3 for the quadrature).
         const N: usize = 100_000;
         let mut rng = TestRng::new(900);
@@ -674,7 +797,7 @@ pub(crate) mod tests {
         for (name, bxdf) in smooth_cases() {
             for wo in incident() {
                 let (mean, sigma) = albedo_mc(&bxdf, wo, N, &mut rng);
-                if must_conserve_energy(&bxdf, wo) && !(mean <= 1.0 + 4.0 * sigma + 1e-6) {
+                if !(mean <= 1.0 + 4.0 * sigma + 3e-3) {
                     failures.push(format!("{name}, wo={wo}: albedo {mean} +- {sigma} exceeds 1"));
                 }
                 let quad = chi2::sphere_integral(|wi| bxdf.f(wo, wi).max_element() * wi.z.abs());
@@ -689,23 +812,72 @@ pub(crate) mod tests {
         assert!(failures.is_empty(), "{}", failures.join("\n"));
     }
 
+    /// Directional albedo of the glTF lobe a material would use (smooth surfaces pick their lobe
+    /// with `uc`, as `material::shade` does), with its standard error: `n` samples, max channel.
+    fn gltf_albedo_mc(m: f32, roughness: f32, base: Vec3A, wo: Vec3A, n: usize, rng: &mut TestRng) -> (f64, f64) {
+        let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+        for _ in 0..n {
+            let lobe = Bxdf::gltf_lobe(base, m, roughness, 1.0, wo.z, rng.uniform());
+            if let Some(s) = lobe.sample_f(wo, rng.uniform(), rng.uniform_2d()) {
+                let w = f64::from(s.f.max_element() * s.wi.z.abs() / s.pdf);
+                sum += w;
+                sum2 += w * w;
+            }
+        }
+        let mean = sum / n as f64;
+        (mean, ((sum2 / n as f64 - mean * mean).max(0.0) / n as f64).sqrt())
+    }
+
     #[test]
-    fn gltf_spec_model_gains_energy_at_grazing() {
-        // Pins a property of the glTF 2.0 reference model, not of this code: a smooth white
-        // dielectric reflects about 1.68 times the light arriving at cos = 0.05 (1.13 at roughness
-        // 0.5), because the diffuse base loses only 1 - F(wo.h) per direction. Metals conserve
-        // energy. Change this test deliberately if the model gets an energy-conserving layering.
-        let mut rng = TestRng::new(950);
-        let wo = dir(0.05, 0.3);
-        let (smooth, _) = albedo_mc(&Bxdf::gltf(Vec3A::ONE, 0.0, 0.1, 1.0), wo, 100_000, &mut rng);
-        assert!((1.6..1.76).contains(&smooth), "smooth dielectric albedo {smooth}");
-        let (rough, _) = albedo_mc(&Bxdf::gltf(Vec3A::ONE, 0.0, 0.5, 1.0), wo, 100_000, &mut rng);
-        assert!((1.1..1.17).contains(&rough), "rough dielectric albedo {rough}");
-        let (metal, sigma) = albedo_mc(&Bxdf::gltf(Vec3A::ONE, 1.0, 0.1, 1.0), wo, 100_000, &mut rng);
-        assert!(metal <= 1.0 + 4.0 * sigma, "metal albedo {metal}");
-        // Without the specular layer (KHR_materials_specular factor 0) it is plain Lambertian.
-        let (diffuse, _) = albedo_mc(&Bxdf::gltf(Vec3A::ONE, 0.0, 0.1, 0.0), wo, 100_000, &mut rng);
-        assert!((diffuse - 1.0).abs() < 1e-4, "diffuse-only albedo {diffuse}");
+    fn gltf_white_albedo_is_one_for_every_roughness_and_angle() {
+        // White glTF materials (base colour 1, specular factor 1), 2e5 samples per case, seed
+        // 960: metal (metallic 1) within 1% of 1 and dielectric (metallic 0) in [0.99, 1.01],
+        // for roughness 0 (a delta lobe), 0.25, 0.5, 0.75, 1 and cos(theta_o) 0.05, 0.2, 0.5, 1
+        // (the estimates' sigmas are below 0.15%). The glTF reference's single-scattering
+        // metal kept 0.32 at roughness 1, normal incidence, and its dielectric reflected 1.46 at
+        // roughness 0.05, cos 0.05.
+        let mut rng = TestRng::new(960);
+        let mut failures = Vec::new();
+        let mut report = String::new();
+        for m in [1.0f32, 0.0] {
+            for roughness in [0.0f32, 0.25, 0.5, 0.75, 1.0] {
+                report += &format!("\nmetallic {m} roughness {roughness}:");
+                for cos in [0.05f32, 0.2, 0.5, 1.0] {
+                    let (a, sigma) = gltf_albedo_mc(m, roughness, Vec3A::ONE, dir(cos, 0.3), 200_000, &mut rng);
+                    report += &format!(" cos {cos}: {a:.4} +- {sigma:.4};");
+                    if !((a - 1.0).abs() <= 0.01) || !(sigma < 1.5e-3) {
+                        failures.push(format!("metallic {m}, roughness {roughness}, cos {cos}: {a} +- {sigma}"));
+                    }
+                }
+            }
+        }
+        eprintln!("{report}");
+        assert!(failures.is_empty(), "{}", failures.join("\n"));
+    }
+
+    #[test]
+    fn gltf_albedo_is_continuous_at_the_delta_threshold() {
+        // Just below SMOOTH_ALPHA the lobe is a mirror or the smooth diffuse base, just above it a
+        // GGX lobe; a coloured material reflects the same energy either way: 2e5 samples per case,
+        // seed 970, within 4 sigma + 1%, for metallic 0, 0.5, 1 at cos 0.05, 0.5, 1.
+        let below = (0.9 * SMOOTH_ALPHA).sqrt();
+        let above = (1.1 * SMOOTH_ALPHA).sqrt();
+        let base = Vec3A::new(0.9, 0.5, 0.2);
+        let mut rng = TestRng::new(970);
+        for m in [0.0f32, 0.5, 1.0] {
+            for cos in [0.05f32, 0.5, 1.0] {
+                let wo = dir(cos, 1.1);
+                assert!(Bxdf::gltf_lobe(base, m, below, 1.0, cos, 0.0).is_delta() || m == 0.0);
+                assert!(!Bxdf::gltf_lobe(base, m, above, 1.0, cos, 0.0).is_delta());
+                let (a, sa) = gltf_albedo_mc(m, below, base, wo, 200_000, &mut rng);
+                let (b, sb) = gltf_albedo_mc(m, above, base, wo, 200_000, &mut rng);
+                let bound = 4.0 * (sa * sa + sb * sb).sqrt() + 0.01 * b;
+                assert!(
+                    (a - b).abs() <= bound,
+                    "metallic {m}, cos {cos}: smooth {a:.4}, rough {b:.4} (bound {bound:.4})"
+                );
+            }
+        }
     }
 
     #[test]
@@ -869,5 +1041,43 @@ pub(crate) mod tests {
         let dielectric = Bxdf::gltf(c, 0.0, 0.5, 1.0).albedo();
         assert!((dielectric - (c * 0.96 + Vec3A::splat(0.04))).abs().max_element() < 1e-6);
         assert_eq!(Bxdf::Dielectric { eta: 1.5, tint: c }.albedo(), c);
+    }
+    #[test]
+    fn smooth_gltf_picks_its_lobe_by_albedo() {
+        // A smooth surface picks the mirror with probability (specular albedo) / (total), the
+        // diffuse base otherwise, each divided by its probability: over 1e5 stratified u the
+        // mirror's frequency is within 5 binomial sigma of its probability, and the expected
+        // mirror weight plus the diffuse lobe's albedo (quadrature) is the BSDF's albedo.
+        let base = Vec3A::new(0.8, 0.6, 0.3);
+        for (m, cos) in [(0.0f32, 1.0f32), (0.0, 0.1), (0.5, 0.6), (1.0, 0.3)] {
+            let n = 100_000usize;
+            let (mut mirrors, mut expected, mut base_lobe) = (0usize, Vec3A::ZERO, None);
+            for k in 0..n {
+                let u = (k as f32 + 0.5) / n as f32;
+                match Bxdf::gltf_lobe(base, m, 0.0, 1.0, cos, u) {
+                    Bxdf::Mirror { r } => {
+                        mirrors += 1;
+                        expected += r / n as f32;
+                    }
+                    lobe @ Bxdf::GltfSmoothBase { .. } => base_lobe = Some(lobe),
+                    other => panic!("smooth lobe {other:?}"),
+                }
+            }
+            if let Some(lobe) = base_lobe {
+                let wo = dir(cos, 0.2);
+                let albedo: [f32; 3] =
+                    std::array::from_fn(|c| chi2::sphere_integral(|wi| lobe.f(wo, wi)[c] * wi.z.abs()) as f32);
+                expected += Vec3A::from(albedo) * ((n - mirrors) as f32 / n as f32);
+            }
+            let schlick = (1.0 - cos).powi(5);
+            let fd = DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick;
+            let spec = Vec3A::splat((1.0 - m) * fd) + m * (base + (Vec3A::ONE - base) * schlick);
+            let diffuse = base * (1.0 - m) * (1.0 - fd);
+            let p = f64::from(spec.element_sum() / (spec + diffuse).element_sum());
+            let freq = mirrors as f64 / n as f64;
+            assert!((freq - p).abs() <= 5.0 * (p * (1.0 - p) / n as f64).sqrt() + 1e-5, "m {m}: {freq} vs {p}");
+            let total = spec + diffuse;
+            assert!((expected - total).abs().max_element() < 5e-3, "m {m}, cos {cos}: {expected} vs {total}");
+        }
     }
 }

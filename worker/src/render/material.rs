@@ -64,6 +64,8 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
         Some(t) => Frame::from_xz(Vec3A::from(t.xyz()), ns),
         None => Frame::from_z(ns),
     };
+    // The albedo AOV of the whole material, whichever lobe a smooth glTF surface picked.
+    let mut albedo = None;
     let bxdf = match m.model {
         MaterialModel::Lambert => Bxdf::Lambertian { r: base },
         MaterialModel::Mirror => Bxdf::Mirror { r: base },
@@ -87,19 +89,20 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
             let mr = tex(&m.metallic_roughness_texture);
             let metallic = (m.metallic * mr.z).clamp(0.0, 1.0);
             let roughness = (m.roughness * mr.y).clamp(0.0, 1.0);
-            if metallic == 0.0 && m.specular_factor == 0.0 {
+            let specular_factor = m.specular_factor.clamp(0.0, 1.0);
+            if metallic == 0.0 && specular_factor == 0.0 {
                 // KHR_materials_specular factor 0: no dielectric specular layer.
                 Bxdf::Lambertian { r: base }
             } else {
-                Bxdf::GltfMetalRough {
-                    base_color: base,
-                    metallic,
-                    alpha: (roughness * roughness).max(1e-3),
-                    specular_factor: m.specular_factor.clamp(0.0, 1.0),
-                }
+                // A smooth surface (roughness^2 below SMOOTH_ALPHA) picks its mirror or its
+                // diffuse lobe with what is left of `u_lobe` after the transmission choice.
+                let u = if transmission > 0.0 { (u_lobe - transmission) / (1.0 - transmission) } else { u_lobe };
+                let cos_o = frame.z.dot(wo);
+                albedo = Some(Bxdf::gltf(base, metallic, roughness, specular_factor).albedo());
+                Bxdf::gltf_lobe(base, metallic, roughness, specular_factor, cos_o, u.clamp(0.0, 1.0))
             }
         }
     };
-    let albedo = bxdf.albedo();
+    let albedo = albedo.unwrap_or_else(|| bxdf.albedo());
     Shading { bsdf: Some(Bsdf::new(frame, bxdf)), ng, albedo, ns }
 }
