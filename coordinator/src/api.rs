@@ -15,7 +15,8 @@ use axum::{Json, Router};
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
     API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
-    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
+    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
+    WorkerId,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -63,6 +64,7 @@ impl From<FarmError> for ApiError {
             FarmError::BadState { .. } => (StatusCode::CONFLICT, "bad_state"),
             FarmError::InvalidJob(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid_job"),
             FarmError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over_budget"),
+            FarmError::WrongWorker(_) => (StatusCode::FORBIDDEN, "wrong_worker"),
         };
         ApiError::new(status, code, e.to_string())
     }
@@ -114,6 +116,21 @@ pub fn authorize_token(auth: &Auth, token: Option<&str>, allowed: &[Role]) -> Ap
     } else {
         Err(ApiError::new(StatusCode::FORBIDDEN, "forbidden", format!("a {role:?} token may not use this route")))
     }
+}
+
+/// The `X-Pathfarm-Worker-Secret` header of a request, if any.
+pub fn worker_secret(headers: &HeaderMap) -> Option<&str> {
+    headers.get(WORKER_SECRET_HEADER).and_then(|v| v.to_str().ok())
+}
+
+/// A new worker's secret: 32 bytes from the operating system's CSPRNG, hex-encoded.
+fn new_worker_secret() -> ApiResult<String> {
+    let mut buf = [0u8; 32];
+    getrandom::getrandom(&mut buf).map_err(|e| {
+        tracing::error!(error = %e, "the operating system's random number generator failed");
+        ApiError::internal("could not make a worker secret")
+    })?;
+    Ok(hex::encode(buf))
 }
 
 fn authorize(state: &AppState, headers: &HeaderMap, allowed: &[Role]) -> ApiResult<()> {
@@ -662,6 +679,9 @@ async fn list_workers(State(state): State<Arc<AppState>>, Query(q): Query<PageQu
     path = "/api/v1/workers/register",
     tag = "worker protocol",
     summary = "Register a worker",
+    description = "The answer holds the worker's own secret (`worker_secret`): the lease, heartbeat, result \
+        and release requests of this worker must carry it as `X-Pathfarm-Worker-Secret`. It lives in the \
+        coordinator's memory only; after a coordinator restart workers register again.",
     request_body = RegisterRequest,
     security(("worker_token" = [])),
     responses((status = 200, description = "Registered", body = Registered), (status = 422, description = "Bad body", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
@@ -675,10 +695,16 @@ async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<
             format!("register body: threads must be 1..=4096 (got {}) and name 1..=256 bytes", req.threads),
         ));
     }
+    let worker_secret = new_worker_secret()?;
     let reg = {
         let mut farm = state.farm.lock();
-        let worker_id = farm.register(req.name.clone(), req.threads, now_ms());
-        Registered { worker_id, heartbeat_ms: farm.cfg.heartbeat_ms, lease_timeout_ms: farm.cfg.lease_timeout_ms }
+        let worker_id = farm.register_with_secret(req.name.clone(), req.threads, worker_secret.clone(), now_ms());
+        Registered {
+            worker_id,
+            worker_secret,
+            heartbeat_ms: farm.cfg.heartbeat_ms,
+            lease_timeout_ms: farm.cfg.lease_timeout_ms,
+        }
     };
     state.persist_worker(reg.worker_id, &req.name, req.threads);
     state.publish("worker", reg.worker_id);
@@ -690,13 +716,19 @@ async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<
     path = "/api/v1/workers/{id}/heartbeat",
     tag = "worker protocol",
     summary = "Heartbeat (renews the worker's leases)",
-    params(("id" = u64, Path, description = "Worker id")),
+    params(("id" = u64, Path, description = "Worker id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     security(("worker_token" = [])),
-    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
-async fn heartbeat(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+async fn heartbeat(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<StatusCode> {
     let id: WorkerId = parse_id("worker", &id)?;
-    state.farm.lock().heartbeat(id, now_ms())?;
+    let mut farm = state.farm.lock();
+    farm.check_worker(id, worker_secret(&headers))?;
+    farm.heartbeat(id, now_ms())?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -713,16 +745,18 @@ struct LeaseQuery {
     path = "/api/v1/workers/{id}/lease",
     tag = "worker protocol",
     summary = "Lease a work unit (long poll)",
-    params(("id" = u64, Path, description = "Worker id"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 20000)")),
+    params(("id" = u64, Path, description = "Worker id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 20000)")),
     security(("worker_token" = [])),
-    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
 async fn lease(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
     Query(q): Query<LeaseQuery>,
+    headers: HeaderMap,
 ) -> ApiResult<Response> {
     let worker: WorkerId = parse_id("worker", &id)?;
+    state.farm.lock().check_worker(worker, worker_secret(&headers))?;
     let wait = Duration::from_millis(q.wait_ms.unwrap_or(0).min(MAX_LEASE_WAIT_MS));
     let start = Instant::now();
     loop {
@@ -749,17 +783,19 @@ async fn lease(
     path = "/api/v1/leases/{id}/result",
     tag = "worker protocol",
     summary = "Upload a unit's result",
-    params(("id" = u64, Path, description = "Lease id")),
+    params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR1 magic, u32 header length, JSON header, lz4 sections of i128 sums, CRC-32"),
     security(("worker_token" = [])),
-    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "Body too large", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "Body too large", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
 async fn upload_result(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
+    headers: HeaderMap,
     body: Bytes,
 ) -> ApiResult<Json<ResultAccepted>> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
+    let secret = worker_secret(&headers).map(str::to_string);
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
     // Decoding (lz4, CRC, 850 KB of sums for a 64 px tile) and merging take a few hundred
     // microseconds: run them off the async threads, at most one per core at a time, so lease
@@ -767,9 +803,10 @@ async fn upload_result(
     let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()))?;
     let st = state.clone();
     let t0 = Instant::now();
-    let (job_id, outcome) = tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, &body))
-        .await
-        .map_err(|e| ApiError::internal(format!("result task: {e}")))??;
+    let (job_id, outcome) =
+        tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, secret.as_deref(), &body))
+            .await
+            .map_err(|e| ApiError::internal(format!("result task: {e}")))??;
     let outcome = match outcome {
         Ok(o) => o,
         Err(e) => {
@@ -797,13 +834,21 @@ fn decode_slots() -> &'static tokio::sync::Semaphore {
 fn decode_and_accept(
     state: &AppState,
     lease_id: LeaseId,
+    secret: Option<&str>,
     body: &[u8],
 ) -> ApiResult<(JobId, Result<crate::farm::MergeOutcome, FarmError>)> {
-    // Refuse results for leases that are not held before decoding: duplicates and late
-    // results cost nothing, and a body from someone without a lease cannot make the decoder
-    // allocate what its header declares (up to 4 GiB of sums).
+    // Refuse results for leases that are not held, or not held by the sender, before
+    // decoding: duplicates and late results cost nothing, and a body from someone without a
+    // lease cannot make the decoder allocate what its header declares (up to 4 GiB of sums).
     let (tile, image) = {
         let mut farm = state.farm.lock();
+        if let Err(e) = farm.check_lease(lease_id, secret) {
+            farm.counters.results_rejected += 1;
+            if matches!(e, FarmError::WrongWorker(_)) {
+                tracing::warn!(lease = lease_id, "result refused: {e}");
+            }
+            return Ok((0, Err(e)));
+        }
         match farm.lease_shape(lease_id) {
             Some(shape) => shape,
             None => {
@@ -842,16 +887,30 @@ fn decode_and_accept(
     path = "/api/v1/leases/{id}/release",
     tag = "worker protocol",
     summary = "Give a unit back, or report that it failed",
-    params(("id" = u64, Path, description = "Lease id")),
+    params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     request_body = ReleaseRequest,
     security(("worker_token" = [])),
-    responses((status = 204, description = "Released"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 422, description = "Bad body", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 204, description = "Released"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 422, description = "Bad body", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
-async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {
+async fn release(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> ApiResult<StatusCode> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
     let req: ReleaseRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("release body: {e}")))?;
-    state.farm.lock().release(lease_id, req.failed, &req.reason, now_ms())?;
+    {
+        let mut farm = state.farm.lock();
+        if let Err(e) = farm.check_lease(lease_id, worker_secret(&headers)) {
+            if matches!(e, FarmError::WrongWorker(_)) {
+                tracing::warn!(lease = lease_id, "release refused: {e}");
+            }
+            return Err(e.into());
+        }
+        farm.release(lease_id, req.failed, &req.reason, now_ms())?;
+    }
     state.work_ready.notify_waiters();
     Ok(StatusCode::NO_CONTENT)
 }

@@ -86,6 +86,17 @@ pub enum FarmError {
     InvalidJob(String),
     #[error("{0}")]
     OverBudget(String),
+    /// The request's worker secret is missing or is not the secret of the worker the lease or
+    /// the worker id belongs to.
+    #[error("{0}")]
+    WrongWorker(String),
+}
+
+fn missing_secret() -> FarmError {
+    FarmError::WrongWorker(format!(
+        "missing {} header: send the worker_secret that POST /workers/register returned",
+        pathfarm_common::protocol::WORKER_SECRET_HEADER
+    ))
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -363,6 +374,9 @@ pub struct Checkpoint {
 
 #[derive(Debug)]
 struct Worker {
+    /// Issued at registration; every lease, heartbeat, result and release of this worker must
+    /// carry it. Empty: nothing authenticates as this worker (farms built in tests).
+    secret: String,
     name: String,
     threads: u32,
     leases: BTreeSet<LeaseId>,
@@ -627,13 +641,20 @@ impl Farm {
 
     // ----------------------------------------------------------------- workers
 
+    /// Registers a worker that no request can authenticate as (see [`Farm::register_with_secret`]).
     pub fn register(&mut self, name: String, threads: u32, now_ms: u64) -> WorkerId {
+        self.register_with_secret(name, threads, String::new(), now_ms)
+    }
+
+    /// Registers a worker whose requests must carry `secret` (an empty one never matches).
+    pub fn register_with_secret(&mut self, name: String, threads: u32, secret: String, now_ms: u64) -> WorkerId {
         let id = self.next_worker;
         self.next_worker += 1;
         tracing::info!(worker = id, %name, threads, "worker registered");
         self.workers.insert(
             id,
             Worker {
+                secret,
                 name,
                 threads,
                 leases: BTreeSet::new(),
@@ -645,6 +666,33 @@ impl Farm {
             },
         );
         id
+    }
+
+    /// Checks that `secret` is worker `worker`'s own: `NoWorker` if it is not registered,
+    /// `WrongWorker` if the secret is missing or another's (compared in constant time).
+    pub fn check_worker(&self, worker: WorkerId, secret: Option<&str>) -> Result<(), FarmError> {
+        let w = self.workers.get(&worker).ok_or(FarmError::NoWorker(worker))?;
+        match secret {
+            Some(s) if crate::api::token_matches(s, &w.secret) => Ok(()),
+            Some(_) => Err(FarmError::WrongWorker(format!(
+                "the worker secret is not worker {worker}'s: a worker may only act for itself"
+            ))),
+            None => Err(missing_secret()),
+        }
+    }
+
+    /// Checks that lease `lease_id` is held and that `secret` belongs to the worker holding it:
+    /// `LeaseLost` if it is not held, `WrongWorker` if the secret is missing or another's.
+    pub fn check_lease(&self, lease_id: LeaseId, secret: Option<&str>) -> Result<(), FarmError> {
+        let secret = secret.ok_or_else(missing_secret)?;
+        let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
+        match self.workers.get(&l.worker) {
+            Some(w) if crate::api::token_matches(secret, &w.secret) => Ok(()),
+            _ => Err(FarmError::WrongWorker(format!(
+                "lease {lease_id} is held by another worker: only the worker it was granted to may deliver, \
+                 release or renew it"
+            ))),
+        }
     }
 
     /// Marks the worker alive and extends its leases.
@@ -1040,6 +1088,26 @@ mod tests {
         assert_eq!((g3.unit, g3.tile), (g2.unit, g2.tile));
         farm.accept(g3.lease_id, fake_result(&g3), 200).expect("accept");
         assert_eq!(farm.job(id).expect("job").units_merged, 2);
+    }
+
+    #[test]
+    fn leases_and_workers_are_bound_to_their_secret() {
+        let mut farm = Farm::new(FarmConfig::default());
+        farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let a = farm.register_with_secret("a".into(), 1, "secret-a".into(), 0);
+        let b = farm.register_with_secret("b".into(), 1, "secret-b".into(), 0);
+        let nobody = farm.register("n".into(), 1, 0);
+        let g = farm.lease(a, 0).expect("lease").expect("work");
+        assert_eq!(farm.check_lease(g.lease_id, Some("secret-a")), Ok(()));
+        for bad in [Some("secret-b"), Some(""), Some("secret-"), None] {
+            assert!(matches!(farm.check_lease(g.lease_id, bad), Err(FarmError::WrongWorker(_))), "{bad:?}");
+            assert!(matches!(farm.check_worker(a, bad), Err(FarmError::WrongWorker(_))), "{bad:?}");
+        }
+        assert_eq!(farm.check_worker(a, Some("secret-a")), Ok(()));
+        assert_eq!(farm.check_worker(b, Some("secret-b")), Ok(()));
+        assert!(matches!(farm.check_worker(nobody, Some("")), Err(FarmError::WrongWorker(_))));
+        assert_eq!(farm.check_worker(999, Some("secret-a")), Err(FarmError::NoWorker(999)));
+        assert_eq!(farm.check_lease(g.lease_id + 100, Some("secret-a")), Err(FarmError::LeaseLost(g.lease_id + 100)));
     }
 
     #[test]

@@ -331,7 +331,7 @@ const JOB_ARGS: [&str; 8] = ["--width", "32", "--height", "32", "--spp", "2", "-
 struct Farm {
     c: Coordinator,
     job: u64,
-    worker: u64,
+    reg: Registered,
     renderer: Renderer,
     scene_file: std::path::PathBuf,
 }
@@ -346,17 +346,16 @@ impl Farm {
         let body = json!({"scene_id": scene_id, "width": 32, "height": 32, "spp": 2, "tile_size": 16,
             "passes": {"type": "fixed", "spp": 1}});
         let job = c.submit_ok(&body);
-        let r = c.worker(c.http.post(c.api("/workers/register"))).json(&json!({"name": "fake", "threads": 1}));
-        let reg: Registered = r.send().expect("register").json().expect("registered");
+        let reg = c.register("fake");
         let scene = load_scene_from_slice(&glb, "cornell.glb", None, &LoadOptions::default()).expect("scene");
         let settings = c.job(job).settings;
         let renderer = Renderer::new(&scene, &settings).expect("renderer");
-        Self { c, job, worker: reg.worker_id, renderer, scene_file }
+        Self { c, job, reg, renderer, scene_file }
     }
 
     fn lease(&self) -> LeaseGrant {
-        let url = self.c.api(&format!("/workers/{}/lease?wait_ms=2000", self.worker));
-        let r = self.c.worker(self.c.http.post(url)).send().expect("lease");
+        let url = self.c.api(&format!("/workers/{}/lease?wait_ms=2000", self.reg.worker_id));
+        let r = self.c.as_worker(self.c.http.post(url), &self.reg).send().expect("lease");
         assert_eq!(r.status(), StatusCode::OK);
         r.json().expect("grant")
     }
@@ -368,7 +367,7 @@ impl Farm {
 
     fn put(&self, lease: u64, body: Vec<u8>) -> reqwest::blocking::Response {
         self.c
-            .worker(self.c.http.put(self.c.api(&format!("/leases/{lease}/result"))))
+            .as_worker(self.c.http.put(self.c.api(&format!("/leases/{lease}/result"))), &self.reg)
             .header("content-type", "application/octet-stream")
             .body(body)
             .send()

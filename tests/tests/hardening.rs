@@ -6,6 +6,7 @@
 
 mod support;
 
+use pathfarm_common::protocol::WORKER_SECRET_HEADER;
 use pathfarm_common::scene::demo::cornell_demo_glb;
 use pathfarm_tests::procs::Coordinator;
 use reqwest::StatusCode;
@@ -113,11 +114,20 @@ fn idle_and_half_sent_connections_do_not_lock_out_the_farm() {
         .json()
         .expect("registered");
     let worker = reg["worker_id"].as_u64().expect("worker id");
+    let secret = reg["worker_secret"].as_str().expect("worker secret");
     // Take the one unit of the job, so the next lease request waits.
-    let r = fresh.post(c.api(&format!("/workers/{worker}/lease"))).send().expect("lease");
+    let r = fresh
+        .post(c.api(&format!("/workers/{worker}/lease")))
+        .header(WORKER_SECRET_HEADER, secret)
+        .send()
+        .expect("lease");
     assert_eq!(r.status(), StatusCode::OK);
     let t0 = Instant::now();
-    let r = fresh.post(c.api(&format!("/workers/{worker}/lease?wait_ms=3000"))).send().expect("long poll");
+    let r = fresh
+        .post(c.api(&format!("/workers/{worker}/lease?wait_ms=3000")))
+        .header(WORKER_SECRET_HEADER, secret)
+        .send()
+        .expect("long poll");
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
     assert!(t0.elapsed() >= Duration::from_millis(2900), "the long poll returned after {:?}", t0.elapsed());
 }
@@ -249,4 +259,80 @@ fn long_job_names_are_422_naming_the_limit() {
     let id = c.submit_ok(&job("x".repeat(256)));
     assert_eq!(c.job(id).name.len(), 256);
     c.assert_serving();
+}
+
+// ------------------------------------------------------------------------------- worker secrets
+
+/// Leases are bound to the worker they were granted to: a second registration with the same
+/// worker token cannot deliver, release or renew another worker's lease (all 403, nothing merged,
+/// released or blocklisted); the honest worker's result then merges and the image stays
+/// bit-identical to a local render.
+#[test]
+fn a_worker_cannot_act_for_another_worker() {
+    use pathfarm_common::protocol::{LeaseGrant, ReleaseRequest, UnitResultFrame};
+    use pathfarm_tests::procs::{assert_exr_identical, expect_error, render_local};
+    let c = start(&["--client-token", "client-secret", "--worker-token", "worker-secret"]);
+    let glb = cornell_demo_glb();
+    let scene_file = c.dir.path().join("cornell.glb");
+    std::fs::write(&scene_file, &glb).expect("write scene");
+    let scene = c.upload_ok(glb.clone());
+    let job = c.submit_ok(&json!({"scene_id": scene, "width": 32, "height": 32, "spp": 2, "tile_size": 16,
+        "passes": {"type": "fixed", "spp": 1}}));
+    let a = c.register("honest");
+    let b = c.register("thief");
+    assert_eq!(a.worker_secret.len(), 64, "32 bytes, hex");
+    assert_ne!(a.worker_secret, b.worker_secret);
+    let r = c.as_worker(c.http.post(c.api(&format!("/workers/{}/lease?wait_ms=2000", a.worker_id))), &a);
+    let g: LeaseGrant = r.send().expect("lease").json().expect("grant");
+    let loaded =
+        pathfarm_common::scene::load_scene_from_slice(&glb, "cornell.glb", None, &Default::default()).expect("scene");
+    let renderer = pathfarm_worker::render::Renderer::new(&loaded, &g.settings).expect("renderer");
+    let out = renderer.render_unit(g.tile, g.pass);
+    let body =
+        UnitResultFrame { lease_id: g.lease_id, job_id: g.job_id, unit: g.unit, accum: out.accum, splats: out.splats }
+            .encode();
+    let result = c.api(&format!("/leases/{}/result", g.lease_id));
+    let release = c.api(&format!("/leases/{}/release", g.lease_id));
+    let fail = ReleaseRequest { failed: true, reason: "sabotage".into() };
+    // B, with its own secret or none: every request for A's lease or as A is 403.
+    for _ in 0..2 {
+        let r = c.as_worker(c.http.put(&result), &b).body(body.clone()).send().expect("PUT");
+        expect_error(r, StatusCode::FORBIDDEN, &[&format!("lease {}", g.lease_id), "another worker"]);
+        let r = c.as_worker(c.http.post(&release), &b).json(&fail).send().expect("release");
+        expect_error(r, StatusCode::FORBIDDEN, &["another worker"]);
+    }
+    let r = c.worker(c.http.put(&result)).body(body.clone()).send().expect("PUT");
+    expect_error(r, StatusCode::FORBIDDEN, &["missing", "x-pathfarm-worker-secret"]);
+    let r = c.worker(c.http.post(&release)).json(&fail).send().expect("release");
+    expect_error(r, StatusCode::FORBIDDEN, &["missing", "x-pathfarm-worker-secret"]);
+    let hb = c.api(&format!("/workers/{}/heartbeat", a.worker_id));
+    let r = c.as_worker(c.http.post(&hb), &b).send().expect("heartbeat");
+    expect_error(r, StatusCode::FORBIDDEN, &[&format!("worker {}", a.worker_id)]);
+    let r = c.worker(c.http.post(&hb)).send().expect("heartbeat");
+    expect_error(r, StatusCode::FORBIDDEN, &["missing"]);
+    let r = c.as_worker(c.http.post(c.api(&format!("/workers/{}/lease", a.worker_id))), &b).send().expect("lease");
+    expect_error(r, StatusCode::FORBIDDEN, &[&format!("worker {}", a.worker_id)]);
+    // Nothing was merged, released or blocklisted; each worker may still act for itself.
+    let info = c.job(job);
+    assert_eq!(info.units_merged, 0);
+    assert!(info.blocklist.is_empty(), "{info:?}");
+    let log: Vec<String> =
+        c.client(c.http.get(c.api(&format!("/jobs/{job}/log")))).send().expect("log").json().expect("log");
+    assert!(!log.iter().any(|l| l.contains("sabotage") || l.contains("failed")), "{log:?}");
+    let r = c.as_worker(c.http.post(c.api(&format!("/workers/{}/heartbeat", b.worker_id))), &b).send().expect("hb");
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    let r = c.as_worker(c.http.post(&hb), &a).send().expect("heartbeat");
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    // A's result merges.
+    let r = c.as_worker(c.http.put(&result), &a).body(body).send().expect("PUT");
+    assert_eq!(r.status(), StatusCode::OK, "{}", r.text().unwrap_or_default());
+    assert_eq!(c.job(job).units_merged, 1);
+    // A real worker finishes the job: bit-identical to a local render.
+    let _w = c.start_worker().expect("worker");
+    let farm_exr = c.dir.path().join("farm.exr");
+    c.wait_completed_exr(job, Duration::from_secs(60), &farm_exr);
+    let local_exr = c.dir.path().join("local.exr");
+    let args = ["--width", "32", "--height", "32", "--spp", "2", "--tile-size", "16", "--pass-spp", "1"];
+    render_local(&scene_file, &local_exr, &args).expect("local render");
+    assert_exr_identical(&farm_exr, &local_exr);
 }
