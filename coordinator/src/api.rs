@@ -5,7 +5,7 @@
 
 use crate::farm::FarmError;
 use crate::server::{AppState, Auth, now_ms};
-use axum::body::Bytes;
+use axum::body::{Body, Bytes};
 use axum::extract::{DefaultBodyLimit, Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
@@ -16,7 +16,7 @@ use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
     API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
     RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId,
+    WorkerId, max_result_bytes,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -168,7 +168,12 @@ pub fn router(state: Arc<AppState>) -> Router {
 pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
     let upload_limit = state.config.max_upload_bytes;
     let client = Router::new()
-        .route("/scenes", post(upload_scene).layer(DefaultBodyLimit::max(upload_limit)))
+        .route(
+            "/scenes",
+            post(upload_scene)
+                .layer(DefaultBodyLimit::max(upload_limit))
+                .layer(middleware::from_fn_with_state(state.clone(), declared_length_within_limit)),
+        )
         .route("/jobs", post(create_job).get(list_jobs))
         .route("/jobs/{id}", get(get_job).delete(delete_job))
         .route("/jobs/{id}/cancel", post(cancel_job))
@@ -185,7 +190,8 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
         .route("/workers/register", post(register))
         .route("/workers/{id}/heartbeat", post(heartbeat))
         .route("/workers/{id}/lease", post(lease))
-        .route("/leases/{id}/result", put(upload_result).layer(DefaultBodyLimit::max(upload_limit)))
+        // The result handler reads its body itself, bounded by the lease's tile.
+        .route("/leases/{id}/result", put(upload_result))
         .route("/leases/{id}/release", post(release))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_worker));
     let shared = Router::new()
@@ -267,7 +273,7 @@ async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Nex
     summary = "Upload a scene (.glb, .gltf or tar bundle); content-addressed by SHA-256",
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "A .glb, a self-contained .gltf, or a tar of a .gltf with its files"),
     security(("client_token" = [])),
-    responses((status = 201, description = "Stored (or already stored)", body = SceneCreated), (status = 422, description = "Not a loadable scene, or over a limit", body = ErrorBody), (status = 413, description = "Body too large"), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 201, description = "Stored (or already stored)", body = SceneCreated), (status = 422, description = "Not a loadable scene, or over a limit", body = ErrorBody), (status = 413, description = "Body larger than --max-upload-mb (a declared `Content-Length` above it is refused before the body is read)", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<SceneCreated>)> {
     if body.is_empty() {
@@ -783,36 +789,65 @@ async fn lease(
     path = "/api/v1/leases/{id}/result",
     tag = "worker protocol",
     summary = "Upload a unit's result",
+    description = "The token, the worker secret, the lease and the declared `Content-Length` are checked before \
+        the body is read: a refusal (401/403/409/413) closes the connection without reading the body.",
     params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR1 magic, u32 header length, JSON header, lz4 sections of i128 sums, CRC-32"),
     security(("worker_token" = [])),
-    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "Body too large", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
+    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "The declared or actual body is larger than --max-upload-mb or than the largest result of the lease's tile (JSON header, lz4 worst case of the tile's sums and of an image-sized splat buffer); refused before the body is read", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
 async fn upload_result(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
     headers: HeaderMap,
-    body: Bytes,
-) -> ApiResult<Json<ResultAccepted>> {
-    let lease_id: LeaseId = parse_id("lease", &id)?;
+    body: Body,
+) -> Result<Json<ResultAccepted>, Response> {
+    let lease_id: LeaseId = parse_id("lease", &id).map_err(refuse_unread)?;
     let secret = worker_secret(&headers).map(str::to_string);
+    // Everything that can refuse the result without its bytes is checked before a byte of the
+    // body is read: the declared length against the upload limit, the sender's secret and the
+    // lease, then the declared length against the largest result the lease's unit can have.
+    let declared = declared_length(&headers);
+    check_declared(declared, state.config.max_upload_bytes as u64, || "the upload limit".to_string())
+        .map_err(refuse_unread)?;
+    let bound = {
+        let mut farm = state.farm.lock();
+        let shape = farm.check_lease(lease_id, secret.as_deref()).map(|()| farm.lease_shape(lease_id));
+        match shape {
+            Ok(Some((tile, image))) => max_result_bytes(tile, image).min(state.config.max_upload_bytes as u64),
+            Ok(None) | Err(_) => {
+                farm.counters.results_rejected += 1;
+                let e = shape.err().unwrap_or(FarmError::LeaseLost(lease_id));
+                if matches!(e, FarmError::WrongWorker(_)) {
+                    tracing::warn!(lease = lease_id, "result refused: {e}");
+                }
+                return Err(refuse_unread(e.into()));
+            }
+        }
+    };
+    check_declared(declared, bound, || format!("the largest result of lease {lease_id}'s tile"))
+        .map_err(refuse_unread)?;
+    let body = read_bounded(body, declared, bound, || format!("the largest result of lease {lease_id}'s tile"))
+        .await
+        .map_err(refuse_unread)?;
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
     // Decoding (lz4, CRC, 850 KB of sums for a 64 px tile) and merging take a few hundred
     // microseconds: run them off the async threads, at most one per core at a time, so lease
     // requests are answered meanwhile and bodies waiting to be decoded stay compressed.
-    let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()))?;
+    let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()).into_response())?;
     let st = state.clone();
     let t0 = Instant::now();
     let (job_id, outcome) =
         tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, secret.as_deref(), &body))
             .await
-            .map_err(|e| ApiError::internal(format!("result task: {e}")))??;
+            .map_err(|e| ApiError::internal(format!("result task: {e}")).into_response())?
+            .map_err(IntoResponse::into_response)?;
     let outcome = match outcome {
         Ok(o) => o,
         Err(e) => {
             // A refused result may have sent its unit back to pending.
             state.work_ready.notify_waiters();
-            return Err(e.into());
+            return Err(ApiError::from(e).into_response());
         }
     };
     state.metrics.observe_merge(t0.elapsed());
@@ -821,6 +856,68 @@ async fn upload_result(
     }
     state.publish("job", job_id);
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
+}
+
+/// An error answered before the request's body was read: the connection is closed after it, so
+/// the unread body is never parsed as the next request (and a client cannot make us drain it).
+fn refuse_unread(e: ApiError) -> Response {
+    let mut r = e.into_response();
+    r.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+    r
+}
+
+/// The request's `Content-Length`, if it has one that parses.
+fn declared_length(headers: &HeaderMap) -> Option<u64> {
+    headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.trim().parse().ok())
+}
+
+fn too_large(len: u64, limit: u64, what: impl FnOnce() -> String) -> ApiError {
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "payload_too_large",
+        format!("request body of {len} bytes is larger than {} ({limit} bytes)", what()),
+    )
+}
+
+/// 413 when the declared length is above `limit`.
+fn check_declared(declared: Option<u64>, limit: u64, what: impl FnOnce() -> String) -> ApiResult<()> {
+    match declared {
+        Some(len) if len > limit => Err(too_large(len, limit, what)),
+        _ => Ok(()),
+    }
+}
+
+/// Reads a body of at most `limit` bytes (413 as soon as more arrive), never buffering more.
+async fn read_bounded(
+    body: Body,
+    declared: Option<u64>,
+    limit: u64,
+    what: impl FnOnce() -> String,
+) -> ApiResult<Bytes> {
+    use futures_util::StreamExt;
+    let mut stream = body.into_data_stream();
+    let mut buf = Vec::with_capacity(declared.unwrap_or(0).min(limit) as usize);
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| {
+            ApiError::new(StatusCode::BAD_REQUEST, "bad_body", format!("reading the request body: {e}"))
+        })?;
+        let len = (buf.len() + chunk.len()) as u64;
+        if len > limit {
+            return Err(too_large(len, limit, what));
+        }
+        buf.extend_from_slice(&chunk);
+    }
+    Ok(Bytes::from(buf))
+}
+
+/// Refuses a request whose declared `Content-Length` is above the upload limit before its body
+/// is read (scene uploads; the body is then read with the same limit).
+async fn declared_length_within_limit(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+    let limit = state.config.max_upload_bytes as u64;
+    match check_declared(declared_length(req.headers()), limit, || "the upload limit".to_string()) {
+        Ok(()) => next.run(req).await,
+        Err(e) => refuse_unread(e),
+    }
 }
 
 /// Concurrent result decodes: one per core.

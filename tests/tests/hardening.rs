@@ -336,3 +336,108 @@ fn a_worker_cannot_act_for_another_worker() {
     render_local(&scene_file, &local_exr, &args).expect("local render");
     assert_exr_identical(&farm_exr, &local_exr);
 }
+
+// ------------------------------------------------------------------------------- unread bodies
+
+/// Sends a request head declaring `declared` body bytes and 64 KiB of them, and reads the
+/// answer's status line (the server must answer without waiting for the rest). Then tries to
+/// send the rest as fast as it can: returns (status line, time to the answer, bytes sent).
+fn put_declared(addr: &str, path: &str, headers: &[(&str, &str)], declared: u64) -> (String, Duration, u64) {
+    let mut s = TcpStream::connect(addr).expect("connect");
+    let mut head = format!("PUT {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {declared}\r\n");
+    for (k, v) in headers {
+        head.push_str(&format!("{k}: {v}\r\n"));
+    }
+    head.push_str("\r\n");
+    let t0 = Instant::now();
+    s.write_all(head.as_bytes()).expect("head");
+    let chunk = vec![0x55u8; 64 << 10];
+    s.write_all(&chunk).expect("first bytes");
+    let mut sent = chunk.len() as u64;
+    s.set_read_timeout(Some(Duration::from_secs(5))).expect("timeout");
+    let mut buf = [0u8; 4096];
+    let n = s.read(&mut buf).unwrap_or(0);
+    let took = t0.elapsed();
+    let answer = String::from_utf8_lossy(&buf[..n]).to_string();
+    let status = answer.lines().next().unwrap_or_default().to_string();
+    assert!(answer.to_ascii_lowercase().contains("connection: close"), "{answer}");
+    let big = vec![0x55u8; 1 << 20];
+    while sent < declared {
+        match s.write(&big) {
+            Ok(0) | Err(_) => break,
+            Ok(k) => sent += k as u64,
+        }
+    }
+    (status, took, sent)
+}
+
+/// Peak resident memory of a process (`VmHWM`), in bytes.
+fn vm_hwm(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("proc status");
+    let kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .expect("VmHWM");
+    kb * 1024
+}
+
+/// Result bodies are refused before they are read when the lease is not held or not the
+/// sender's, or when they declare more than the lease's tile can need; scene uploads declaring
+/// more than the upload limit likewise. Four 200 MB bodies leave the coordinator's peak memory
+/// far below one of them (the bodies were buffered in full: four 500 MB uploads peaked at 2 GiB).
+#[test]
+fn large_bodies_are_refused_before_they_are_read() {
+    let c = start(&["--max-upload-mb", "256"]);
+    let addr = c.url.trim_start_matches("http://").to_string();
+    let scene = c.upload_ok(cornell_demo_glb());
+    let job = c.submit_ok(&json!({"scene_id": scene, "width": 32, "height": 32, "spp": 1, "tile_size": 16}));
+    let a = c.register("a");
+    let b = c.register("b");
+    let r = c.as_worker(c.http.post(c.api(&format!("/workers/{}/lease?wait_ms=2000", a.worker_id))), &a);
+    let g: pathfarm_common::protocol::LeaseGrant = r.send().expect("lease").json().expect("grant");
+    let mb200 = 200_000_000;
+    let result = |lease: u64| format!("/api/v1/leases/{lease}/result");
+    let secret = |r: &pathfarm_common::protocol::Registered| ("x-pathfarm-worker-secret", r.worker_secret.clone());
+    let cases: Vec<(String, Vec<(&str, String)>, &str)> = vec![
+        (result(g.lease_id + 1000), vec![secret(&a)], "409"),
+        (result(g.lease_id), vec![secret(&b)], "403"),
+        (result(g.lease_id), vec![], "403"),
+        (result(g.lease_id), vec![secret(&a)], "413"),
+    ];
+    for (path, headers, want) in &cases {
+        let headers: Vec<(&str, &str)> = headers.iter().map(|(k, v)| (*k, v.as_str())).collect();
+        let (status, took, sent) = put_declared(&addr, path, &headers, mb200);
+        assert!(status.contains(want), "{path} {headers:?}: {status}");
+        assert!(took < Duration::from_secs(2), "{path}: answered after {took:?}");
+        assert!(sent < mb200 / 4, "{path}: the server took {sent} bytes of the body");
+    }
+    // A scene declaring more than --max-upload-mb.
+    let mut s = TcpStream::connect(&addr).expect("connect");
+    s.write_all(b"POST /api/v1/scenes HTTP/1.1\r\nHost: x\r\nContent-Length: 300000000\r\n\r\n").expect("head");
+    s.set_read_timeout(Some(Duration::from_secs(5))).expect("timeout");
+    let mut buf = [0u8; 4096];
+    let n = s.read(&mut buf).expect("answer to the scene upload");
+    let answer = String::from_utf8_lossy(&buf[..n]);
+    assert!(answer.starts_with("HTTP/1.1 413") && answer.contains("268435456"), "{answer}");
+    let hwm = vm_hwm(c.proc.child.id());
+    assert!(hwm < 100 << 20, "the coordinator's peak memory is {} MiB", hwm >> 20);
+    // The honest result for the lease still merges.
+    let loaded =
+        pathfarm_common::scene::load_scene_from_slice(&cornell_demo_glb(), "cornell.glb", None, &Default::default())
+            .expect("scene");
+    let renderer = pathfarm_worker::render::Renderer::new(&loaded, &g.settings).expect("renderer");
+    let out = renderer.render_unit(g.tile, g.pass);
+    let body = pathfarm_common::protocol::UnitResultFrame {
+        lease_id: g.lease_id,
+        job_id: g.job_id,
+        unit: g.unit,
+        accum: out.accum,
+        splats: out.splats,
+    }
+    .encode();
+    let r = c.as_worker(c.http.put(c.api(&result(g.lease_id)[7..])), &a).body(body).send().expect("PUT");
+    assert_eq!(r.status(), StatusCode::OK, "{}", r.text().unwrap_or_default());
+    assert_eq!(c.job(job).units_merged, 1);
+}
