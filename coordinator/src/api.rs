@@ -687,13 +687,41 @@ async fn list_workers(State(state): State<Arc<AppState>>, Query(q): Query<PageQu
     summary = "Register a worker",
     description = "The answer holds the worker's own secret (`worker_secret`): the lease, heartbeat, result \
         and release requests of this worker must carry it as `X-Pathfarm-Worker-Secret`. It lives in the \
-        coordinator's memory only; after a coordinator restart workers register again.",
+        coordinator's memory only; after a coordinator restart workers register again. Registrations are rate-limited \
+        per client address (token bucket); workers offline longer than --prune-workers-after-ms are forgotten.",
     request_body = RegisterRequest,
     security(("worker_token" = [])),
-    responses((status = 200, description = "Registered", body = Registered), (status = 422, description = "Bad body", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "Registered", body = Registered), (status = 429, description = "Too many registrations from this address (--register-per-minute, --register-burst)", body = ErrorBody, headers(("retry-after" = u64, description = "Seconds to wait"))), (status = 422, description = "Bad body", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<Json<Registered>> {
-    let req: RegisterRequest = serde_json::from_slice(&body)
+async fn register(
+    State(state): State<Arc<AppState>>,
+    peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
+    body: Bytes,
+) -> Result<Json<Registered>, Response> {
+    if let Some(axum::Extension(axum::extract::ConnectInfo(addr))) = peer
+        && let Err(wait) = state.register_limiter.check(addr.ip(), Instant::now())
+    {
+        let secs = wait.as_secs_f64().ceil().max(1.0) as u64;
+        tracing::warn!(peer = %addr.ip(), retry_after_s = secs, "worker registrations from this address are rate-limited");
+        let mut r = ApiError::new(
+            StatusCode::TOO_MANY_REQUESTS,
+            "rate_limited",
+            format!(
+                "too many worker registrations from {}: at most {} a minute (burst {}); retry after {secs} s",
+                addr.ip(),
+                state.config.register_per_minute,
+                state.config.register_burst
+            ),
+        )
+        .into_response();
+        r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(secs));
+        return Err(r);
+    }
+    register_worker(&state, &body).await.map_err(IntoResponse::into_response)
+}
+
+async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiResult<Json<Registered>> {
+    let req: RegisterRequest = serde_json::from_slice(body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("register body: {e}")))?;
     if !(1..=4096).contains(&req.threads) || req.name.is_empty() || req.name.len() > 256 {
         return Err(ApiError::unprocessable(

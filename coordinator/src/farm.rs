@@ -32,6 +32,9 @@ pub struct FarmConfig {
     /// A worker that failed this many units of a job is blocklisted for it.
     pub blocklist_after: u32,
     pub limits: Limits,
+    /// Workers offline (not seen) for longer than this, holding no lease, are forgotten.
+    /// `None`: never.
+    pub worker_prune_ms: Option<u64>,
     /// Memory for the films of all jobs the farm holds (each `Film::bytes_for` its size); a job
     /// that does not fit is refused. `None`: unbounded.
     pub film_budget_bytes: Option<u64>,
@@ -46,6 +49,7 @@ impl Default for FarmConfig {
             blocklist_after: 2,
             limits: Limits::default(),
             film_budget_bytes: None,
+            worker_prune_ms: Some(3_600_000),
         }
     }
 }
@@ -709,6 +713,25 @@ impl Farm {
         Ok(())
     }
 
+    /// Forgets workers that have not been seen for longer than `worker_prune_ms` and hold no
+    /// lease; returns their ids (the store deletes their rows). A pruned worker that comes back
+    /// gets 404 and registers again.
+    pub fn prune_workers(&mut self, now_ms: u64) -> Vec<WorkerId> {
+        let Some(after) = self.cfg.worker_prune_ms else { return Vec::new() };
+        let gone: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| w.leases.is_empty() && now_ms.saturating_sub(w.last_seen_ms) > after)
+            .map(|(id, _)| *id)
+            .collect();
+        for id in &gone {
+            if let Some(w) = self.workers.remove(id) {
+                tracing::info!(worker = id, name = %w.name, last_seen_ms = w.last_seen_ms, "offline worker pruned");
+            }
+        }
+        gone
+    }
+
     pub fn workers(&self, now_ms: u64) -> Vec<WorkerInfo> {
         self.workers
             .iter()
@@ -1108,6 +1131,27 @@ mod tests {
         assert!(matches!(farm.check_worker(nobody, Some("")), Err(FarmError::WrongWorker(_))));
         assert_eq!(farm.check_worker(999, Some("secret-a")), Err(FarmError::NoWorker(999)));
         assert_eq!(farm.check_lease(g.lease_id + 100, Some("secret-a")), Err(FarmError::LeaseLost(g.lease_id + 100)));
+    }
+
+    #[test]
+    fn offline_workers_are_pruned() {
+        let mut farm =
+            Farm::new(FarmConfig { lease_timeout_ms: 100, worker_prune_ms: Some(1000), ..Default::default() });
+        farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let quiet = farm.register("quiet".into(), 1, 0);
+        let busy = farm.register("busy".into(), 1, 0);
+        let alive = farm.register("alive".into(), 1, 0);
+        farm.lease(busy, 0).expect("lease").expect("work");
+        farm.heartbeat(alive, 900).expect("hb");
+        assert_eq!(farm.prune_workers(1000), Vec::<WorkerId>::new());
+        // The busy worker's lease expires (it is then silent too): pruned with the quiet one.
+        farm.expire(1001);
+        assert_eq!(farm.prune_workers(1001), vec![quiet, busy]);
+        assert_eq!(farm.workers(1001).iter().map(|w| w.id).collect::<Vec<_>>(), vec![alive]);
+        assert_eq!(farm.heartbeat(quiet, 1002), Err(FarmError::NoWorker(quiet)));
+        let mut never = Farm::new(FarmConfig { worker_prune_ms: None, ..Default::default() });
+        never.register("w".into(), 1, 0);
+        assert!(never.prune_workers(u64::MAX).is_empty());
     }
 
     #[test]
