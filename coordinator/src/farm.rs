@@ -423,6 +423,10 @@ pub struct Farm {
     next_worker: WorkerId,
     next_lease: LeaseId,
     pub counters: Counters,
+    /// When `expire` last ran (to notice that the coordinator stalled).
+    last_expire_ms: Option<u64>,
+    /// After a stall, nothing is expired, marked offline or pruned before this time.
+    grace_until_ms: u64,
 }
 
 impl Farm {
@@ -442,6 +446,8 @@ impl Farm {
             next_worker: (epoch << 32) + 1,
             next_lease: (epoch << 40) + 1,
             counters: Counters::default(),
+            last_expire_ms: None,
+            grace_until_ms: 0,
         }
     }
 
@@ -718,6 +724,9 @@ impl Farm {
     /// gets 404 and registers again.
     pub fn prune_workers(&mut self, now_ms: u64) -> Vec<WorkerId> {
         let Some(after) = self.cfg.worker_prune_ms else { return Vec::new() };
+        if now_ms < self.grace_until_ms {
+            return Vec::new();
+        }
         let gone: Vec<WorkerId> = self
             .workers
             .iter()
@@ -823,7 +832,29 @@ impl Farm {
 
     /// Sends units of expired leases back to pending and marks silent workers offline.
     /// Returns the number of leases that expired.
+    ///
+    /// `expire` runs every quarter second. When it runs late by more than half the lease
+    /// timeout, the coordinator stalled (paused, swapped, starved): workers' heartbeats and
+    /// results could not be heard meanwhile, so every lease gets one more lease timeout from
+    /// now before it can expire, and no worker is marked offline or pruned until then.
     pub fn expire(&mut self, now_ms: u64) -> usize {
+        let timeout = self.cfg.lease_timeout_ms;
+        if let Some(last) = self.last_expire_ms
+            && now_ms.saturating_sub(last) > timeout / 2
+        {
+            let grace = now_ms + timeout;
+            tracing::warn!(
+                stalled_ms = now_ms.saturating_sub(last),
+                leases = self.leases.len(),
+                grace_ms = timeout,
+                "the coordinator stalled: every lease gets one lease timeout of grace"
+            );
+            for l in self.leases.values_mut() {
+                l.deadline_ms = l.deadline_ms.max(grace);
+            }
+            self.grace_until_ms = grace;
+        }
+        self.last_expire_ms = Some(now_ms);
         let expired: Vec<LeaseId> =
             self.leases.iter().filter(|(_, l)| l.deadline_ms < now_ms).map(|(id, _)| *id).collect();
         for &id in &expired {
@@ -839,9 +870,11 @@ impl Farm {
                 self.counters.leases_expired += 1;
             }
         }
-        for w in self.workers.values_mut() {
-            if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
-                w.offline = true;
+        if now_ms >= self.grace_until_ms {
+            for w in self.workers.values_mut() {
+                if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
+                    w.offline = true;
+                }
             }
         }
         expired.len()
@@ -1152,6 +1185,40 @@ mod tests {
         let mut never = Farm::new(FarmConfig { worker_prune_ms: None, ..Default::default() });
         never.register("w".into(), 1, 0);
         assert!(never.prune_workers(u64::MAX).is_empty());
+    }
+
+    /// A coordinator stall longer than the lease timeout does not expire live workers' leases:
+    /// the expiry after it gives every lease one more lease timeout.
+    #[test]
+    fn leases_get_a_grace_period_after_a_stall() {
+        let mut farm = Farm::new(FarmConfig { lease_timeout_ms: 1000, ..FarmConfig::default() });
+        let id = farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        let g2 = farm.lease(w, 0).expect("lease").expect("work");
+        for t in (250..=750).step_by(250) {
+            assert_eq!(farm.expire(t), 0);
+        }
+        // Stalled from 750 to 5000: nothing expires, the worker is not offline.
+        assert_eq!(farm.expire(5000), 0);
+        assert!(farm.workers(5000).iter().all(|i| i.state != WorkerState::Offline));
+        // The worker's result, sent during the stall, is heard and merged.
+        farm.accept(g.lease_id, fake_result(&g), 5100).expect("merged after the stall");
+        assert_eq!(farm.job(id).expect("job").units_merged, 1);
+        // The grace is one lease timeout: a lease nobody renews expires after it.
+        for t in (5250..=6000).step_by(250) {
+            assert_eq!(farm.expire(t), 0, "{t}");
+        }
+        assert_eq!(farm.expire(6001), 1);
+        assert_eq!(farm.accept(g2.lease_id, fake_result(&g2), 6002), Err(FarmError::LeaseLost(g2.lease_id)));
+        // Without a stall, leases expire on time.
+        let h = farm.lease(w, 6002).expect("lease").expect("work");
+        let mut t = 6002;
+        while t <= 7002 {
+            t += 250;
+            farm.expire(t);
+        }
+        assert_eq!(farm.accept(h.lease_id, fake_result(&h), t), Err(FarmError::LeaseLost(h.lease_id)));
     }
 
     #[test]

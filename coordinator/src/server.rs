@@ -18,9 +18,17 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::{Notify, broadcast};
 
-/// Unix time in milliseconds: the farm's clock.
+/// The farm's clock, in milliseconds: the Unix time when the process started plus the
+/// monotonic time since (`Instant`). Lease deadlines and heartbeats follow it, so a step of the
+/// wall clock (NTP, a VM restored from a snapshot) neither expires live leases nor keeps dead
+/// ones; timestamps shown (job created and finished, worker last seen) stay Unix milliseconds,
+/// off by as much as the wall clock was stepped since the start.
 pub fn now_ms() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64)
+    static BASE: std::sync::OnceLock<(u64, Instant)> = std::sync::OnceLock::new();
+    let (wall, start) = BASE.get_or_init(|| {
+        (SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64), Instant::now())
+    });
+    wall + start.elapsed().as_millis() as u64
 }
 
 /// Service configuration.
