@@ -400,7 +400,8 @@ fn large_bodies_are_refused_before_they_are_read() {
     let mb200 = 200_000_000;
     let result = |lease: u64| format!("/api/v1/leases/{lease}/result");
     let secret = |r: &pathfarm_common::protocol::Registered| ("x-pathfarm-worker-secret", r.worker_secret.clone());
-    let cases: Vec<(String, Vec<(&str, String)>, &str)> = vec![
+    type Case<'a> = (String, Vec<(&'a str, String)>, &'a str);
+    let cases: Vec<Case<'_>> = vec![
         (result(g.lease_id + 1000), vec![secret(&a)], "409"),
         (result(g.lease_id), vec![secret(&b)], "403"),
         (result(g.lease_id), vec![], "403"),
