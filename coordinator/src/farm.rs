@@ -32,6 +32,9 @@ pub struct FarmConfig {
     /// A worker that failed this many units of a job is blocklisted for it.
     pub blocklist_after: u32,
     pub limits: Limits,
+    /// How often the service calls [`Farm::expire`]; a call later than this plus half the lease
+    /// timeout after the last one means the coordinator stalled.
+    pub expiry_tick_ms: u64,
     /// Workers offline (not seen) for longer than this, holding no lease, are forgotten.
     /// `None`: never.
     pub worker_prune_ms: Option<u64>,
@@ -50,6 +53,7 @@ impl Default for FarmConfig {
             limits: Limits::default(),
             film_budget_bytes: None,
             worker_prune_ms: Some(3_600_000),
+            expiry_tick_ms: 250,
         }
     }
 }
@@ -833,14 +837,14 @@ impl Farm {
     /// Sends units of expired leases back to pending and marks silent workers offline.
     /// Returns the number of leases that expired.
     ///
-    /// `expire` runs every quarter second. When it runs late by more than half the lease
+    /// `expire` runs every `expiry_tick_ms`. When it runs late by more than half the lease
     /// timeout, the coordinator stalled (paused, swapped, starved): workers' heartbeats and
     /// results could not be heard meanwhile, so every lease gets one more lease timeout from
     /// now before it can expire, and no worker is marked offline or pruned until then.
     pub fn expire(&mut self, now_ms: u64) -> usize {
         let timeout = self.cfg.lease_timeout_ms;
         if let Some(last) = self.last_expire_ms
-            && now_ms.saturating_sub(last) > timeout / 2
+            && now_ms.saturating_sub(last) > self.cfg.expiry_tick_ms + timeout / 2
         {
             let grace = now_ms + timeout;
             tracing::warn!(

@@ -515,9 +515,9 @@ pub fn write_outputs(dir: &Path, layers: &ImageLayers) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Expires leases every quarter second and wakes lease waiters when units came back.
+/// Expires leases every `expiry_tick_ms` (a quarter second), prunes workers, and wakes lease waiters when units came back.
 async fn maintenance_loop(state: Arc<AppState>) {
-    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
     loop {
         tick.tick().await;
         let (expired, pruned) = {
