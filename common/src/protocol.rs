@@ -19,6 +19,10 @@ pub const DEFAULT_PAGE_LIMIT: usize = 100;
 /// Largest `limit` of the list routes.
 pub const MAX_PAGE_LIMIT: usize = 1000;
 
+/// Header carrying a worker's own secret (returned by `POST /workers/register`) on the lease,
+/// heartbeat, result and release requests: a lease is bound to the worker it was granted to.
+pub const WORKER_SECRET_HEADER: &str = "x-pathfarm-worker-secret";
+
 /// Job identifier (a decimal number in URLs).
 pub type JobId = u64;
 /// Worker identifier assigned at registration.
@@ -209,6 +213,10 @@ pub struct RegisterRequest {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct Registered {
     pub worker_id: WorkerId,
+    /// This worker's own secret (64 hex digits): send it as the `X-Pathfarm-Worker-Secret`
+    /// header on every lease, heartbeat, result and release request. Kept in the coordinator's
+    /// memory only: after a coordinator restart the worker registers again and gets a new one.
+    pub worker_secret: String,
     /// Send a heartbeat at least this often.
     pub heartbeat_ms: u64,
     /// A lease not renewed by a heartbeat for this long expires.
@@ -316,6 +324,24 @@ pub fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
     let packed = lz4_flex::compress_prepend_size(&fixed_to_bytes(values));
     out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
     out.extend_from_slice(&packed);
+}
+
+/// Largest JSON header of a result frame the coordinator reads (ours are about 200 bytes).
+pub const MAX_RESULT_HEADER_BYTES: u64 = 4096;
+
+/// The largest body a result for `tile` of an image of `image` (width, height) can be: magic,
+/// header length, a header of at most [`MAX_RESULT_HEADER_BYTES`], the tile's sums and a splat
+/// buffer the size of the image, both at lz4's worst case, and the CRC. The coordinator refuses
+/// a declared `Content-Length` above it before reading the body.
+pub fn max_result_bytes(tile: TileRect, image: (u32, u32)) -> u64 {
+    let section = |values: u64| {
+        let raw = values.saturating_mul(16);
+        // u64 length + u32 size prefix + lz4_flex's worst case (16 + 4 + 110 % of the input).
+        8 + 4 + 20 + raw.saturating_mul(110) / 100 + 1
+    };
+    let sums = section(tile.pixel_count() as u64 * ch::COUNT as u64);
+    let splats = section(u64::from(image.0) * u64::from(image.1) * 3);
+    (8 + MAX_RESULT_HEADER_BYTES + 4).saturating_add(sums).saturating_add(splats)
 }
 
 /// Upper bound on a decompressed section (a 16k x 16k splat buffer is 12 GB; refuse above 4 GB).
@@ -483,6 +509,27 @@ mod tests {
             assert!(UnitResultFrame::decode(&b).is_err(), "flip at {i}");
         }
         assert_eq!(UnitResultFrame::decode(b"PFR0\0\0\0\0\0\0\0\0\0\0"), Err(DecodeError::BadMagic));
+    }
+
+    #[test]
+    fn results_fit_their_size_bound() {
+        for s in [false, true] {
+            let f = frame(s);
+            let bound = max_result_bytes(f.accum.rect, (32, 32));
+            assert!(f.encode().len() as u64 <= bound, "{} > {bound}", f.encode().len());
+        }
+        // Incompressible sums still fit: lz4's worst case is in the bound.
+        let mut f = frame(true);
+        let mut x: u64 = 0x1234_5678_9abc_def1;
+        for v in f.accum.sums.iter_mut().chain(f.splats.as_mut().map_or(&mut [][..], |s| &mut s.sums[..])) {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            *v = i128::from(x) << 64 | i128::from(x.rotate_left(17));
+        }
+        let bound = max_result_bytes(f.accum.rect, (32, 32));
+        assert!(f.encode().len() as u64 <= bound, "{} > {bound}", f.encode().len());
+        assert!(bound < 2 * (16 * 4 * 13 * 16 + 32 * 32 * 3 * 16) + 8192, "{bound}");
     }
 
     #[test]

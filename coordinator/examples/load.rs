@@ -28,7 +28,7 @@
 use anyhow::{Context, bail};
 use pathfarm_common::film::ch;
 use pathfarm_common::job::TileRect;
-use pathfarm_common::protocol::{API, JobInfo, LeaseGrant, RESULT_MAGIC, Registered};
+use pathfarm_common::protocol::{API, JobInfo, LeaseGrant, RESULT_MAGIC, Registered, WORKER_SECRET_HEADER};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -195,7 +195,7 @@ async fn worker(
     let mut first = None;
     while !stats.done.load(Ordering::Relaxed) {
         let t0 = Instant::now();
-        let r = match http.post(&lease_url).send().await {
+        let r = match http.post(&lease_url).header(WORKER_SECRET_HEADER, &reg.worker_secret).send().await {
             Ok(r) => r,
             Err(_) => {
                 stats.errors.fetch_add(1, Ordering::Relaxed);
@@ -225,6 +225,7 @@ async fn worker(
         let body = frame(&g, sec);
         let r = http
             .put(format!("{base}{API}/leases/{}/result", g.lease_id))
+            .header(WORKER_SECRET_HEADER, &reg.worker_secret)
             .header("content-type", "application/octet-stream")
             .body(body)
             .send()

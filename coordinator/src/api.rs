@@ -5,7 +5,7 @@
 
 use crate::farm::FarmError;
 use crate::server::{AppState, Auth, now_ms};
-use axum::body::Bytes;
+use axum::body::{Body, Bytes};
 use axum::extract::{DefaultBodyLimit, Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
@@ -15,7 +15,8 @@ use axum::{Json, Router};
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
     API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
-    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WorkerId,
+    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
+    WorkerId, max_result_bytes,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -63,6 +64,7 @@ impl From<FarmError> for ApiError {
             FarmError::BadState { .. } => (StatusCode::CONFLICT, "bad_state"),
             FarmError::InvalidJob(_) => (StatusCode::UNPROCESSABLE_ENTITY, "invalid_job"),
             FarmError::OverBudget(_) => (StatusCode::UNPROCESSABLE_ENTITY, "over_budget"),
+            FarmError::WrongWorker(_) => (StatusCode::FORBIDDEN, "wrong_worker"),
         };
         ApiError::new(status, code, e.to_string())
     }
@@ -116,6 +118,21 @@ pub fn authorize_token(auth: &Auth, token: Option<&str>, allowed: &[Role]) -> Ap
     }
 }
 
+/// The `X-Pathfarm-Worker-Secret` header of a request, if any.
+pub fn worker_secret(headers: &HeaderMap) -> Option<&str> {
+    headers.get(WORKER_SECRET_HEADER).and_then(|v| v.to_str().ok())
+}
+
+/// A new worker's secret: 32 bytes from the operating system's CSPRNG, hex-encoded.
+fn new_worker_secret() -> ApiResult<String> {
+    let mut buf = [0u8; 32];
+    getrandom::getrandom(&mut buf).map_err(|e| {
+        tracing::error!(error = %e, "the operating system's random number generator failed");
+        ApiError::internal("could not make a worker secret")
+    })?;
+    Ok(hex::encode(buf))
+}
+
 fn authorize(state: &AppState, headers: &HeaderMap, allowed: &[Role]) -> ApiResult<()> {
     authorize_token(&state.auth, bearer(headers), allowed)
 }
@@ -151,7 +168,12 @@ pub fn router(state: Arc<AppState>) -> Router {
 pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
     let upload_limit = state.config.max_upload_bytes;
     let client = Router::new()
-        .route("/scenes", post(upload_scene).layer(DefaultBodyLimit::max(upload_limit)))
+        .route(
+            "/scenes",
+            post(upload_scene)
+                .layer(DefaultBodyLimit::max(upload_limit))
+                .layer(middleware::from_fn_with_state(state.clone(), declared_length_within_limit)),
+        )
         .route("/jobs", post(create_job).get(list_jobs))
         .route("/jobs/{id}", get(get_job).delete(delete_job))
         .route("/jobs/{id}/cancel", post(cancel_job))
@@ -168,7 +190,8 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
         .route("/workers/register", post(register))
         .route("/workers/{id}/heartbeat", post(heartbeat))
         .route("/workers/{id}/lease", post(lease))
-        .route("/leases/{id}/result", put(upload_result).layer(DefaultBodyLimit::max(upload_limit)))
+        // The result handler reads its body itself, bounded by the lease's tile.
+        .route("/leases/{id}/result", put(upload_result))
         .route("/leases/{id}/release", post(release))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_worker));
     let shared = Router::new()
@@ -250,7 +273,7 @@ async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Nex
     summary = "Upload a scene (.glb, .gltf or tar bundle); content-addressed by SHA-256",
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "A .glb, a self-contained .gltf, or a tar of a .gltf with its files"),
     security(("client_token" = [])),
-    responses((status = 201, description = "Stored (or already stored)", body = SceneCreated), (status = 422, description = "Not a loadable scene, or over a limit", body = ErrorBody), (status = 413, description = "Body too large"), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 201, description = "Stored (or already stored)", body = SceneCreated), (status = 422, description = "Not a loadable scene, or over a limit", body = ErrorBody), (status = 413, description = "Body larger than --max-upload-mb (a declared `Content-Length` above it is refused before the body is read)", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn upload_scene(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<SceneCreated>)> {
     if body.is_empty() {
@@ -668,12 +691,43 @@ async fn list_workers(State(state): State<Arc<AppState>>, Query(q): Query<PageQu
     path = "/api/v1/workers/register",
     tag = "worker protocol",
     summary = "Register a worker",
+    description = "The answer holds the worker's own secret (`worker_secret`): the lease, heartbeat, result \
+        and release requests of this worker must carry it as `X-Pathfarm-Worker-Secret`. It lives in the \
+        coordinator's memory only; after a coordinator restart workers register again. Registrations are rate-limited \
+        per client address (token bucket); workers offline longer than --prune-workers-after-ms are forgotten.",
     request_body = RegisterRequest,
     security(("worker_token" = [])),
-    responses((status = 200, description = "Registered", body = Registered), (status = 422, description = "Bad body", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "Registered", body = Registered), (status = 429, description = "Too many registrations from this address (--register-per-minute, --register-burst)", body = ErrorBody, headers(("retry-after" = u64, description = "Seconds to wait"))), (status = 422, description = "Bad body", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<Json<Registered>> {
-    let req: RegisterRequest = serde_json::from_slice(&body)
+async fn register(
+    State(state): State<Arc<AppState>>,
+    peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
+    body: Bytes,
+) -> Result<Json<Registered>, Response> {
+    if let Some(axum::Extension(axum::extract::ConnectInfo(addr))) = peer
+        && let Err(wait) = state.register_limiter.check(addr.ip(), Instant::now())
+    {
+        let secs = wait.as_secs_f64().ceil().max(1.0) as u64;
+        tracing::warn!(peer = %addr.ip(), retry_after_s = secs, "worker registrations from this address are rate-limited");
+        let mut r = ApiError::new(
+            StatusCode::TOO_MANY_REQUESTS,
+            "rate_limited",
+            format!(
+                "too many worker registrations from {}: at most {} a minute (burst {}); retry after {secs} s",
+                addr.ip(),
+                state.config.register_per_minute,
+                state.config.register_burst
+            ),
+        )
+        .into_response();
+        r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(secs));
+        return Err(r);
+    }
+    register_worker(&state, &body).await.map_err(IntoResponse::into_response)
+}
+
+async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiResult<Json<Registered>> {
+    let req: RegisterRequest = serde_json::from_slice(body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("register body: {e}")))?;
     if !(1..=4096).contains(&req.threads) || req.name.is_empty() || req.name.len() > 256 {
         return Err(ApiError::unprocessable(
@@ -681,10 +735,16 @@ async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<
             format!("register body: threads must be 1..=4096 (got {}) and name 1..=256 bytes", req.threads),
         ));
     }
+    let worker_secret = new_worker_secret()?;
     let reg = {
         let mut farm = state.farm.lock();
-        let worker_id = farm.register(req.name.clone(), req.threads, now_ms());
-        Registered { worker_id, heartbeat_ms: farm.cfg.heartbeat_ms, lease_timeout_ms: farm.cfg.lease_timeout_ms }
+        let worker_id = farm.register_with_secret(req.name.clone(), req.threads, worker_secret.clone(), now_ms());
+        Registered {
+            worker_id,
+            worker_secret,
+            heartbeat_ms: farm.cfg.heartbeat_ms,
+            lease_timeout_ms: farm.cfg.lease_timeout_ms,
+        }
     };
     state.persist_worker(reg.worker_id, &req.name, req.threads);
     state.publish("worker", reg.worker_id);
@@ -696,13 +756,19 @@ async fn register(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<
     path = "/api/v1/workers/{id}/heartbeat",
     tag = "worker protocol",
     summary = "Heartbeat (renews the worker's leases)",
-    params(("id" = u64, Path, description = "Worker id")),
+    params(("id" = u64, Path, description = "Worker id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     security(("worker_token" = [])),
-    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 204, description = "Noted"), (status = 404, description = "Unknown worker: register again", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
-async fn heartbeat(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+async fn heartbeat(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<StatusCode> {
     let id: WorkerId = parse_id("worker", &id)?;
-    state.farm.lock().heartbeat(id, now_ms())?;
+    let mut farm = state.farm.lock();
+    farm.check_worker(id, worker_secret(&headers))?;
+    farm.heartbeat(id, now_ms())?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -719,16 +785,18 @@ struct LeaseQuery {
     path = "/api/v1/workers/{id}/lease",
     tag = "worker protocol",
     summary = "Lease a work unit (long poll)",
-    params(("id" = u64, Path, description = "Worker id"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 20000)")),
+    params(("id" = u64, Path, description = "Worker id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 20000)")),
     security(("worker_token" = [])),
-    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 400, description = "Bad id", body = ErrorBody), (status = 200, description = "A unit to render", body = pathfarm_common::protocol::LeaseGrant), (status = 204, description = "No work"), (status = 404, description = "Unknown worker", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
 async fn lease(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
     Query(q): Query<LeaseQuery>,
+    headers: HeaderMap,
 ) -> ApiResult<Response> {
     let worker: WorkerId = parse_id("worker", &id)?;
+    state.farm.lock().check_worker(worker, worker_secret(&headers))?;
     let wait = Duration::from_millis(q.wait_ms.unwrap_or(0).min(MAX_LEASE_WAIT_MS));
     let start = Instant::now();
     loop {
@@ -755,33 +823,65 @@ async fn lease(
     path = "/api/v1/leases/{id}/result",
     tag = "worker protocol",
     summary = "Upload a unit's result",
-    params(("id" = u64, Path, description = "Lease id")),
+    description = "The token, the worker secret, the lease and the declared `Content-Length` are checked before \
+        the body is read: a refusal (401/403/409/413) closes the connection without reading the body.",
+    params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR1 magic, u32 header length, JSON header, lz4 sections of i128 sums, CRC-32"),
     security(("worker_token" = [])),
-    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "Body too large", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "The declared or actual body is larger than --max-upload-mb or than the largest result of the lease's tile (JSON header, lz4 worst case of the tile's sums and of an image-sized splat buffer); refused before the body is read", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
 async fn upload_result(
     State(state): State<Arc<AppState>>,
     Path(id): Path<String>,
-    body: Bytes,
-) -> ApiResult<Json<ResultAccepted>> {
-    let lease_id: LeaseId = parse_id("lease", &id)?;
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<ResultAccepted>, Response> {
+    let lease_id: LeaseId = parse_id("lease", &id).map_err(refuse_unread)?;
+    let secret = worker_secret(&headers).map(str::to_string);
+    // Everything that can refuse the result without its bytes is checked before a byte of the
+    // body is read: the declared length against the upload limit, the sender's secret and the
+    // lease, then the declared length against the largest result the lease's unit can have.
+    let declared = declared_length(&headers);
+    check_declared(declared, state.config.max_upload_bytes as u64, || "the upload limit".to_string())
+        .map_err(refuse_unread)?;
+    let bound = {
+        let mut farm = state.farm.lock();
+        let shape = farm.check_lease(lease_id, secret.as_deref()).map(|()| farm.lease_shape(lease_id));
+        match shape {
+            Ok(Some((tile, image))) => max_result_bytes(tile, image).min(state.config.max_upload_bytes as u64),
+            Ok(None) | Err(_) => {
+                farm.counters.results_rejected += 1;
+                let e = shape.err().unwrap_or(FarmError::LeaseLost(lease_id));
+                if matches!(e, FarmError::WrongWorker(_)) {
+                    tracing::warn!(lease = lease_id, "result refused: {e}");
+                }
+                return Err(refuse_unread(e.into()));
+            }
+        }
+    };
+    check_declared(declared, bound, || format!("the largest result of lease {lease_id}'s tile"))
+        .map_err(refuse_unread)?;
+    let body = read_bounded(body, declared, bound, || format!("the largest result of lease {lease_id}'s tile"))
+        .await
+        .map_err(refuse_unread)?;
     state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
     // Decoding (lz4, CRC, 850 KB of sums for a 64 px tile) and merging take a few hundred
     // microseconds: run them off the async threads, at most one per core at a time, so lease
     // requests are answered meanwhile and bodies waiting to be decoded stay compressed.
-    let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()))?;
+    let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()).into_response())?;
     let st = state.clone();
     let t0 = Instant::now();
-    let (job_id, outcome) = tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, &body))
-        .await
-        .map_err(|e| ApiError::internal(format!("result task: {e}")))??;
+    let (job_id, outcome) =
+        tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, secret.as_deref(), &body))
+            .await
+            .map_err(|e| ApiError::internal(format!("result task: {e}")).into_response())?
+            .map_err(IntoResponse::into_response)?;
     let outcome = match outcome {
         Ok(o) => o,
         Err(e) => {
             // A refused result may have sent its unit back to pending.
             state.work_ready.notify_waiters();
-            return Err(e.into());
+            return Err(ApiError::from(e).into_response());
         }
     };
     state.metrics.observe_merge(t0.elapsed());
@@ -790,6 +890,68 @@ async fn upload_result(
     }
     state.publish("job", job_id);
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
+}
+
+/// An error answered before the request's body was read: the connection is closed after it, so
+/// the unread body is never parsed as the next request (and a client cannot make us drain it).
+fn refuse_unread(e: ApiError) -> Response {
+    let mut r = e.into_response();
+    r.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+    r
+}
+
+/// The request's `Content-Length`, if it has one that parses.
+fn declared_length(headers: &HeaderMap) -> Option<u64> {
+    headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.trim().parse().ok())
+}
+
+fn too_large(len: u64, limit: u64, what: impl FnOnce() -> String) -> ApiError {
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "payload_too_large",
+        format!("request body of {len} bytes is larger than {} ({limit} bytes)", what()),
+    )
+}
+
+/// 413 when the declared length is above `limit`.
+fn check_declared(declared: Option<u64>, limit: u64, what: impl FnOnce() -> String) -> ApiResult<()> {
+    match declared {
+        Some(len) if len > limit => Err(too_large(len, limit, what)),
+        _ => Ok(()),
+    }
+}
+
+/// Reads a body of at most `limit` bytes (413 as soon as more arrive), never buffering more.
+async fn read_bounded(
+    body: Body,
+    declared: Option<u64>,
+    limit: u64,
+    what: impl FnOnce() -> String,
+) -> ApiResult<Bytes> {
+    use futures_util::StreamExt;
+    let mut stream = body.into_data_stream();
+    let mut buf = Vec::with_capacity(declared.unwrap_or(0).min(limit) as usize);
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| {
+            ApiError::new(StatusCode::BAD_REQUEST, "bad_body", format!("reading the request body: {e}"))
+        })?;
+        let len = (buf.len() + chunk.len()) as u64;
+        if len > limit {
+            return Err(too_large(len, limit, what));
+        }
+        buf.extend_from_slice(&chunk);
+    }
+    Ok(Bytes::from(buf))
+}
+
+/// Refuses a request whose declared `Content-Length` is above the upload limit before its body
+/// is read (scene uploads; the body is then read with the same limit).
+async fn declared_length_within_limit(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+    let limit = state.config.max_upload_bytes as u64;
+    match check_declared(declared_length(req.headers()), limit, || "the upload limit".to_string()) {
+        Ok(()) => next.run(req).await,
+        Err(e) => refuse_unread(e),
+    }
 }
 
 /// Concurrent result decodes: one per core.
@@ -803,13 +965,21 @@ fn decode_slots() -> &'static tokio::sync::Semaphore {
 fn decode_and_accept(
     state: &AppState,
     lease_id: LeaseId,
+    secret: Option<&str>,
     body: &[u8],
 ) -> ApiResult<(JobId, Result<crate::farm::MergeOutcome, FarmError>)> {
-    // Refuse results for leases that are not held before decoding: duplicates and late
-    // results cost nothing, and a body from someone without a lease cannot make the decoder
-    // allocate what its header declares (up to 4 GiB of sums).
+    // Refuse results for leases that are not held, or not held by the sender, before
+    // decoding: duplicates and late results cost nothing, and a body from someone without a
+    // lease cannot make the decoder allocate what its header declares (up to 4 GiB of sums).
     let (tile, image) = {
         let mut farm = state.farm.lock();
+        if let Err(e) = farm.check_lease(lease_id, secret) {
+            farm.counters.results_rejected += 1;
+            if matches!(e, FarmError::WrongWorker(_)) {
+                tracing::warn!(lease = lease_id, "result refused: {e}");
+            }
+            return Ok((0, Err(e)));
+        }
         match farm.lease_shape(lease_id) {
             Some(shape) => shape,
             None => {
@@ -848,16 +1018,30 @@ fn decode_and_accept(
     path = "/api/v1/leases/{id}/release",
     tag = "worker protocol",
     summary = "Give a unit back, or report that it failed",
-    params(("id" = u64, Path, description = "Lease id")),
+    params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
     request_body = ReleaseRequest,
     security(("worker_token" = [])),
-    responses((status = 204, description = "Released"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 422, description = "Bad body", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 204, description = "Released"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 422, description = "Bad body", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
-async fn release(State(state): State<Arc<AppState>>, Path(id): Path<String>, body: Bytes) -> ApiResult<StatusCode> {
+async fn release(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> ApiResult<StatusCode> {
     let lease_id: LeaseId = parse_id("lease", &id)?;
     let req: ReleaseRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("release body: {e}")))?;
-    state.farm.lock().release(lease_id, req.failed, &req.reason, now_ms())?;
+    {
+        let mut farm = state.farm.lock();
+        if let Err(e) = farm.check_lease(lease_id, worker_secret(&headers)) {
+            if matches!(e, FarmError::WrongWorker(_)) {
+                tracing::warn!(lease = lease_id, "release refused: {e}");
+            }
+            return Err(e.into());
+        }
+        farm.release(lease_id, req.failed, &req.reason, now_ms())?;
+    }
     state.work_ready.notify_waiters();
     Ok(StatusCode::NO_CONTENT)
 }

@@ -376,7 +376,10 @@ impl Conn {
             hyper::service::service_fn(move |req: hyper::Request<Incoming>| {
                 let (app, guard) = (app.clone(), InFlight::new(st.clone(), clock.clone()));
                 async move {
-                    let resp = app.oneshot(req.map(Body::new)).await?;
+                    let mut req = req.map(Body::new);
+                    // The client's address, for per-address limits (worker registrations).
+                    req.extensions_mut().insert(axum::extract::ConnectInfo(peer));
+                    let resp = app.oneshot(req).await?;
                     Ok::<_, std::convert::Infallible>(resp.map(|inner| Body::new(GuardedBody { inner, _guard: guard })))
                 }
             })

@@ -32,6 +32,12 @@ pub struct FarmConfig {
     /// A worker that failed this many units of a job is blocklisted for it.
     pub blocklist_after: u32,
     pub limits: Limits,
+    /// How often the service calls [`Farm::expire`]; a call later than this plus half the lease
+    /// timeout after the last one means the coordinator stalled.
+    pub expiry_tick_ms: u64,
+    /// Workers offline (not seen) for longer than this, holding no lease, are forgotten.
+    /// `None`: never.
+    pub worker_prune_ms: Option<u64>,
     /// Memory for the films of all jobs the farm holds (each `Film::bytes_for` its size); a job
     /// that does not fit is refused. `None`: unbounded.
     pub film_budget_bytes: Option<u64>,
@@ -46,6 +52,8 @@ impl Default for FarmConfig {
             blocklist_after: 2,
             limits: Limits::default(),
             film_budget_bytes: None,
+            worker_prune_ms: Some(3_600_000),
+            expiry_tick_ms: 250,
         }
     }
 }
@@ -86,6 +94,17 @@ pub enum FarmError {
     InvalidJob(String),
     #[error("{0}")]
     OverBudget(String),
+    /// The request's worker secret is missing or is not the secret of the worker the lease or
+    /// the worker id belongs to.
+    #[error("{0}")]
+    WrongWorker(String),
+}
+
+fn missing_secret() -> FarmError {
+    FarmError::WrongWorker(format!(
+        "missing {} header: send the worker_secret that POST /workers/register returned",
+        pathfarm_common::protocol::WORKER_SECRET_HEADER
+    ))
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -363,6 +382,9 @@ pub struct Checkpoint {
 
 #[derive(Debug)]
 struct Worker {
+    /// Issued at registration; every lease, heartbeat, result and release of this worker must
+    /// carry it. Empty: nothing authenticates as this worker (farms built in tests).
+    secret: String,
     name: String,
     threads: u32,
     leases: BTreeSet<LeaseId>,
@@ -405,6 +427,10 @@ pub struct Farm {
     next_worker: WorkerId,
     next_lease: LeaseId,
     pub counters: Counters,
+    /// When `expire` last ran (to notice that the coordinator stalled).
+    last_expire_ms: Option<u64>,
+    /// After a stall, nothing is expired, marked offline or pruned before this time.
+    grace_until_ms: u64,
 }
 
 impl Farm {
@@ -424,6 +450,8 @@ impl Farm {
             next_worker: (epoch << 32) + 1,
             next_lease: (epoch << 40) + 1,
             counters: Counters::default(),
+            last_expire_ms: None,
+            grace_until_ms: 0,
         }
     }
 
@@ -637,13 +665,20 @@ impl Farm {
 
     // ----------------------------------------------------------------- workers
 
+    /// Registers a worker that no request can authenticate as (see [`Farm::register_with_secret`]).
     pub fn register(&mut self, name: String, threads: u32, now_ms: u64) -> WorkerId {
+        self.register_with_secret(name, threads, String::new(), now_ms)
+    }
+
+    /// Registers a worker whose requests must carry `secret` (an empty one never matches).
+    pub fn register_with_secret(&mut self, name: String, threads: u32, secret: String, now_ms: u64) -> WorkerId {
         let id = self.next_worker;
         self.next_worker += 1;
         tracing::info!(worker = id, %name, threads, "worker registered");
         self.workers.insert(
             id,
             Worker {
+                secret,
                 name,
                 threads,
                 leases: BTreeSet::new(),
@@ -655,6 +690,33 @@ impl Farm {
             },
         );
         id
+    }
+
+    /// Checks that `secret` is worker `worker`'s own: `NoWorker` if it is not registered,
+    /// `WrongWorker` if the secret is missing or another's (compared in constant time).
+    pub fn check_worker(&self, worker: WorkerId, secret: Option<&str>) -> Result<(), FarmError> {
+        let w = self.workers.get(&worker).ok_or(FarmError::NoWorker(worker))?;
+        match secret {
+            Some(s) if crate::api::token_matches(s, &w.secret) => Ok(()),
+            Some(_) => Err(FarmError::WrongWorker(format!(
+                "the worker secret is not worker {worker}'s: a worker may only act for itself"
+            ))),
+            None => Err(missing_secret()),
+        }
+    }
+
+    /// Checks that lease `lease_id` is held and that `secret` belongs to the worker holding it:
+    /// `LeaseLost` if it is not held, `WrongWorker` if the secret is missing or another's.
+    pub fn check_lease(&self, lease_id: LeaseId, secret: Option<&str>) -> Result<(), FarmError> {
+        let secret = secret.ok_or_else(missing_secret)?;
+        let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
+        match self.workers.get(&l.worker) {
+            Some(w) if crate::api::token_matches(secret, &w.secret) => Ok(()),
+            _ => Err(FarmError::WrongWorker(format!(
+                "lease {lease_id} is held by another worker: only the worker it was granted to may deliver, \
+                 release or renew it"
+            ))),
+        }
     }
 
     /// Marks the worker alive and extends its leases.
@@ -669,6 +731,28 @@ impl Farm {
             }
         }
         Ok(())
+    }
+
+    /// Forgets workers that have not been seen for longer than `worker_prune_ms` and hold no
+    /// lease; returns their ids (the store deletes their rows). A pruned worker that comes back
+    /// gets 404 and registers again.
+    pub fn prune_workers(&mut self, now_ms: u64) -> Vec<WorkerId> {
+        let Some(after) = self.cfg.worker_prune_ms else { return Vec::new() };
+        if now_ms < self.grace_until_ms {
+            return Vec::new();
+        }
+        let gone: Vec<WorkerId> = self
+            .workers
+            .iter()
+            .filter(|(_, w)| w.leases.is_empty() && now_ms.saturating_sub(w.last_seen_ms) > after)
+            .map(|(id, _)| *id)
+            .collect();
+        for id in &gone {
+            if let Some(w) = self.workers.remove(id) {
+                tracing::info!(worker = id, name = %w.name, last_seen_ms = w.last_seen_ms, "offline worker pruned");
+            }
+        }
+        gone
     }
 
     pub fn workers(&self, now_ms: u64) -> Vec<WorkerInfo> {
@@ -762,7 +846,29 @@ impl Farm {
 
     /// Sends units of expired leases back to pending and marks silent workers offline.
     /// Returns the number of leases that expired.
+    ///
+    /// `expire` runs every `expiry_tick_ms`. When it runs late by more than half the lease
+    /// timeout, the coordinator stalled (paused, swapped, starved): workers' heartbeats and
+    /// results could not be heard meanwhile, so every lease gets one more lease timeout from
+    /// now before it can expire, and no worker is marked offline or pruned until then.
     pub fn expire(&mut self, now_ms: u64) -> usize {
+        let timeout = self.cfg.lease_timeout_ms;
+        if let Some(last) = self.last_expire_ms
+            && now_ms.saturating_sub(last) > self.cfg.expiry_tick_ms + timeout / 2
+        {
+            let grace = now_ms + timeout;
+            tracing::warn!(
+                stalled_ms = now_ms.saturating_sub(last),
+                leases = self.leases.len(),
+                grace_ms = timeout,
+                "the coordinator stalled: every lease gets one lease timeout of grace"
+            );
+            for l in self.leases.values_mut() {
+                l.deadline_ms = l.deadline_ms.max(grace);
+            }
+            self.grace_until_ms = grace;
+        }
+        self.last_expire_ms = Some(now_ms);
         let expired: Vec<LeaseId> =
             self.leases.iter().filter(|(_, l)| l.deadline_ms < now_ms).map(|(id, _)| *id).collect();
         for &id in &expired {
@@ -778,9 +884,11 @@ impl Farm {
                 self.counters.leases_expired += 1;
             }
         }
-        for w in self.workers.values_mut() {
-            if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
-                w.offline = true;
+        if now_ms >= self.grace_until_ms {
+            for w in self.workers.values_mut() {
+                if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
+                    w.offline = true;
+                }
             }
         }
         expired.len()
@@ -1050,6 +1158,81 @@ mod tests {
         assert_eq!((g3.unit, g3.tile), (g2.unit, g2.tile));
         farm.accept(g3.lease_id, fake_result(&g3), 200).expect("accept");
         assert_eq!(farm.job(id).expect("job").units_merged, 2);
+    }
+
+    #[test]
+    fn leases_and_workers_are_bound_to_their_secret() {
+        let mut farm = Farm::new(FarmConfig::default());
+        farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let a = farm.register_with_secret("a".into(), 1, "secret-a".into(), 0);
+        let b = farm.register_with_secret("b".into(), 1, "secret-b".into(), 0);
+        let nobody = farm.register("n".into(), 1, 0);
+        let g = farm.lease(a, 0).expect("lease").expect("work");
+        assert_eq!(farm.check_lease(g.lease_id, Some("secret-a")), Ok(()));
+        for bad in [Some("secret-b"), Some(""), Some("secret-"), None] {
+            assert!(matches!(farm.check_lease(g.lease_id, bad), Err(FarmError::WrongWorker(_))), "{bad:?}");
+            assert!(matches!(farm.check_worker(a, bad), Err(FarmError::WrongWorker(_))), "{bad:?}");
+        }
+        assert_eq!(farm.check_worker(a, Some("secret-a")), Ok(()));
+        assert_eq!(farm.check_worker(b, Some("secret-b")), Ok(()));
+        assert!(matches!(farm.check_worker(nobody, Some("")), Err(FarmError::WrongWorker(_))));
+        assert_eq!(farm.check_worker(999, Some("secret-a")), Err(FarmError::NoWorker(999)));
+        assert_eq!(farm.check_lease(g.lease_id + 100, Some("secret-a")), Err(FarmError::LeaseLost(g.lease_id + 100)));
+    }
+
+    #[test]
+    fn offline_workers_are_pruned() {
+        let mut farm =
+            Farm::new(FarmConfig { lease_timeout_ms: 100, worker_prune_ms: Some(1000), ..Default::default() });
+        farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let quiet = farm.register("quiet".into(), 1, 0);
+        let busy = farm.register("busy".into(), 1, 0);
+        let alive = farm.register("alive".into(), 1, 0);
+        farm.lease(busy, 0).expect("lease").expect("work");
+        farm.heartbeat(alive, 900).expect("hb");
+        assert_eq!(farm.prune_workers(1000), Vec::<WorkerId>::new());
+        // The busy worker's lease expires (it is then silent too): pruned with the quiet one.
+        farm.expire(1001);
+        assert_eq!(farm.prune_workers(1001), vec![quiet, busy]);
+        assert_eq!(farm.workers(1001).iter().map(|w| w.id).collect::<Vec<_>>(), vec![alive]);
+        assert_eq!(farm.heartbeat(quiet, 1002), Err(FarmError::NoWorker(quiet)));
+        let mut never = Farm::new(FarmConfig { worker_prune_ms: None, ..Default::default() });
+        never.register("w".into(), 1, 0);
+        assert!(never.prune_workers(u64::MAX).is_empty());
+    }
+
+    /// A coordinator stall longer than the lease timeout does not expire live workers' leases:
+    /// the expiry after it gives every lease one more lease timeout.
+    #[test]
+    fn leases_get_a_grace_period_after_a_stall() {
+        let mut farm = Farm::new(FarmConfig { lease_timeout_ms: 1000, ..FarmConfig::default() });
+        let id = farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        let g2 = farm.lease(w, 0).expect("lease").expect("work");
+        for t in (250..=750).step_by(250) {
+            assert_eq!(farm.expire(t), 0);
+        }
+        // Stalled from 750 to 5000: nothing expires, the worker is not offline.
+        assert_eq!(farm.expire(5000), 0);
+        assert!(farm.workers(5000).iter().all(|i| i.state != WorkerState::Offline));
+        // The worker's result, sent during the stall, is heard and merged.
+        farm.accept(g.lease_id, fake_result(&g), 5100).expect("merged after the stall");
+        assert_eq!(farm.job(id).expect("job").units_merged, 1);
+        // The grace is one lease timeout: a lease nobody renews expires after it.
+        for t in (5250..=6000).step_by(250) {
+            assert_eq!(farm.expire(t), 0, "{t}");
+        }
+        assert_eq!(farm.expire(6001), 1);
+        assert_eq!(farm.accept(g2.lease_id, fake_result(&g2), 6002), Err(FarmError::LeaseLost(g2.lease_id)));
+        // Without a stall, leases expire on time.
+        let h = farm.lease(w, 6002).expect("lease").expect("work");
+        let mut t = 6002;
+        while t <= 7002 {
+            t += 250;
+            farm.expire(t);
+        }
+        assert_eq!(farm.accept(h.lease_id, fake_result(&h), t), Err(FarmError::LeaseLost(h.lease_id)));
     }
 
     #[test]

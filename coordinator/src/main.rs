@@ -119,6 +119,17 @@ struct ServeArgs {
     /// A request being handled (a lease long poll, an event stream) is never idle.
     #[arg(long, default_value_t = 60_000)]
     idle_timeout_ms: u64,
+    /// Workers not seen for this long (and holding no lease) are forgotten, in memory and in
+    /// SQLite; 0 = never. One that comes back registers again.
+    #[arg(long, default_value_t = 3_600_000)]
+    prune_workers_after_ms: u64,
+    /// Worker registrations allowed per client address and minute (a token bucket; 0 =
+    /// unlimited). Beyond it: 429 with Retry-After.
+    #[arg(long, default_value_t = 60)]
+    register_per_minute: u32,
+    /// Registrations one address may make at once before the per-minute rate applies.
+    #[arg(long, default_value_t = 60)]
+    register_burst: u32,
     /// Open connections at most (lowered to fit the open-file limit). Beyond it, the quietest
     /// connection that is not handling a request is closed to make room.
     #[arg(long, default_value_t = 4096)]
@@ -158,6 +169,9 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.limits.max_units = a.max_units;
     cfg.tls = a.tls_cert.clone().zip(a.tls_key.clone());
     cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
+    cfg.farm.worker_prune_ms = (a.prune_workers_after_ms > 0).then_some(a.prune_workers_after_ms);
+    cfg.register_per_minute = a.register_per_minute;
+    cfg.register_burst = a.register_burst;
     if a.header_timeout_ms == 0 || a.idle_timeout_ms == 0 || a.max_connections == 0 {
         anyhow::bail!("--header-timeout-ms, --idle-timeout-ms and --max-connections must be at least 1");
     }

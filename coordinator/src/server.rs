@@ -18,9 +18,17 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::{Notify, broadcast};
 
-/// Unix time in milliseconds: the farm's clock.
+/// The farm's clock, in milliseconds: the Unix time when the process started plus the
+/// monotonic time since (`Instant`). Lease deadlines and heartbeats follow it, so a step of the
+/// wall clock (NTP, a VM restored from a snapshot) neither expires live leases nor keeps dead
+/// ones; timestamps shown (job created and finished, worker last seen) stay Unix milliseconds,
+/// off by as much as the wall clock was stepped since the start.
 pub fn now_ms() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64)
+    static BASE: std::sync::OnceLock<(u64, Instant)> = std::sync::OnceLock::new();
+    let (wall, start) = BASE.get_or_init(|| {
+        (SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as u64), Instant::now())
+    });
+    wall + start.elapsed().as_millis() as u64
 }
 
 /// Service configuration.
@@ -48,6 +56,11 @@ pub struct ServerConfig {
     pub metrics_token: Option<String>,
     /// Serve HTTPS with this certificate chain and private key (PEM files).
     pub tls: Option<(PathBuf, PathBuf)>,
+    /// Worker registrations per client address: a token bucket refilled at this many per
+    /// minute (0: unlimited)...
+    pub register_per_minute: u32,
+    /// ... holding at most this many.
+    pub register_burst: u32,
 }
 
 impl ServerConfig {
@@ -67,6 +80,53 @@ impl ServerConfig {
             conn: crate::conn::ConnLimits::default(),
             tls: None,
             metrics_token: None,
+            register_per_minute: 60,
+            register_burst: 60,
+        }
+    }
+}
+
+/// Per-address token buckets (worker registrations).
+pub struct RateLimiter {
+    per_sec: f64,
+    burst: f64,
+    buckets: Mutex<HashMap<std::net::IpAddr, (f64, Instant)>>,
+}
+
+/// Addresses tracked at most; beyond it, buckets that are full again are dropped first.
+const MAX_BUCKETS: usize = 65_536;
+
+impl RateLimiter {
+    pub fn new(per_minute: u32, burst: u32) -> Self {
+        Self {
+            per_sec: f64::from(per_minute) / 60.0,
+            burst: f64::from(burst.max(1)),
+            buckets: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// Takes a token for `ip` at `now`; `Err(wait)` when the bucket is empty.
+    pub fn check(&self, ip: std::net::IpAddr, now: Instant) -> Result<(), Duration> {
+        if self.per_sec <= 0.0 {
+            return Ok(());
+        }
+        let mut buckets = self.buckets.lock().unwrap_or_else(|e| e.into_inner());
+        if buckets.len() >= MAX_BUCKETS && !buckets.contains_key(&ip) {
+            let (rate, burst) = (self.per_sec, self.burst);
+            buckets.retain(|_, (tokens, t)| *tokens + now.saturating_duration_since(*t).as_secs_f64() * rate < burst);
+            if buckets.len() >= MAX_BUCKETS {
+                // Every tracked address is busy: refuse newcomers rather than grow without bound.
+                return Err(Duration::from_secs_f64(1.0 / self.per_sec));
+            }
+        }
+        let (tokens, last) = buckets.entry(ip).or_insert((self.burst, now));
+        *tokens = (*tokens + now.saturating_duration_since(*last).as_secs_f64() * self.per_sec).min(self.burst);
+        *last = now;
+        if *tokens >= 1.0 {
+            *tokens -= 1.0;
+            Ok(())
+        } else {
+            Err(Duration::from_secs_f64((1.0 - *tokens) / self.per_sec))
         }
     }
 }
@@ -293,6 +353,8 @@ pub struct AppState {
     pub store: Mutex<Store>,
     /// Permits for scene decodes (`ServerConfig::max_scene_decodes`).
     pub scene_decodes: tokio::sync::Semaphore,
+    /// Worker registrations per client address.
+    pub register_limiter: RateLimiter,
 }
 
 impl AppState {
@@ -316,6 +378,15 @@ impl AppState {
             }
         }
         tracing::info!(epoch, jobs = farm.jobs().count(), "state restored");
+        // Workers of earlier runs register again (their ids carry the old epoch): rows older
+        // than the prune time are of no use.
+        if let Some(after) = config.farm.worker_prune_ms {
+            match store.delete_workers_registered_before(now.saturating_sub(after)) {
+                Ok(0) => {}
+                Ok(n) => tracing::info!(rows = n, "pruned old worker rows"),
+                Err(e) => tracing::error!("pruning worker rows failed: {e:#}"),
+            }
+        }
         Ok(Self {
             store: Mutex::new(store),
             farm: FarmLock(Mutex::new(farm)),
@@ -327,6 +398,7 @@ impl AppState {
             metrics: Metrics::default(),
             started: Instant::now(),
             scene_decodes: tokio::sync::Semaphore::new(config.max_scene_decodes.max(1)),
+            register_limiter: RateLimiter::new(config.register_per_minute, config.register_burst),
             config,
         })
     }
@@ -466,15 +538,25 @@ pub fn write_outputs(dir: &Path, layers: &ImageLayers) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Expires leases every quarter second and wakes lease waiters when units came back.
+/// Expires leases every `expiry_tick_ms` (a quarter second), prunes workers, and wakes lease waiters when units came back.
 async fn maintenance_loop(state: Arc<AppState>) {
-    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
     loop {
         tick.tick().await;
-        let expired = state.farm.lock().expire(now_ms());
+        let (expired, pruned) = {
+            let mut farm = state.farm.lock();
+            let now = now_ms();
+            (farm.expire(now), farm.prune_workers(now))
+        };
         if expired > 0 {
             tracing::warn!(expired, "leases expired; units are pending again");
             state.work_ready.notify_waiters();
+        }
+        if !pruned.is_empty() {
+            if let Err(e) = state.store().delete_workers(&pruned) {
+                tracing::error!("deleting pruned worker rows failed: {e:#}");
+            }
+            state.publish("worker", pruned[0]);
         }
     }
 }
@@ -648,5 +730,28 @@ pub async fn shutdown_signal() {
     tokio::select! {
         () = ctrl_c => {},
         () = term => {},
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn registrations_are_rate_limited_per_address() {
+        let limiter = RateLimiter::new(60, 3);
+        let (a, b): (std::net::IpAddr, std::net::IpAddr) =
+            ("10.0.0.1".parse().expect("ip"), "10.0.0.2".parse().expect("ip"));
+        let t0 = Instant::now();
+        for _ in 0..3 {
+            assert_eq!(limiter.check(a, t0), Ok(()));
+        }
+        let wait = limiter.check(a, t0).expect_err("bucket empty");
+        assert!(wait > Duration::from_millis(900) && wait <= Duration::from_secs(1), "{wait:?}");
+        // Another address has its own bucket; one per second comes back.
+        assert_eq!(limiter.check(b, t0), Ok(()));
+        assert_eq!(limiter.check(a, t0 + Duration::from_millis(1000)), Ok(()));
+        assert!(limiter.check(a, t0 + Duration::from_millis(1500)).is_err());
+        assert!(RateLimiter::new(0, 1).check(a, t0).is_ok() && RateLimiter::new(0, 1).check(a, t0).is_ok());
     }
 }

@@ -192,6 +192,20 @@ impl Store {
         Ok(())
     }
 
+    /// Deletes the rows of pruned workers.
+    pub fn delete_workers(&self, ids: &[u64]) -> anyhow::Result<()> {
+        for id in ids {
+            self.conn.execute("DELETE FROM workers WHERE id = ?1", params![*id as i64])?;
+        }
+        Ok(())
+    }
+
+    /// Deletes the rows of workers registered before `before_ms` (on start: workers of earlier
+    /// runs register again, their rows only grow the table).
+    pub fn delete_workers_registered_before(&self, before_ms: u64) -> anyhow::Result<usize> {
+        Ok(self.conn.execute("DELETE FROM workers WHERE registered_ms < ?1", params![before_ms as i64])?)
+    }
+
     pub fn checkpoint_path(&self, id: JobId) -> PathBuf {
         self.jobs_dir.join(id.to_string()).join("checkpoint.bin")
     }

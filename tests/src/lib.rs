@@ -6,7 +6,7 @@
 /// `cargo build --release -p pathfarm-coordinator -p pathfarm-worker`.
 pub mod procs {
     use anyhow::{Context, bail};
-    use pathfarm_common::protocol::{API, JobInfo, JobState};
+    use pathfarm_common::protocol::{API, JobInfo, JobState, Registered, WORKER_SECRET_HEADER};
     use reqwest::StatusCode;
     use reqwest::blocking::{Client, RequestBuilder, Response};
     use std::path::{Path, PathBuf};
@@ -156,6 +156,23 @@ pub mod procs {
                 Some(t) => rb.bearer_auth(t),
                 None => rb,
             }
+        }
+
+        /// A request of a registered worker: the worker token (if any) and the worker's own
+        /// secret.
+        pub fn as_worker(&self, rb: RequestBuilder, reg: &Registered) -> RequestBuilder {
+            self.worker(rb).header(WORKER_SECRET_HEADER, &reg.worker_secret)
+        }
+
+        /// Registers a worker by hand (`POST /workers/register`), which must succeed.
+        pub fn register(&self, name: &str) -> Registered {
+            let r = self
+                .worker(self.http.post(self.api("/workers/register")))
+                .json(&serde_json::json!({"name": name, "threads": 1}))
+                .send()
+                .expect("POST /workers/register");
+            assert_eq!(r.status(), StatusCode::OK);
+            r.json().expect("registered")
         }
 
         /// Waits until `/healthz` answers `ok` and the process is alive.

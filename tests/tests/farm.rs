@@ -4,7 +4,9 @@
 mod support;
 
 use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings};
-use pathfarm_common::protocol::{API, JobId, JobRequest, JobState, LeaseGrant, Registered, UnitResultFrame};
+use pathfarm_common::protocol::{
+    API, JobId, JobRequest, JobState, LeaseGrant, Registered, UnitResultFrame, WORKER_SECRET_HEADER,
+};
 use pathfarm_common::scene::demo::cornell_demo_glb;
 use pathfarm_coordinator::client::Client;
 use std::time::Duration;
@@ -138,6 +140,7 @@ fn a_result_replayed_after_its_lease_expired_is_refused_and_not_merged() {
         .expect("json");
     let grant: LeaseGrant = http
         .post(format!("{}{API}/workers/{}/lease?wait_ms=5000", coord.url, reg.worker_id))
+        .header(WORKER_SECRET_HEADER, &reg.worker_secret)
         .send()
         .expect("lease")
         .json()
@@ -158,6 +161,7 @@ fn a_result_replayed_after_its_lease_expired_is_refused_and_not_merged() {
     std::thread::sleep(Duration::from_millis(1500));
     let resp = http
         .put(format!("{}{API}/leases/{}/result", coord.url, grant.lease_id))
+        .header(WORKER_SECRET_HEADER, &reg.worker_secret)
         .body(body.clone())
         .send()
         .expect("upload");
@@ -166,8 +170,12 @@ fn a_result_replayed_after_its_lease_expired_is_refused_and_not_merged() {
     // A real worker finishes the job; the replay again after completion is refused too.
     let _w = start_worker(&coord.url, "w", &dir.path().join("c"), &[]);
     wait_done(&client, id, Duration::from_secs(120));
-    let resp =
-        http.put(format!("{}{API}/leases/{}/result", coord.url, grant.lease_id)).body(body).send().expect("upload");
+    let resp = http
+        .put(format!("{}{API}/leases/{}/result", coord.url, grant.lease_id))
+        .header(WORKER_SECRET_HEADER, &reg.worker_secret)
+        .body(body)
+        .send()
+        .expect("upload");
     assert_eq!(resp.status().as_u16(), 409);
     let info = client.job(id).expect("job");
     assert_eq!(info.units_merged, info.units_total);

@@ -8,7 +8,8 @@
 use crate::render::{Renderer, UnitResult};
 use anyhow::{Context, bail};
 use pathfarm_common::protocol::{
-    API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WorkerId,
+    API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WORKER_SECRET_HEADER,
+    WorkerId,
 };
 use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
 use pathfarm_common::scene::{LoadOptions, Scene, load_scene};
@@ -105,6 +106,9 @@ pub struct Daemon {
     http: Client,
     pool: rayon::ThreadPool,
     worker_id: Option<WorkerId>,
+    /// This worker's own secret, from the registration; sent on every lease, heartbeat, result
+    /// and release request.
+    secret: String,
     heartbeat: Duration,
     /// The scene of the last unit, by scene id.
     scene: Option<(String, Arc<Scene>)>,
@@ -125,7 +129,16 @@ impl Daemon {
             .context("building the render thread pool")?;
         std::fs::create_dir_all(&cfg.cache_dir)
             .with_context(|| format!("creating the cache dir {}", cfg.cache_dir.display()))?;
-        Ok(Self { cfg, http, pool, worker_id: None, heartbeat: Duration::from_secs(2), scene: None, renderer: None })
+        Ok(Self {
+            cfg,
+            http,
+            pool,
+            worker_id: None,
+            secret: String::new(),
+            heartbeat: Duration::from_secs(2),
+            scene: None,
+            renderer: None,
+        })
     }
 
     fn url(&self, path: &str) -> String {
@@ -139,6 +152,11 @@ impl Daemon {
         }
     }
 
+    /// A request of this worker: the bearer token and its own secret.
+    fn as_worker(&self, rb: RequestBuilder) -> RequestBuilder {
+        self.auth(rb).header(WORKER_SECRET_HEADER, &self.secret)
+    }
+
     fn register(&mut self, shutdown: &AtomicBool) -> anyhow::Result<()> {
         let body = RegisterRequest { name: self.cfg.name.clone(), threads: self.cfg.threads as u32 };
         let mut attempt = 0;
@@ -149,6 +167,7 @@ impl Daemon {
                     let reg: Registered = resp.json().context("register answer")?;
                     tracing::info!(worker = reg.worker_id, name = %self.cfg.name, "registered");
                     self.worker_id = Some(reg.worker_id);
+                    self.secret = reg.worker_secret;
                     self.heartbeat = Duration::from_millis(reg.heartbeat_ms.max(100));
                     return Ok(());
                 }
@@ -180,7 +199,8 @@ impl Daemon {
                 }
             };
             let wait = self.cfg.lease_wait.as_millis();
-            let resp = self.auth(self.http.post(self.url(&format!("/workers/{worker}/lease?wait_ms={wait}")))).send();
+            let resp =
+                self.as_worker(self.http.post(self.url(&format!("/workers/{worker}/lease?wait_ms={wait}")))).send();
             let grant: LeaseGrant = match resp {
                 Ok(r) if r.status() == StatusCode::OK => match r.json() {
                     Ok(g) => g,
@@ -193,8 +213,11 @@ impl Daemon {
                     failures = 0;
                     continue;
                 }
-                Ok(r) if r.status() == StatusCode::NOT_FOUND => {
-                    tracing::warn!("the coordinator does not know this worker (restarted?); registering again");
+                Ok(r) if r.status() == StatusCode::NOT_FOUND || r.status() == StatusCode::FORBIDDEN => {
+                    tracing::warn!(
+                        status = %r.status(),
+                        "the coordinator does not know this worker or its secret (restarted?); registering again"
+                    );
                     self.worker_id = None;
                     continue;
                 }
@@ -271,9 +294,9 @@ impl Daemon {
         let result = std::thread::scope(|s| {
             s.spawn(move || {
                 while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = wake.recv_timeout(this.heartbeat) {
-                    let r = this.auth(this.http.post(this.url(&format!("/workers/{worker}/heartbeat")))).send();
+                    let r = this.as_worker(this.http.post(this.url(&format!("/workers/{worker}/heartbeat")))).send();
                     if let Ok(resp) = r
-                        && resp.status() == StatusCode::NOT_FOUND
+                        && (resp.status() == StatusCode::NOT_FOUND || resp.status() == StatusCode::FORBIDDEN)
                     {
                         lost_flag.store(true, Ordering::Relaxed);
                     }
@@ -294,7 +317,7 @@ impl Daemon {
     fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {
         for attempt in 0..10u32 {
             let r = self
-                .auth(self.http.put(self.url(&format!("/leases/{lease}/result"))))
+                .as_worker(self.http.put(self.url(&format!("/leases/{lease}/result"))))
                 .header("content-type", "application/octet-stream")
                 .body(body.clone())
                 .send();
@@ -326,7 +349,7 @@ impl Daemon {
 
     fn release(&self, lease: u64, failed: bool, reason: &str) {
         let body = ReleaseRequest { failed, reason: reason.chars().take(2000).collect() };
-        let r = self.auth(self.http.post(self.url(&format!("/leases/{lease}/release"))).json(&body)).send();
+        let r = self.as_worker(self.http.post(self.url(&format!("/leases/{lease}/release"))).json(&body)).send();
         if let Err(e) = r {
             tracing::warn!(lease, "release failed ({e}); the lease will expire");
         }
