@@ -175,6 +175,7 @@ impl utoipa::Modify for SecuritySchemes {
     paths(
         crate::api::upload_scene,
         crate::api::download_scene,
+        crate::api::delete_scene,
         crate::api::create_job,
         crate::api::list_jobs,
         crate::api::get_job,
