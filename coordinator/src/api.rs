@@ -16,7 +16,7 @@ use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
     API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
     RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId, max_result_bytes,
+    WorkerId, max_result_bytes, validate_tags,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -375,7 +375,7 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
                 format!("scene_id {:?} has been deleted", req.scene_id),
             ));
         }
-        farm.submit(req.scene_id, req.name, req.priority, req.settings, now_ms())?
+        farm.submit_requiring(req.scene_id, req.name, req.priority, req.settings, req.requires, now_ms())?
     };
     tracing::info!(job = id, "job submitted");
     if let Err(e) = state.persist_job(id) {
@@ -775,10 +775,11 @@ async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiResult<Json<R
             format!("register body: threads must be 1..=4096 (got {}) and name 1..=256 bytes", req.threads),
         ));
     }
+    validate_tags(&req.tags, "register body: tags").map_err(|e| ApiError::unprocessable("invalid_body", e))?;
     let worker_secret = new_worker_secret()?;
     let reg = {
         let mut farm = state.farm.lock();
-        let worker_id = farm.register_with_secret(req.name.clone(), req.threads, worker_secret.clone(), now_ms());
+        let worker_id = farm.register_tagged(req.name.clone(), req.threads, worker_secret.clone(), req.tags, now_ms());
         Registered {
             worker_id,
             worker_secret,
