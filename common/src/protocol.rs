@@ -82,6 +82,32 @@ impl JobState {
     }
 }
 
+/// Tags a worker may report or a job require, at most.
+pub const MAX_TAGS: usize = 16;
+/// Longest tag, in bytes.
+pub const MAX_TAG_LEN: usize = 32;
+
+/// Checks a list of worker tags or required tags: at most [`MAX_TAGS`], each 1 to
+/// [`MAX_TAG_LEN`] characters of `[a-z0-9_-]`, no duplicates. `what` names the field in errors.
+pub fn validate_tags(tags: &[String], what: &str) -> Result<(), String> {
+    if tags.len() > MAX_TAGS {
+        return Err(format!("{what} has {} tags; at most {MAX_TAGS} are allowed", tags.len()));
+    }
+    for (i, t) in tags.iter().enumerate() {
+        let ok = !t.is_empty()
+            && t.len() <= MAX_TAG_LEN
+            && t.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_' || b == b'-');
+        if !ok {
+            let shown: String = t.chars().take(MAX_TAG_LEN + 1).collect();
+            return Err(format!("{what}: tag {shown:?} is not 1 to {MAX_TAG_LEN} characters of a-z, 0-9, '_' and '-'"));
+        }
+        if tags[..i].contains(t) {
+            return Err(format!("{what}: tag {t:?} is given twice"));
+        }
+    }
+    Ok(())
+}
+
 /// `POST /jobs` body: the job's own fields plus every field of [`RenderSettings`] at the top
 /// level, e.g. `{"scene_id": "...", "name": "cornell", "priority": 0, "width": 256, ...}`.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -89,6 +115,8 @@ pub struct JobRequest {
     pub scene_id: String,
     pub name: Option<String>,
     pub priority: i32,
+    /// Tags a worker must have (every one) to be leased this job's units.
+    pub requires: Vec<String>,
     pub settings: RenderSettings,
 }
 
@@ -102,6 +130,9 @@ impl JobRequest {
                 o.insert("name".into(), n.clone().into());
             }
             o.insert("priority".into(), self.priority.into());
+            if !self.requires.is_empty() {
+                o.insert("requires".into(), self.requires.clone().into());
+            }
         }
         v
     }
@@ -129,8 +160,23 @@ impl JobRequest {
                 .and_then(|p| i32::try_from(p).ok())
                 .ok_or("priority must be an integer between -2^31 and 2^31-1")?,
         };
+        let requires = match o.remove("requires") {
+            None | Some(serde_json::Value::Null) => Vec::new(),
+            Some(serde_json::Value::Array(a)) if a.len() > MAX_TAGS => {
+                return Err(format!("requires has {} tags; at most {MAX_TAGS} are allowed", a.len()));
+            }
+            Some(serde_json::Value::Array(a)) => a
+                .into_iter()
+                .map(|t| match t {
+                    serde_json::Value::String(s) => Ok(s),
+                    _ => Err("requires must be an array of strings".to_string()),
+                })
+                .collect::<Result<Vec<_>, _>>()?,
+            Some(_) => return Err("requires must be an array of strings".into()),
+        };
+        validate_tags(&requires, "requires")?;
         let settings: RenderSettings = serde_json::from_value(v).map_err(|e| e.to_string())?;
-        Ok(Self { scene_id, name, priority, settings })
+        Ok(Self { scene_id, name, priority, requires, settings })
     }
 }
 
@@ -173,6 +219,13 @@ pub struct JobInfo {
     pub error: Option<String>,
     /// Workers refused for this job after repeated failures.
     pub blocklist: Vec<WorkerId>,
+    /// Tags a worker must have to render this job.
+    #[serde(default)]
+    pub requires: Vec<String>,
+    /// Why no unit is being handed out although some are pending (e.g. `no live worker has tags
+    /// [highmem]`); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub waiting: Option<String>,
 }
 
 /// Worker states as the coordinator sees them.
@@ -197,6 +250,9 @@ pub struct WorkerInfo {
     pub samples_done: u64,
     pub samples_per_sec: f64,
     pub last_seen_ms: u64,
+    /// What it reported at registration (`cpu`, SIMD level, `denoise`, and `--tags`).
+    #[serde(default)]
+    pub tags: Vec<String>,
 }
 
 /// `POST /workers/register` body.
@@ -207,6 +263,10 @@ pub struct RegisterRequest {
     pub name: String,
     #[schema(minimum = 1, maximum = 4096)]
     pub threads: u32,
+    /// What the worker offers (at most 16 tags of `[a-z0-9_-]`, 1 to 32 characters each); jobs
+    /// that `require` tags are leased only to workers having all of them.
+    #[serde(default)]
+    pub tags: Vec<String>,
 }
 
 /// `POST /workers/register` answer.
@@ -548,6 +608,7 @@ mod tests {
             scene_id: "ab".into(),
             name: Some("n".into()),
             priority: 3,
+            requires: vec!["highmem".into(), "gpu_2".into()],
             settings: RenderSettings::new(16, 8, 4),
         };
         let back = JobRequest::from_json(req.to_json()).expect("roundtrip");

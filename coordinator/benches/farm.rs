@@ -106,8 +106,13 @@ fn main() {
             let bytes0 = server.state.metrics.bytes_received.load(Ordering::Relaxed);
             let cpu0 = cpu_secs();
             let t0 = Instant::now();
-            let job =
-                JobRequest { scene_id: created.scene_id.clone(), name: None, priority: 0, settings: settings.clone() };
+            let job = JobRequest {
+                scene_id: created.scene_id.clone(),
+                name: None,
+                priority: 0,
+                requires: Vec::new(),
+                settings: settings.clone(),
+            };
             let id = client.submit(&job).unwrap();
             loop {
                 let info = client.job(id).unwrap();

@@ -10,13 +10,13 @@ use axum::extract::{DefaultBodyLimit, Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post, put};
+use axum::routing::{delete, get, post, put};
 use axum::{Json, Router};
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
     API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
     RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId, max_result_bytes,
+    WorkerId, max_result_bytes, validate_tags,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use serde::Deserialize;
@@ -174,6 +174,7 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
                 .layer(DefaultBodyLimit::max(upload_limit))
                 .layer(middleware::from_fn_with_state(state.clone(), declared_length_within_limit)),
         )
+        .route("/scenes/{id}", delete(delete_scene))
         .route("/jobs", post(create_job).get(list_jobs))
         .route("/jobs/{id}", get(get_job).delete(delete_job))
         .route("/jobs/{id}/cancel", post(cancel_job))
@@ -307,6 +308,38 @@ async fn download_scene(State(state): State<Arc<AppState>>, Path(id): Path<Strin
     Ok(([(header::CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
 }
 
+#[utoipa::path(
+    delete,
+    path = "/api/v1/scenes/{id}",
+    tag = "scenes",
+    summary = "Delete a scene bundle that no unfinished job uses (finished jobs keep their images)",
+    params(("id" = String, Path, description = "Scene id (SHA-256, hex)")),
+    security(("client_token" = [])),
+    responses((status = 204, description = "Deleted"), (status = 409, description = "Queued, running or paused jobs use the scene (named in the message)", body = ErrorBody), (status = 404, description = "No such scene", body = ErrorBody), (status = 400, description = "The id is not a scene id (64 lowercase hex digits)", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
+async fn delete_scene(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    if !is_scene_id(&id) {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "bad_id",
+            format!("scene id {id:?} is not a SHA-256 in lowercase hex"),
+        ));
+    }
+    // Under the farm lock: no job can be submitted for the scene while it is checked and removed.
+    let farm = state.farm.lock();
+    let users: Vec<JobId> = farm.jobs().filter(|j| j.scene_id == id && !j.state.is_finished()).map(|j| j.id).collect();
+    if !users.is_empty() {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "scene_in_use",
+            format!("scene {id} is used by unfinished jobs {users:?}; cancel or finish them first"),
+        ));
+    }
+    let removed = state.scenes.remove(&id).map_err(|e| crate::server::storage_error(&e, "the scene's deletion"))?;
+    drop(farm);
+    if removed { Ok(StatusCode::NO_CONTENT) } else { Err(ApiError::not_found(format!("scene {id} does not exist"))) }
+}
+
 // ------------------------------------------------------------------------------------ jobs
 
 #[utoipa::path(
@@ -335,7 +368,14 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
     }
     let id = {
         let mut farm = state.farm.lock();
-        farm.submit(req.scene_id, req.name, req.priority, req.settings, now_ms())?
+        // Checked again under the farm lock: a DELETE of the scene (or its GC) holds it too.
+        if state.scenes.meta(&req.scene_id).is_none() {
+            return Err(ApiError::unprocessable(
+                "unknown_scene",
+                format!("scene_id {:?} has been deleted", req.scene_id),
+            ));
+        }
+        farm.submit_requiring(req.scene_id, req.name, req.priority, req.settings, req.requires, now_ms())?
     };
     tracing::info!(job = id, "job submitted");
     if let Err(e) = state.persist_job(id) {
@@ -735,10 +775,11 @@ async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiResult<Json<R
             format!("register body: threads must be 1..=4096 (got {}) and name 1..=256 bytes", req.threads),
         ));
     }
+    validate_tags(&req.tags, "register body: tags").map_err(|e| ApiError::unprocessable("invalid_body", e))?;
     let worker_secret = new_worker_secret()?;
     let reg = {
         let mut farm = state.farm.lock();
-        let worker_id = farm.register_with_secret(req.name.clone(), req.threads, worker_secret.clone(), now_ms());
+        let worker_id = farm.register_tagged(req.name.clone(), req.threads, worker_secret.clone(), req.tags, now_ms());
         Registered {
             worker_id,
             worker_secret,
@@ -1110,6 +1151,98 @@ mod tests {
         let status = resp.status();
         let body = axum::body::to_bytes(resp.into_body(), 64 << 20).await.expect("body");
         (status, serde_json::from_slice(&body).unwrap_or(serde_json::Value::Null))
+    }
+
+    async fn status_of(app: &Router, method: &str, uri: &str) -> StatusCode {
+        use tower::ServiceExt;
+        let req = axum::http::Request::builder().method(method).uri(uri).body(axum::body::Body::empty()).expect("req");
+        app.clone().oneshot(req).await.expect("response").status()
+    }
+
+    async fn upload(app: &Router, glb: Vec<u8>) -> String {
+        let (status, scene) = send(app, "POST", "/api/v1/scenes", glb).await;
+        assert_eq!(status, StatusCode::CREATED, "{scene}");
+        scene["scene_id"].as_str().expect("scene_id").to_string()
+    }
+
+    async fn submit(app: &Router, scene: &str) -> u64 {
+        let job = serde_json::json!({"scene_id": scene, "width": 16, "height": 16, "spp": 1});
+        let (status, created) = send(app, "POST", "/api/v1/jobs", serde_json::to_vec(&job).expect("json")).await;
+        assert_eq!(status, StatusCode::CREATED, "{created}");
+        created["id"].as_u64().expect("id")
+    }
+
+    /// `DELETE /scenes/{id}`: 409 naming the job while a running job uses the scene; once the
+    /// job is cancelled (finished, still referencing it) 204, after which the bundle is gone
+    /// (download 404, a second delete 404, a new job for it 422) while the finished job's image
+    /// is still served. A malformed id is 400.
+    #[tokio::test]
+    async fn a_scene_is_deleted_only_when_no_unfinished_job_uses_it() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        let app = router(state.clone());
+        let scene = upload(&app, pathfarm_common::scene::demo::cornell_demo_glb()).await;
+        let job = submit(&app, &scene).await;
+        {
+            let mut farm = state.farm.lock();
+            let w = farm.register("w".into(), 1, now_ms());
+            assert!(farm.lease(w, now_ms()).expect("lease").is_some());
+            assert_eq!(farm.job(job).expect("job").state, pathfarm_common::protocol::JobState::Running);
+        }
+        let uri = format!("/api/v1/scenes/{scene}");
+        let (status, err) = send(&app, "DELETE", &uri, Vec::new()).await;
+        assert_eq!(status, StatusCode::CONFLICT, "{err}");
+        assert_eq!(err["error"]["code"], "scene_in_use");
+        assert!(err["error"]["message"].as_str().is_some_and(|m| m.contains(&format!("[{job}]"))), "{err}");
+        assert_eq!(status_of(&app, "GET", &uri).await, StatusCode::OK);
+
+        let (status, _) = send(&app, "POST", &format!("/api/v1/jobs/{job}/cancel"), Vec::new()).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(status_of(&app, "DELETE", &uri).await, StatusCode::NO_CONTENT);
+        assert_eq!(status_of(&app, "GET", &uri).await, StatusCode::NOT_FOUND);
+        assert_eq!(status_of(&app, "DELETE", &uri).await, StatusCode::NOT_FOUND);
+        assert!(!dir.path().join("scenes").join(format!("{scene}.bundle")).exists());
+        assert!(!dir.path().join("scenes").join(format!("{scene}.json")).exists());
+        let job2 = serde_json::json!({"scene_id": scene, "width": 16, "height": 16, "spp": 1});
+        let (status, err) = send(&app, "POST", "/api/v1/jobs", serde_json::to_vec(&job2).expect("json")).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{job}/image.exr")).await, StatusCode::OK);
+        let (status, err) = send(&app, "DELETE", "/api/v1/scenes/not-a-scene", Vec::new()).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+        assert_eq!(err["error"]["code"], "bad_id");
+        // A restart does not bring it back.
+        drop(app);
+        drop(state);
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        assert!(AppState::new(cfg).expect("state").scenes.meta(&scene).is_none());
+    }
+
+    /// The maintenance loop removes a scene that no job references once it is older than
+    /// `scene_gc_after_ms`, and keeps one a (finished) job references.
+    #[tokio::test]
+    async fn unreferenced_old_scenes_are_garbage_collected() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.scene_gc_after_ms = Some(300);
+        let server = crate::server::Server::start(cfg).await.expect("server");
+        let app = router(server.state.clone());
+        let used = upload(&app, pathfarm_common::scene::demo::cornell_demo_glb()).await;
+        let unused = upload(&app, pathfarm_common::scene::demo::furnace_glb(1.0, 0.5)).await;
+        let job = submit(&app, &used).await;
+        let (status, _) = send(&app, "POST", &format!("/api/v1/jobs/{job}/cancel"), Vec::new()).await;
+        assert_eq!(status, StatusCode::OK);
+        // Young scenes stay, referenced or not.
+        assert!(crate::server::collect_scenes(&server.state, now_ms() - 60_000).is_empty());
+        let deadline = Instant::now() + std::time::Duration::from_secs(10);
+        while server.state.scenes.meta(&unused).is_some() {
+            assert!(Instant::now() < deadline, "the unreferenced scene was never collected");
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/scenes/{unused}")).await, StatusCode::NOT_FOUND);
+        tokio::time::sleep(std::time::Duration::from_millis(600)).await;
+        assert!(server.state.scenes.meta(&used).is_some(), "a referenced scene was collected");
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/scenes/{used}")).await, StatusCode::OK);
     }
 
     /// Only what is durable is acknowledged: once the database refuses writes, a submission is

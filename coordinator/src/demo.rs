@@ -50,7 +50,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         light_sampling: LightSampling::SolidAngle,
     };
     settings.tile_size = 32;
-    let job = JobRequest { scene_id: scene.scene_id, name: Some("cornell demo".into()), priority: 0, settings };
+    let job = JobRequest {
+        scene_id: scene.scene_id,
+        name: Some("cornell demo".into()),
+        priority: 0,
+        requires: Vec::new(),
+        settings,
+    };
     let id = client.submit(&job)?;
     let info = client.wait(id, true)?;
     let exr = args.out.join("demo.exr");

@@ -132,6 +132,11 @@ pub struct Job {
     pub scene_id: String,
     pub priority: i32,
     pub settings: RenderSettings,
+    /// Tags a worker must have (all of them) to be leased this job's units.
+    pub requires: Vec<String>,
+    /// Set while units are pending that no live worker may take (its tags lack some of
+    /// `requires`): the reason, shown in the job's info and logged once.
+    unservable: Option<String>,
     pub plan: Plan,
     pub state: JobState,
     units: Vec<UnitState>,
@@ -276,6 +281,8 @@ impl Job {
             finished_ms: self.finished_ms,
             error: self.error.clone(),
             blocklist: self.blocklist.iter().copied().collect(),
+            requires: self.requires.clone(),
+            waiting: self.unservable.clone(),
         }
     }
 }
@@ -308,6 +315,8 @@ impl Job {
             pass_merged: vec![0; plan.passes.len()],
             plan,
             settings,
+            requires: Vec::new(),
+            unservable: None,
             state: JobState::Queued,
             passes_done: 0,
             units_merged: 0,
@@ -346,6 +355,7 @@ impl Job {
             scene_id: self.scene_id.clone(),
             priority: self.priority,
             settings: self.settings.clone(),
+            requires: self.requires.clone(),
             state: self.state,
             created_ms: self.created_ms,
             finished_ms: self.finished_ms,
@@ -363,6 +373,7 @@ pub struct JobRecord {
     pub scene_id: String,
     pub priority: i32,
     pub settings: RenderSettings,
+    pub requires: Vec<String>,
     pub state: JobState,
     pub created_ms: u64,
     pub finished_ms: Option<u64>,
@@ -387,6 +398,8 @@ struct Worker {
     secret: String,
     name: String,
     threads: u32,
+    /// What it offers (registration); jobs' `requires` must be a subset.
+    tags: BTreeSet<String>,
     leases: BTreeSet<LeaseId>,
     last_seen_ms: u64,
     registered_ms: u64,
@@ -461,6 +474,7 @@ impl Farm {
         let mut job = Job::new(rec.id, rec.scene_id, Some(rec.name), rec.priority, rec.settings, rec.created_ms);
         job.finished_ms = rec.finished_ms;
         job.error = rec.error;
+        job.requires = rec.requires;
         job.run_ms_before = rec.run_ms;
         if let Some(cp) = cp {
             if cp.job_id != rec.id
@@ -526,6 +540,20 @@ impl Farm {
         settings: RenderSettings,
         now_ms: u64,
     ) -> Result<JobId, FarmError> {
+        self.submit_requiring(scene_id, name, priority, settings, Vec::new(), now_ms)
+    }
+
+    /// Adds a job whose units go only to workers having every tag of `requires`.
+    pub fn submit_requiring(
+        &mut self,
+        scene_id: String,
+        name: Option<String>,
+        priority: i32,
+        settings: RenderSettings,
+        requires: Vec<String>,
+        now_ms: u64,
+    ) -> Result<JobId, FarmError> {
+        pathfarm_common::protocol::validate_tags(&requires, "requires").map_err(FarmError::InvalidJob)?;
         settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
         if let Some(budget) = self.cfg.film_budget_bytes {
             let need = Film::bytes_for(settings.width, settings.height);
@@ -546,8 +574,10 @@ impl Farm {
         }
         let id = self.next_job;
         self.next_job += 1;
-        let job = Job::new(id, scene_id, name, priority, settings, now_ms);
+        let mut job = Job::new(id, scene_id, name, priority, settings, now_ms);
+        job.requires = requires;
         self.jobs.insert(id, job);
+        self.note_unservable();
         Ok(id)
     }
 
@@ -672,15 +702,28 @@ impl Farm {
 
     /// Registers a worker whose requests must carry `secret` (an empty one never matches).
     pub fn register_with_secret(&mut self, name: String, threads: u32, secret: String, now_ms: u64) -> WorkerId {
+        self.register_tagged(name, threads, secret, Vec::new(), now_ms)
+    }
+
+    /// Registers a worker offering `tags` (validated by the caller).
+    pub fn register_tagged(
+        &mut self,
+        name: String,
+        threads: u32,
+        secret: String,
+        tags: Vec<String>,
+        now_ms: u64,
+    ) -> WorkerId {
         let id = self.next_worker;
         self.next_worker += 1;
-        tracing::info!(worker = id, %name, threads, "worker registered");
+        tracing::info!(worker = id, %name, threads, ?tags, "worker registered");
         self.workers.insert(
             id,
             Worker {
                 secret,
                 name,
                 threads,
+                tags: tags.into_iter().collect(),
                 leases: BTreeSet::new(),
                 last_seen_ms: now_ms,
                 registered_ms: now_ms,
@@ -689,7 +732,35 @@ impl Farm {
                 offline: false,
             },
         );
+        self.note_unservable();
         id
+    }
+
+    /// Marks the jobs with pending units whose `requires` no live (not offline) worker meets,
+    /// logging once when a job becomes unservable, and clears the mark of the others. Runs
+    /// when jobs or workers come and go (submit, registration, `expire`, pruning).
+    pub fn note_unservable(&mut self) {
+        let workers = &self.workers;
+        for job in self.jobs.values_mut() {
+            let stuck = !job.requires.is_empty()
+                && job.accepts_work()
+                && job.has_pending()
+                && !workers.values().any(|w| !w.offline && job.requires.iter().all(|t| w.tags.contains(t)));
+            match (stuck, job.unservable.is_some()) {
+                (true, false) => {
+                    let why = format!("no live worker has tags [{}]", job.requires.join(", "));
+                    job.log(format!("waiting: {why}"));
+                    job.unservable = Some(why);
+                }
+                (false, true) => {
+                    job.unservable = None;
+                    if job.accepts_work() && job.has_pending() {
+                        job.log("a live worker has the required tags now".into());
+                    }
+                }
+                _ => {}
+            }
+        }
     }
 
     /// Checks that `secret` is worker `worker`'s own: `NoWorker` if it is not registered,
@@ -752,6 +823,9 @@ impl Farm {
                 tracing::info!(worker = id, name = %w.name, last_seen_ms = w.last_seen_ms, "offline worker pruned");
             }
         }
+        if !gone.is_empty() {
+            self.note_unservable();
+        }
         gone
     }
 
@@ -782,6 +856,7 @@ impl Farm {
                     samples_done: w.samples_done,
                     samples_per_sec: if secs > 0.0 { w.samples_done as f64 / secs } else { 0.0 },
                     last_seen_ms: w.last_seen_ms,
+                    tags: w.tags.iter().cloned().collect(),
                 }
             })
             .collect()
@@ -795,11 +870,16 @@ impl Farm {
     pub fn lease(&mut self, worker: WorkerId, now_ms: u64) -> Result<Option<LeaseGrant>, FarmError> {
         let w = self.workers.get_mut(&worker).ok_or(FarmError::NoWorker(worker))?;
         w.last_seen_ms = now_ms;
-        w.offline = false;
+        let was_offline = std::mem::replace(&mut w.offline, false);
+        if was_offline {
+            self.note_unservable();
+        }
+        let tags = &self.workers[&worker].tags;
         let pick = self
             .jobs
             .values()
             .filter(|j| j.accepts_work() && j.has_pending() && !j.blocklist.contains(&worker))
+            .filter(|j| j.requires.iter().all(|t| tags.contains(t)))
             .min_by_key(|j| (std::cmp::Reverse(j.priority), j.leased, j.served, j.id))
             .map(|j| j.id);
         let Some(job_id) = pick else { return Ok(None) };
@@ -891,6 +971,7 @@ impl Farm {
                 }
             }
         }
+        self.note_unservable();
         expired.len()
     }
 
@@ -1178,6 +1259,40 @@ mod tests {
         assert!(matches!(farm.check_worker(nobody, Some("")), Err(FarmError::WrongWorker(_))));
         assert_eq!(farm.check_worker(999, Some("secret-a")), Err(FarmError::NoWorker(999)));
         assert_eq!(farm.check_lease(g.lease_id + 100, Some("secret-a")), Err(FarmError::LeaseLost(g.lease_id + 100)));
+    }
+
+    /// A job requiring `gpu` is not leased to a cpu-only worker (which still gets untagged
+    /// work); while no live worker has the tag the job stays queued and says why; a worker with
+    /// the tag gets it.
+    #[test]
+    fn required_tags_decide_which_worker_gets_a_job() {
+        let mut farm = Farm::new(FarmConfig { lease_timeout_ms: 100, ..FarmConfig::default() });
+        let tags = |t: &[&str]| t.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let cpu = farm.register_tagged("cpu".into(), 1, String::new(), tags(&["cpu", "avx2"]), 0);
+        let id = farm.submit_requiring("x".into(), None, 5, settings(), tags(&["gpu"]), 0).expect("submit");
+        assert_eq!(farm.lease(cpu, 0).expect("lease"), None, "a cpu-only worker got a gpu unit");
+        let job = farm.job(id).expect("job");
+        assert_eq!(job.state, JobState::Queued);
+        let info = job.info(0);
+        assert_eq!(info.requires, tags(&["gpu"]));
+        assert_eq!(info.waiting.as_deref(), Some("no live worker has tags [gpu]"));
+        assert!(job.log.iter().any(|l| l.contains("no live worker has tags [gpu]")), "{:?}", job.log);
+        // Untagged work still goes to the cpu worker, after the higher-priority gpu job.
+        let plain = farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        assert_eq!(farm.lease(cpu, 0).expect("lease").map(|g| g.job_id), Some(plain));
+        let gpu = farm.register_tagged("gpu".into(), 1, String::new(), tags(&["cpu", "gpu"]), 0);
+        assert_eq!(farm.job(id).expect("job").info(0).waiting, None);
+        assert_eq!(farm.lease(gpu, 0).expect("lease").map(|g| g.job_id), Some(id));
+        assert_eq!(farm.job(id).expect("job").state, JobState::Running);
+        assert_eq!(farm.workers(0).iter().find(|w| w.id == gpu).map(|w| w.tags.clone()), Some(tags(&["cpu", "gpu"])));
+        // The gpu worker goes silent: the job says so again.
+        farm.heartbeat(cpu, 150).expect("hb");
+        farm.expire(150);
+        assert_eq!(farm.job(id).expect("job").info(150).waiting.as_deref(), Some("no live worker has tags [gpu]"));
+        assert!(matches!(
+            farm.submit_requiring("x".into(), None, 0, settings(), tags(&["GPU"]), 0),
+            Err(FarmError::InvalidJob(_))
+        ));
     }
 
     #[test]

@@ -29,6 +29,7 @@ impl LocalWorkers {
                 cache_dir: cache_dir.to_path_buf(),
                 name: format!("local-{i}"),
                 lease_wait: Duration::from_millis(500),
+                tags: pathfarm_worker::daemon::automatic_tags(),
             };
             let mut daemon = Daemon::new(cfg)?;
             let flag = shutdown.clone();

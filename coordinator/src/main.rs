@@ -123,6 +123,11 @@ struct ServeArgs {
     /// SQLite; 0 = never. One that comes back registers again.
     #[arg(long, default_value_t = 3_600_000)]
     prune_workers_after_ms: u64,
+    /// Scenes that no job (of any state) references and that were uploaded longer ago than this
+    /// are removed (checked with the lease expiry); 0 = never. Uploading the same scene again
+    /// restarts its clock.
+    #[arg(long, default_value_t = pathfarm_coordinator::server::SCENE_GC_AFTER_MS)]
+    scene_gc_after_ms: u64,
     /// Worker registrations allowed per client address and minute (a token bucket; 0 =
     /// unlimited). Beyond it: 429 with Retry-After.
     #[arg(long, default_value_t = 60)]
@@ -172,6 +177,7 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.worker_prune_ms = (a.prune_workers_after_ms > 0).then_some(a.prune_workers_after_ms);
     cfg.register_per_minute = a.register_per_minute;
     cfg.register_burst = a.register_burst;
+    cfg.scene_gc_after_ms = (a.scene_gc_after_ms > 0).then_some(a.scene_gc_after_ms);
     if a.header_timeout_ms == 0 || a.idle_timeout_ms == 0 || a.max_connections == 0 {
         anyhow::bail!("--header-timeout-ms, --idle-timeout-ms and --max-connections must be at least 1");
     }

@@ -32,6 +32,13 @@ pub struct JobRequestBody {
     /// Higher runs first; equal priorities share the workers.
     #[serde(default)]
     pub priority: i32,
+    /// Tags a worker must have, all of them, to be leased this job's units (at most 16, each
+    /// 1 to 32 characters of `[a-z0-9_-]`). While no live worker has them the job stays queued
+    /// and its `waiting` says so. Workers report `cpu`, `avx2` or `avx512f`, `denoise`, and
+    /// their `--tags`.
+    #[serde(default)]
+    #[schema(max_items = 16)]
+    pub requires: Vec<String>,
     // The RenderSettings fields, spelled out: a flattened struct that refuses unknown fields
     // becomes an `allOf` that no object can satisfy.
     #[schema(minimum = 1)]
@@ -175,6 +182,7 @@ impl utoipa::Modify for SecuritySchemes {
     paths(
         crate::api::upload_scene,
         crate::api::download_scene,
+        crate::api::delete_scene,
         crate::api::create_job,
         crate::api::list_jobs,
         crate::api::get_job,

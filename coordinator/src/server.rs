@@ -61,7 +61,13 @@ pub struct ServerConfig {
     pub register_per_minute: u32,
     /// ... holding at most this many.
     pub register_burst: u32,
+    /// Scenes that no job references and that were stored (or uploaded again) longer ago than
+    /// this many milliseconds are removed by the maintenance loop; `None`: never.
+    pub scene_gc_after_ms: Option<u64>,
 }
+
+/// Default of `--scene-gc-after-ms`: a week.
+pub const SCENE_GC_AFTER_MS: u64 = 7 * 24 * 3_600_000;
 
 impl ServerConfig {
     pub fn new(listen: SocketAddr, data_dir: PathBuf) -> Self {
@@ -82,6 +88,7 @@ impl ServerConfig {
             metrics_token: None,
             register_per_minute: 60,
             register_burst: 60,
+            scene_gc_after_ms: Some(SCENE_GC_AFTER_MS),
         }
     }
 }
@@ -200,7 +207,9 @@ pub struct SceneMeta {
 /// Content-addressed scene bundles under `data_dir/scenes`.
 pub struct SceneStore {
     dir: PathBuf,
-    meta: Mutex<HashMap<String, SceneMeta>>,
+    /// Per scene: its meta and when it was stored (Unix ms; the bundle's modification time
+    /// after a restart, refreshed when the same bytes are uploaded again).
+    meta: Mutex<HashMap<String, (SceneMeta, u64)>>,
 }
 
 impl SceneStore {
@@ -214,7 +223,12 @@ impl SceneStore {
                 && is_scene_id(id)
                 && let Some(m) = std::fs::read(&path).ok().and_then(|b| serde_json::from_slice(&b).ok())
             {
-                meta.insert(id.to_string(), m);
+                let stored = std::fs::metadata(dir.join(format!("{id}.bundle")))
+                    .and_then(|m| m.modified())
+                    .ok()
+                    .and_then(|t| t.duration_since(UNIX_EPOCH).ok())
+                    .map_or_else(now_ms, |d| d.as_millis() as u64);
+                meta.insert(id.to_string(), (m, stored));
             }
         }
         Ok(Self { dir, meta: Mutex::new(meta) })
@@ -224,14 +238,55 @@ impl SceneStore {
         self.dir.join(format!("{id}.bundle"))
     }
 
+    fn entries(&self) -> MutexGuard<'_, HashMap<String, (SceneMeta, u64)>> {
+        self.meta.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     pub fn meta(&self, id: &str) -> Option<SceneMeta> {
-        self.meta.lock().unwrap_or_else(|e| e.into_inner()).get(id).cloned()
+        self.entries().get(id).map(|(m, _)| m.clone())
+    }
+
+    /// Forgets a scene and removes its bundle and meta file; `Ok(false)` when it was not stored.
+    /// Callers hold the farm lock, so no job can be submitted for the scene meanwhile
+    /// (`create_job` checks the scene again under that lock).
+    pub fn remove(&self, id: &str) -> std::io::Result<bool> {
+        if self.entries().remove(id).is_none() {
+            return Ok(false);
+        }
+        for path in [self.bundle_path(id), self.dir.join(format!("{id}.json"))] {
+            match std::fs::remove_file(&path) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
+                _ => {}
+            }
+        }
+        tracing::info!(scene = %id, "scene removed");
+        Ok(true)
+    }
+
+    /// Scenes stored at or before `stored_before` (Unix ms) that `referenced` does not name.
+    pub fn unreferenced_before(&self, stored_before: u64, referenced: &dyn Fn(&str) -> bool) -> Vec<String> {
+        self.entries()
+            .iter()
+            .filter(|(id, (_, stored))| *stored <= stored_before && !referenced(id))
+            .map(|(id, _)| id.clone())
+            .collect()
     }
 
     /// Validates (by loading) and stores a bundle; idempotent for the same bytes.
     pub fn add(&self, bytes: &[u8], opts: &LoadOptions) -> Result<SceneCreated, ApiError> {
         let id = scene_id(bytes);
-        if let Some(m) = self.meta(&id) {
+        if let Some((m, stored)) = self.entries().get_mut(&id) {
+            // Uploaded again: the client is about to use it, so the GC's clock starts over
+            // (also across a restart, through the bundle's modification time).
+            *stored = now_ms();
+            let m = m.clone();
+            if let Err(e) = std::fs::File::options()
+                .append(true)
+                .open(self.bundle_path(&id))
+                .and_then(|f| f.set_modified(SystemTime::now()))
+            {
+                tracing::warn!(scene = %id, error = %e, "refreshing the scene's modification time failed");
+            }
             return Ok(SceneCreated { scene_id: id, triangles: m.triangles, warnings: m.warnings });
         }
         // A scratch folder per upload: concurrent uploads of the same bytes must not share one.
@@ -268,7 +323,7 @@ impl SceneStore {
         let meta_json = serde_json::to_vec(&meta).map_err(|e| ApiError::internal(e.to_string()))?;
         write_atomic(&self.dir.join(format!("{id}.json")), &meta_json).map_err(io)?;
         tracing::info!(scene = %id, triangles = meta.triangles, "scene stored");
-        self.meta.lock().unwrap_or_else(|e| e.into_inner()).insert(id.clone(), meta.clone());
+        self.entries().insert(id.clone(), (meta.clone(), now_ms()));
         Ok(SceneCreated { scene_id: id, triangles: meta.triangles, warnings: meta.warnings })
     }
 }
@@ -558,7 +613,29 @@ async fn maintenance_loop(state: Arc<AppState>) {
             }
             state.publish("worker", pruned[0]);
         }
+        if let Some(after) = state.config.scene_gc_after_ms {
+            collect_scenes(&state, now_ms().saturating_sub(after));
+        }
     }
+}
+
+/// Removes the scenes stored at or before `stored_before` (Unix ms) that no job, in any state,
+/// references. The farm lock is held throughout, so no job can be submitted for a scene being
+/// removed. Returns the removed ids.
+pub fn collect_scenes(state: &AppState, stored_before: u64) -> Vec<String> {
+    let farm = state.farm.lock();
+    let referenced = |id: &str| farm.jobs().any(|j| j.scene_id == id);
+    let mut removed = Vec::new();
+    for id in state.scenes.unreferenced_before(stored_before, &referenced) {
+        match state.scenes.remove(&id) {
+            Ok(_) => {
+                tracing::info!(scene = %id, "unreferenced scene garbage-collected");
+                removed.push(id);
+            }
+            Err(e) => tracing::error!(scene = %id, error = %e, "removing an unreferenced scene failed"),
+        }
+    }
+    removed
 }
 
 /// Writes each job's EXR and PNG after a pass completes, at most every `output_interval` per

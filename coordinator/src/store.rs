@@ -57,7 +57,8 @@ impl Store {
                  created_ms INTEGER NOT NULL,
                  finished_ms INTEGER,
                  error TEXT,
-                 run_ms INTEGER NOT NULL DEFAULT 0
+                 run_ms INTEGER NOT NULL DEFAULT 0,
+                 requires TEXT NOT NULL DEFAULT '[]'
              );
              CREATE TABLE IF NOT EXISTS workers (
                  id INTEGER PRIMARY KEY,
@@ -66,6 +67,10 @@ impl Store {
                  registered_ms INTEGER NOT NULL
              );",
         )?;
+        // Databases of versions before worker tags lack `requires`.
+        if conn.prepare("SELECT requires FROM jobs LIMIT 0").is_err() {
+            conn.execute_batch("ALTER TABLE jobs ADD COLUMN requires TEXT NOT NULL DEFAULT '[]'")?;
+        }
         let jobs_dir = data_dir.join("jobs");
         std::fs::create_dir_all(&jobs_dir)?;
         Ok(Self { conn, jobs_dir })
@@ -85,8 +90,8 @@ impl Store {
 
     pub fn put_job(&self, r: &JobRecord) -> anyhow::Result<()> {
         self.conn.execute(
-            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)
+            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)
              ON CONFLICT(id) DO UPDATE SET name = ?2, priority = ?4, state = ?6, finished_ms = ?8, error = ?9, run_ms = ?10",
             params![
                 r.id as i64,
@@ -99,6 +104,7 @@ impl Store {
                 r.finished_ms.map(|v| v as i64),
                 r.error,
                 r.run_ms as i64,
+                serde_json::to_string(&r.requires)?,
             ],
         )?;
         Ok(())
@@ -131,7 +137,7 @@ impl Store {
 
     pub fn jobs(&self) -> anyhow::Result<Vec<JobRecord>> {
         let mut stmt = self.conn.prepare(
-            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms FROM jobs ORDER BY id",
+            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires FROM jobs ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
             Ok((
@@ -145,13 +151,15 @@ impl Store {
                 r.get::<_, Option<i64>>(7)?,
                 r.get::<_, Option<String>>(8)?,
                 r.get::<_, i64>(9)?,
+                r.get::<_, String>(10)?,
             ))
         })?;
         let mut out = Vec::new();
         for (i, row) in rows.enumerate() {
             // One damaged row (a state this version does not know, settings that do not parse,
             // a column of the wrong type) must not stop the coordinator: skip it, loudly.
-            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms) = match row {
+            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms, requires) = match row
+            {
                 Ok(r) => r,
                 Err(e) => {
                     tracing::warn!(row = i, "skipping an unreadable job row in the database: {e}");
@@ -160,8 +168,12 @@ impl Store {
             };
             let parsed = serde_json::from_str::<RenderSettings>(&settings)
                 .map_err(|e| anyhow::anyhow!("settings do not parse: {e}"))
-                .and_then(|settings| Ok((settings, state_from_str(&state)?)));
-            let (settings, state) = match parsed {
+                .and_then(|settings| {
+                    let requires = serde_json::from_str::<Vec<String>>(&requires)
+                        .map_err(|e| anyhow::anyhow!("requires does not parse: {e}"))?;
+                    Ok((settings, state_from_str(&state)?, requires))
+                });
+            let (settings, state, requires) = match parsed {
                 Ok(p) => p,
                 Err(e) => {
                     tracing::warn!(job = id, "skipping job {id} from the database: {e:#}");
@@ -174,6 +186,7 @@ impl Store {
                 scene_id,
                 priority,
                 settings,
+                requires,
                 state,
                 created_ms: created as u64,
                 finished_ms: finished.map(|v| v as u64),
@@ -333,6 +346,7 @@ mod tests {
             scene_id: "s".into(),
             priority: 2,
             settings: RenderSettings::new(8, 8, 4),
+            requires: vec!["highmem".into()],
             state: JobState::Running,
             created_ms: 10,
             finished_ms: None,
@@ -353,6 +367,7 @@ mod tests {
         assert_eq!(jobs.len(), 1);
         assert_eq!(jobs[0].state, JobState::Paused);
         assert_eq!(jobs[0].settings, rec.settings);
+        assert_eq!(jobs[0].requires, rec.requires);
     }
 
     #[test]
@@ -365,6 +380,7 @@ mod tests {
             scene_id: "s".into(),
             priority: 0,
             settings: RenderSettings::new(8, 8, 4),
+            requires: vec!["highmem".into()],
             state: JobState::Queued,
             created_ms: 10,
             finished_ms: None,

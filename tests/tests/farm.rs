@@ -27,7 +27,13 @@ fn settings(width: u32, height: u32, spp: u32, tile: u32) -> RenderSettings {
 
 fn submit(client: &Client, scene: &[u8], s: &RenderSettings, priority: i32, name: &str) -> JobId {
     let created = client.upload_scene(scene.to_vec()).expect("upload");
-    let req = JobRequest { scene_id: created.scene_id, name: Some(name.into()), priority, settings: s.clone() };
+    let req = JobRequest {
+        scene_id: created.scene_id,
+        name: Some(name.into()),
+        priority,
+        requires: Vec::new(),
+        settings: s.clone(),
+    };
     client.submit(&req).expect("submit")
 }
 
@@ -71,6 +77,57 @@ fn three_workers_render_the_same_bits_as_a_local_render() {
     });
     assert!(!on_disk.is_empty());
     drop(workers);
+}
+
+fn workers(url: &str) -> Vec<pathfarm_common::protocol::WorkerInfo> {
+    reqwest::blocking::get(format!("{url}{API}/workers")).expect("workers").json().expect("json")
+}
+
+/// Two real workers, one started with `--tags highmem`: a job requiring `highmem` waits (and
+/// says why) while only the untagged worker is up, then is rendered by the tagged worker
+/// alone, bit-identical to a local render.
+#[test]
+fn a_job_requiring_a_tag_is_rendered_only_by_workers_having_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let plain = start_worker(&coord.url, "plain", &dir.path().join("c0"), &[]);
+    wait_for("the plain worker", Duration::from_secs(30), || (!workers(&coord.url).is_empty()).then_some(()));
+    let scene = cornell_demo_glb();
+    let s = settings(48, 32, 8, 16);
+    let created = client.upload_scene(scene.clone()).expect("upload");
+    let req = JobRequest {
+        scene_id: created.scene_id,
+        name: Some("highmem".into()),
+        priority: 0,
+        requires: vec!["highmem".into()],
+        settings: s.clone(),
+    };
+    let id = client.submit(&req).expect("submit");
+    std::thread::sleep(Duration::from_millis(1500));
+    let info = client.job(id).expect("job");
+    assert_eq!(info.state, JobState::Queued, "{info:?}");
+    assert_eq!(info.requires, vec!["highmem".to_string()]);
+    assert_eq!(info.waiting.as_deref(), Some("no live worker has tags [highmem]"));
+    let log = reqwest::blocking::get(format!("{}{API}/jobs/{id}/log", coord.url)).expect("log").text().expect("text");
+    assert!(log.contains("no live worker has tags [highmem]"), "{log}");
+
+    let tagged = start_worker(&coord.url, "tagged", &dir.path().join("c1"), &["--tags", "highmem"]);
+    let info = wait_done(&client, id, Duration::from_secs(120));
+    assert_eq!(info.waiting, None);
+    assert!(
+        client.image_exr(id).expect("exr") == local_exr(&scene, &s),
+        "the farm's EXR differs from the local render"
+    );
+    let ws = workers(&coord.url);
+    let by_name = |n: &str| ws.iter().find(|w| w.name == n).unwrap_or_else(|| panic!("worker {n}: {ws:?}"));
+    assert_eq!(by_name("tagged").units_done, info.units_total, "{ws:?}");
+    assert_eq!(by_name("plain").units_done, 0, "{ws:?}");
+    assert!(by_name("tagged").tags.contains(&"highmem".to_string()), "{ws:?}");
+    assert!(
+        by_name("plain").tags.contains(&"cpu".to_string()) && !by_name("plain").tags.contains(&"highmem".to_string())
+    );
+    drop((plain, tagged));
 }
 
 #[test]

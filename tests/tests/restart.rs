@@ -36,6 +36,7 @@ fn a_job_survives_repeated_coordinator_kills() {
             scene_id: created.scene_id,
             name: Some("crash".into()),
             priority: 0,
+            requires: Vec::new(),
             settings: s.clone(),
         })
         .expect("submit");
@@ -95,6 +96,7 @@ fn deleted_jobs_stay_deleted_and_their_ids_are_not_reused() {
         scene_id: created.scene_id.clone(),
         name: Some(name.into()),
         priority: 0,
+        requires: Vec::new(),
         settings: RenderSettings::new(512, 512, 16),
     };
     let keep = client.submit(&request("kept")).expect("submit");

@@ -38,6 +38,42 @@ pub struct RunArgs {
     /// Name shown on the dashboard (default: host name and process id).
     #[arg(long)]
     pub name: Option<String>,
+    /// Tags this worker offers besides its automatic ones (`cpu`, `avx2`/`avx512f`, `denoise`),
+    /// a comma list such as `highmem,fast`: jobs that `require` tags are leased only to workers
+    /// having all of them. Lowercase letters, digits, `_` and `-`; 16 tags at most in all.
+    #[arg(long, env = "PATHFARM_WORKER_TAGS", value_delimiter = ',')]
+    pub tags: Vec<String>,
+}
+
+/// Tags every worker reports by itself: `cpu`; the widest of `avx512f` and `avx2` this CPU
+/// has; `denoise` when the binary was built with OIDN.
+pub fn automatic_tags() -> Vec<String> {
+    let mut tags = vec!["cpu".to_string()];
+    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
+    {
+        if std::is_x86_feature_detected!("avx512f") {
+            tags.push("avx512f".into());
+        } else if std::is_x86_feature_detected!("avx2") {
+            tags.push("avx2".into());
+        }
+    }
+    if crate::denoise::AVAILABLE {
+        tags.push("denoise".into());
+    }
+    tags
+}
+
+/// The automatic tags followed by `extra` (trimmed, empty entries and repeats dropped),
+/// validated as the coordinator does.
+pub fn worker_tags(extra: &[String]) -> anyhow::Result<Vec<String>> {
+    let mut tags = automatic_tags();
+    for t in extra.iter().map(|t| t.trim()).filter(|t| !t.is_empty()) {
+        if !tags.iter().any(|have| have == t) {
+            tags.push(t.to_string());
+        }
+    }
+    pathfarm_common::protocol::validate_tags(&tags, "--tags").map_err(anyhow::Error::msg)?;
+    Ok(tags)
 }
 
 /// Daemon settings.
@@ -50,20 +86,23 @@ pub struct DaemonConfig {
     pub name: String,
     /// Long-poll time of a lease request.
     pub lease_wait: Duration,
+    /// Sent at registration (see [`worker_tags`]).
+    pub tags: Vec<String>,
 }
 
 impl DaemonConfig {
-    pub fn from_args(args: RunArgs) -> Self {
+    pub fn from_args(args: RunArgs) -> anyhow::Result<Self> {
         let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
         let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "worker".into());
-        Self {
+        Ok(Self {
+            tags: worker_tags(&args.tags)?,
             coordinator: args.coordinator.trim_end_matches('/').to_string(),
             token: args.token,
             threads: threads.max(1),
             cache_dir: args.cache_dir.unwrap_or_else(|| std::env::temp_dir().join("pathfarm-worker-cache")),
             name: args.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
             lease_wait: Duration::from_secs(5),
-        }
+        })
     }
 }
 
@@ -73,7 +112,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     for sig in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
         signal_hook::flag::register(sig, shutdown.clone()).context("installing the signal handler")?;
     }
-    Daemon::new(DaemonConfig::from_args(args))?.run(&shutdown)
+    Daemon::new(DaemonConfig::from_args(args)?)?.run(&shutdown)
 }
 
 /// Pseudo-random jitter in `[0, 1)` without a global RNG: hashes the clock.
@@ -158,14 +197,18 @@ impl Daemon {
     }
 
     fn register(&mut self, shutdown: &AtomicBool) -> anyhow::Result<()> {
-        let body = RegisterRequest { name: self.cfg.name.clone(), threads: self.cfg.threads as u32 };
+        let body = RegisterRequest {
+            name: self.cfg.name.clone(),
+            threads: self.cfg.threads as u32,
+            tags: self.cfg.tags.clone(),
+        };
         let mut attempt = 0;
         loop {
             let r = self.auth(self.http.post(self.url("/workers/register")).json(&body)).send();
             match r {
                 Ok(resp) if resp.status().is_success() => {
                     let reg: Registered = resp.json().context("register answer")?;
-                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, "registered");
+                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, tags = ?self.cfg.tags, "registered");
                     self.worker_id = Some(reg.worker_id);
                     self.secret = reg.worker_secret;
                     self.heartbeat = Duration::from_millis(reg.heartbeat_ms.max(100));

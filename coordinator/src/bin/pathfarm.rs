@@ -31,6 +31,9 @@ enum Command {
         name: Option<String>,
         #[arg(long, default_value_t = 0)]
         priority: i32,
+        /// Tags a worker must have to render the job (comma list, e.g. `highmem,avx512f`).
+        #[arg(long, value_delimiter = ',')]
+        requires: Vec<String>,
         /// Wait for the job to finish, with a progress bar.
         #[arg(long)]
         wait: bool,
@@ -59,13 +62,14 @@ fn main() -> anyhow::Result<()> {
     let client = Client::new(&cli.server, cli.token)?;
     let mut stdout = std::io::stdout().lock();
     match cli.command {
-        Command::Submit { scene, settings, name, priority, wait, out } => {
+        Command::Submit { scene, settings, name, priority, requires, wait, out } => {
             let bytes = std::fs::read(&scene).with_context(|| format!("reading {}", scene.display()))?;
             let created = client.upload_scene(bytes)?;
             for w in &created.warnings {
                 eprintln!("scene warning: {w}");
             }
-            let job = JobRequest { scene_id: created.scene_id, name, priority, settings: settings.to_settings() };
+            let job =
+                JobRequest { scene_id: created.scene_id, name, priority, requires, settings: settings.to_settings() };
             let id = client.submit(&job)?;
             writeln!(stdout, "{id}")?;
             if wait {

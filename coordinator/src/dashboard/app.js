@@ -389,6 +389,7 @@ function renderWorkers() {
     const bl = blocked(w.id);
     return `<tr data-worker-id="${w.id}">
       <td class="num">${w.id}</td><td>${esc(w.name)}</td><td class="num">${w.threads}</td>
+      <td>${(w.tags || []).length ? esc(w.tags.join(' ')) : '–'}</td>
       <td><span class="badge ${w.state}">${w.state}</span></td>
       <td>${cur}</td><td class="num">${w.units_done}</td><td class="num">${fmtRate(w.samples_per_sec)}</td>
       <td>${w.last_seen_ms ? ago(w.last_seen_ms) : '–'}</td>
