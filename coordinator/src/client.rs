@@ -27,7 +27,13 @@ fn check(resp: Response) -> anyhow::Result<Response> {
 
 impl Client {
     pub fn new(base: &str, token: Option<String>) -> anyhow::Result<Self> {
-        let http = pathfarm_worker::daemon::with_ca_cert(Http::builder().timeout(Duration::from_secs(300)))?.build()?;
+        Self::with_ca_cert(base, token, None)
+    }
+
+    /// A client that also trusts the PEM certificate(s) in `ca_cert` (else `PATHFARM_CA_CERT`).
+    pub fn with_ca_cert(base: &str, token: Option<String>, ca_cert: Option<&std::path::Path>) -> anyhow::Result<Self> {
+        let http = pathfarm_worker::daemon::with_ca_cert(Http::builder().timeout(Duration::from_secs(300)), ca_cert)?
+            .build()?;
         Ok(Self { base: base.trim_end_matches('/').to_string(), token, http })
     }
 

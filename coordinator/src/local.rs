@@ -30,6 +30,7 @@ impl LocalWorkers {
                 name: format!("local-{i}"),
                 lease_wait: Duration::from_millis(500),
                 tags: pathfarm_worker::daemon::automatic_tags(),
+                ca_cert: None,
             };
             let mut daemon = Daemon::new(cfg)?;
             let flag = shutdown.clone();

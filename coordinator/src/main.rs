@@ -279,7 +279,8 @@ fn read_token_file(path: &std::path::Path) -> anyhow::Result<String> {
 /// `pathfarm-coordinator healthcheck`: GET /healthz.
 fn healthcheck(url: &str, timeout_ms: u64) -> anyhow::Result<()> {
     let timeout = std::time::Duration::from_millis(timeout_ms.max(1));
-    let http = pathfarm_worker::daemon::with_ca_cert(reqwest::blocking::Client::builder().timeout(timeout))?.build()?;
+    let http =
+        pathfarm_worker::daemon::with_ca_cert(reqwest::blocking::Client::builder().timeout(timeout), None)?.build()?;
     let url = format!("{}/healthz", url.trim_end_matches('/'));
     let resp = http.get(&url).send().map_err(|e| anyhow::anyhow!("{url}: {e}"))?;
     anyhow::ensure!(resp.status().is_success(), "{url}: {}", resp.status());

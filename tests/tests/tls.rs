@@ -1,7 +1,7 @@
 //! HTTPS end to end: a coordinator serving TLS with a self-signed certificate (made here with
-//! rcgen), a worker that trusts it through `PATHFARM_CA_CERT`, a job rendered through it
-//! bit-identically to a local render; plain HTTP and clients that do not trust the issuer are
-//! refused.
+//! rcgen), a worker that trusts it through `--ca-cert`, the `pathfarm` client through
+//! `PATHFARM_CA_CERT`, a job rendered through it bit-identically to a local render; plain HTTP
+//! and clients that do not trust the issuer are refused.
 
 mod support;
 
@@ -64,7 +64,8 @@ fn a_job_renders_over_https_with_a_private_ca() {
     let worker = std::process::Command::new(bin("pathfarm-worker"))
         .args(["run", "--coordinator", &url, "--threads", "1", "--name", "tls-worker", "--cache-dir"])
         .arg(dir.path().join("cache"))
-        .env("PATHFARM_CA_CERT", &cert_path)
+        .arg("--ca-cert")
+        .arg(&cert_path)
         .env("RUST_LOG", "warn")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())

@@ -43,6 +43,10 @@ pub struct RunArgs {
     /// having all of them. Lowercase letters, digits, `_` and `-`; 16 tags at most in all.
     #[arg(long, env = "PATHFARM_WORKER_TAGS", value_delimiter = ',')]
     pub tags: Vec<String>,
+    /// PEM certificate(s) to trust for an https:// coordinator besides the system's roots (a
+    /// private CA or a self-signed certificate).
+    #[arg(long, env = "PATHFARM_CA_CERT")]
+    pub ca_cert: Option<PathBuf>,
 }
 
 /// Tags every worker reports by itself: `cpu`; the widest of `avx512f` and `avx2` this CPU
@@ -88,6 +92,8 @@ pub struct DaemonConfig {
     pub lease_wait: Duration,
     /// Sent at registration (see [`worker_tags`]).
     pub tags: Vec<String>,
+    /// Extra trusted certificates (`--ca-cert`); `None`: `PATHFARM_CA_CERT` if set.
+    pub ca_cert: Option<PathBuf>,
 }
 
 impl DaemonConfig {
@@ -102,6 +108,7 @@ impl DaemonConfig {
             cache_dir: args.cache_dir.unwrap_or_else(|| std::env::temp_dir().join("pathfarm-worker-cache")),
             name: args.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
             lease_wait: Duration::from_secs(5),
+            ca_cert: args.ca_cert,
         })
     }
 }
@@ -157,10 +164,12 @@ pub struct Daemon {
 
 impl Daemon {
     pub fn new(cfg: DaemonConfig) -> anyhow::Result<Self> {
-        let http =
-            with_ca_cert(Client::builder().timeout(Duration::from_secs(120)).connect_timeout(Duration::from_secs(5)))?
-                .build()
-                .context("building the HTTP client")?;
+        let http = with_ca_cert(
+            Client::builder().timeout(Duration::from_secs(120)).connect_timeout(Duration::from_secs(5)),
+            cfg.ca_cert.as_deref(),
+        )?
+        .build()
+        .context("building the HTTP client")?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cfg.threads)
             .thread_name(|i| format!("render-{i}"))
@@ -458,11 +467,15 @@ impl Daemon {
     }
 }
 
-/// Trusts the PEM certificate(s) in `PATHFARM_CA_CERT` as well as the system's roots, for a
-/// coordinator serving HTTPS with a private CA or a self-signed certificate.
-pub fn with_ca_cert(builder: reqwest::blocking::ClientBuilder) -> anyhow::Result<reqwest::blocking::ClientBuilder> {
-    let Some(path) = std::env::var_os("PATHFARM_CA_CERT").filter(|p| !p.is_empty()) else { return Ok(builder) };
-    let path = PathBuf::from(path);
+/// Trusts the PEM certificate(s) in `ca_cert` (else in `PATHFARM_CA_CERT`, if set) as well as
+/// the system's roots, for a coordinator serving HTTPS with a private CA or a self-signed
+/// certificate.
+pub fn with_ca_cert(
+    builder: reqwest::blocking::ClientBuilder,
+    ca_cert: Option<&std::path::Path>,
+) -> anyhow::Result<reqwest::blocking::ClientBuilder> {
+    let from_env = || std::env::var_os("PATHFARM_CA_CERT").filter(|p| !p.is_empty()).map(PathBuf::from);
+    let Some(path) = ca_cert.map(PathBuf::from).or_else(from_env) else { return Ok(builder) };
     let pem = std::fs::read(&path).with_context(|| format!("PATHFARM_CA_CERT: reading {}", path.display()))?;
     let certs = reqwest::Certificate::from_pem_bundle(&pem)
         .with_context(|| format!("PATHFARM_CA_CERT: {} is not a PEM certificate", path.display()))?;

@@ -16,6 +16,9 @@ struct Cli {
     /// Client token (bearer).
     #[arg(long, env = "PATHFARM_CLIENT_TOKEN", hide_env_values = true, global = true)]
     token: Option<String>,
+    /// PEM certificate(s) to trust for an https:// server besides the system's roots.
+    #[arg(long, env = "PATHFARM_CA_CERT", global = true)]
+    ca_cert: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -59,7 +62,7 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
-    let client = Client::new(&cli.server, cli.token)?;
+    let client = Client::with_ca_cert(&cli.server, cli.token, cli.ca_cert.as_deref())?;
     let mut stdout = std::io::stdout().lock();
     match cli.command {
         Command::Submit { scene, settings, name, priority, requires, wait, out } => {
