@@ -234,7 +234,11 @@ function renderPanel(fetchDetails) {
   if ($('#job-actions').dataset.html !== acts) { $('#job-actions').innerHTML = acts; $('#job-actions').dataset.html = acts; }
   $('#job-error').hidden = !i.error;
   $('#job-error').textContent = i.error || '';
-  $('#job-settings').textContent = JSON.stringify({ scene_id: i.scene_id, priority: i.priority, ...s }, null, 2);
+  // A job waiting for workers with its required tags says so.
+  $('#job-waiting').hidden = !i.waiting;
+  $('#job-waiting').textContent = i.waiting ? `waiting: ${i.waiting}` : '';
+  const req = (i.requires || []).length ? { requires: i.requires } : {};
+  $('#job-settings').textContent = JSON.stringify({ scene_id: i.scene_id, priority: i.priority, ...req, ...s }, null, 2);
   drawTiles();
   if (fetchDetails && !panelTimer) {
     // At most ~4 detail fetches a second, whatever the event rate.
