@@ -212,21 +212,39 @@ impl Scene {
     }
 }
 
-/// A camera that frames the whole scene: perspective, 40 degrees vertical field of view, on the
-/// +Z side of the bounds' centre looking down -Z, far enough that the bounding sphere fits in
-/// both directions for the given aspect ratio (width / height). Used when the file has no camera.
+/// A camera that frames the whole scene (used when the file has none): perspective, 40 degrees
+/// vertical field of view, looking at the bounds' centre along the bounds' thinnest axis, so
+/// the view shows the scene's two widest extents (a wall is seen face on, a terrain from above);
+/// ties keep the +Z side looking down -Z. Far enough that the bounding sphere fits in both
+/// directions for the given aspect ratio (width / height).
 pub fn default_camera(scene: &Scene, aspect: f32) -> Camera {
+    default_camera_for_bounds(scene.bounds(), aspect)
+}
+
+/// [`default_camera`] for bounds (`None`: the cube [-1, 1]^3).
+pub fn default_camera_for_bounds(bounds: Option<(Vec3, Vec3)>, aspect: f32) -> Camera {
     let yfov = 40f32.to_radians();
-    let (lo, hi) = scene.bounds().unwrap_or((Vec3::splat(-1.0), Vec3::splat(1.0)));
+    let (lo, hi) = bounds.unwrap_or((Vec3::splat(-1.0), Vec3::splat(1.0)));
     let center = (lo + hi) * 0.5;
-    let radius = ((hi - lo).length() * 0.5).max(1e-3);
+    let extent = hi - lo;
+    let radius = (extent.length() * 0.5).max(1e-3);
     let aspect = if aspect.is_finite() && aspect > 0.0 { aspect } else { 1.0 };
     // The narrower of the two half-angles decides the distance.
     let half = (yfov * 0.5).min((aspect * (yfov * 0.5).tan()).atan());
     let distance = radius / half.sin();
+    // Thinnest axis, by a clear margin (1%) over Z; the camera's local +Z points back to it.
+    let thinner = |a: f32, b: f32| a < b * 0.99;
+    let (back, rotation) = if thinner(extent.x, extent.z) && extent.x <= extent.y {
+        (Vec3::X, glam::Quat::from_rotation_y(std::f32::consts::FRAC_PI_2))
+    } else if thinner(extent.y, extent.z) && thinner(extent.y, extent.x) {
+        // From above, +X to the right, -Z up the image.
+        (Vec3::Y, glam::Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2))
+    } else {
+        (Vec3::Z, glam::Quat::IDENTITY)
+    };
     Camera {
         name: "default".into(),
-        world_from_camera: Mat4::from_translation(center + Vec3::Z * distance),
+        world_from_camera: Mat4::from_rotation_translation(rotation, center + back * distance),
         projection: Projection::Perspective { yfov, aspect: Some(aspect) },
     }
 }

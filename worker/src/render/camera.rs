@@ -51,20 +51,8 @@ impl Camera {
     /// A perspective camera (40 degrees vertical) on the +Z side of `bounds`, looking down -Z,
     /// far enough that the bounding sphere fits.
     pub fn framing(bounds: Option<(Vec3, Vec3)>, width: u32, height: u32) -> Self {
-        let (lo, hi) = bounds.unwrap_or((Vec3::splat(-1.0), Vec3::splat(1.0)));
-        let center = (lo + hi) * 0.5;
-        let radius = ((hi - lo).length() * 0.5).max(1e-3);
-        let yfov = 40f32.to_radians();
         let aspect = width as f32 / height.max(1) as f32;
-        let half = if aspect < 1.0 { (yfov * 0.5).tan() * aspect } else { (yfov * 0.5).tan() };
-        let dist = radius / half.atan().sin();
-        let eye = center + Vec3::Z * dist;
-        Self::from_parts(
-            Mat4::from_translation(eye),
-            Kind::Perspective { tan_half_y: (yfov * 0.5).tan(), aspect },
-            width,
-            height,
-        )
+        Self::new(&scene::default_camera_for_bounds(bounds, aspect), width, height)
     }
 
     pub fn position(&self) -> Vec3A {
@@ -247,6 +235,28 @@ mod tests {
         assert!((s.wi + ray.d).length() < 1e-4);
         assert!((s.pdf - 9.0 / forward.dot(ray.d)).abs() < 1e-3);
         assert!(c.pdf_we(ray.d) > 0.0 && c.pdf_we(-ray.d) == 0.0);
+    }
+
+    /// A thin wall (1 x 4 x 4, thinnest along X) is framed face on from +X, a flat terrain
+    /// from above, a cube from +Z; every corner of the bounds is on screen.
+    #[test]
+    fn framing_looks_along_the_thinnest_axis() {
+        for (hi, view) in [
+            (Vec3::new(0.5, 2.0, 2.0), Vec3A::NEG_X),
+            (Vec3::new(2.0, 0.1, 2.0), Vec3A::NEG_Y),
+            (Vec3::splat(2.0), Vec3A::NEG_Z),
+        ] {
+            let c = Camera::framing(Some((-hi, hi)), 64, 64);
+            let forward = c.world_from_camera.transform_vector3a(Vec3A::NEG_Z);
+            assert!((forward - view).length() < 1e-5, "bounds {hi}: looks along {forward}");
+            for x in [-hi.x, hi.x] {
+                for y in [-hi.y, hi.y] {
+                    for z in [-hi.z, hi.z] {
+                        assert!(c.raster(Vec3A::new(x, y, z)).is_some(), "bounds {hi}: corner off screen");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
