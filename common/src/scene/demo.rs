@@ -209,6 +209,18 @@ fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: 
     b.mesh(name, &pos, &nrm, &idx, material);
 }
 
+/// The materials of Mitsuba's `cornell_box()`, added in this order: white, red, green (Lambertian
+/// reflectances) and the light (white-reflecting, radiance 18.387, 13.9873, 6.75357).
+fn mitsuba_cornell_materials(b: &mut GltfBuilder) -> [usize; 4] {
+    let white_rgb = Vec3::new(0.885_809, 0.698_859, 0.666_422);
+    [
+        b.material(lambert("white", white_rgb)),
+        b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6))),
+        b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425))),
+        b.material(emitter("light", white_rgb, Vec3::new(18.387, 13.9873, 6.753_57))),
+    ]
+}
+
 /// The Cornell box walls of Mitsuba's `cornell_box()` ([-1, 1]^3, open toward +Z, normals
 /// inward) with its light quad, and a camera at (0, 0, 3.9).
 fn cornell_walls(b: &mut GltfBuilder, white: usize, red: usize, green: usize, light: usize) {
@@ -226,11 +238,7 @@ fn cornell_walls(b: &mut GltfBuilder, white: usize, red: usize, green: usize, li
 /// Ashikhmin-Shirley short box, so the lecture's microfacet models show.
 pub fn cornell_demo_glb() -> Vec<u8> {
     let mut b = GltfBuilder::new();
-    let white = b.material(lambert("white", Vec3::new(0.885_809, 0.698_859, 0.666_422)));
-    let red = b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6)));
-    let green = b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425)));
-    let light =
-        b.material(emitter("light", Vec3::new(0.885_809, 0.698_859, 0.666_422), Vec3::new(18.387, 13.9873, 6.753_57)));
+    let [white, red, green, light] = mitsuba_cornell_materials(&mut b);
     let mut blinn = lambert("blinn-gold", Vec3::new(0.95, 0.75, 0.35));
     blinn["extras"] = json!({"pathfarm": {"model": "blinn", "exponent": 60.0}});
     let blinn = b.material(blinn);
@@ -249,12 +257,8 @@ pub fn cornell_demo_glb() -> Vec<u8> {
 /// tests' Mitsuba reference (`reference/cornell_mitsuba_box_16384spp.exr`, rendered by
 /// `scripts/make-reference.py`) shows this scene; `reference/cornell_mitsuba.glb` is this file.
 pub fn cornell_mitsuba_glb() -> Vec<u8> {
-    let white_rgb = Vec3::new(0.885_809, 0.698_859, 0.666_422);
     let mut b = GltfBuilder::new();
-    let white = b.material(lambert("white", white_rgb));
-    let red = b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6)));
-    let green = b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425)));
-    let light = b.material(emitter("light", white_rgb, Vec3::new(18.387, 13.9873, 6.753_57)));
+    let [white, red, green, light] = mitsuba_cornell_materials(&mut b);
     cornell_walls(&mut b, white, red, green, light);
     // Mitsuba `cube`s: translate . rotate(+Y, degrees) . scale, with the [-1, 1]^3 cube.
     turned_box(&mut b, "small-box", Vec3::new(0.335, -0.7, 0.38), Vec3::splat(0.6), (-17f32).to_radians(), white);
@@ -410,12 +414,8 @@ pub const GLTF_MIRROR_BASE: Vec3 = Vec3::new(0.9, 0.85, 0.8);
 /// one ceiling light of radiance (18.387, 13.9873, 6.75357)). From the camera the mirror shows
 /// the lower back wall.
 pub fn gltf_mirror_glb() -> Vec<u8> {
-    let white_rgb = Vec3::new(0.885_809, 0.698_859, 0.666_422);
     let mut b = GltfBuilder::new();
-    let white = b.material(lambert("white", white_rgb));
-    let red = b.material(lambert("red", Vec3::new(0.570_068, 0.043_013_5, 0.044_370_6)));
-    let green = b.material(lambert("green", Vec3::new(0.105_421, 0.377_98, 0.076_425)));
-    let light = b.material(emitter("light", white_rgb, Vec3::new(18.387, 13.9873, 6.753_57)));
+    let [white, red, green, light] = mitsuba_cornell_materials(&mut b);
     let c = GLTF_MIRROR_BASE;
     let mirror = b.material(json!({"name": "gltf-mirror",
         "pbrMetallicRoughness": {"baseColorFactor": [c.x, c.y, c.z, 1.0], "metallicFactor": 1.0, "roughnessFactor": 0.0}}));
