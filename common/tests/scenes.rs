@@ -770,3 +770,23 @@ fn textures_of_one_image_share_texels_within_the_memory_budget() {
     assert!(matches!(e, SceneError::LimitExceeded { limit: "max_texture_bytes", .. }), "{e:?}");
     assert!(e.to_string().contains("image memory"), "{e}");
 }
+
+/// COLOR_0 is read as linear RGBA: float VEC3 (alpha 1) here, interpolable per vertex.
+#[test]
+fn vertex_colors_are_read() {
+    let mut b = demo::GltfBuilder::new();
+    let m = b.material(demo::lambert("white", Vec3::ONE));
+    let p = [Vec3::ZERO, Vec3::X, Vec3::Y];
+    let node = b.mesh("tri", &p, &[Vec3::Z; 3], &[0, 1, 2], m);
+    b.vertex_colors(node, &[Vec3::X, Vec3::Y, Vec3::Z]);
+    let s = load_scene_from_slice(&b.to_glb(), "c.glb", None, &LoadOptions::default()).expect("loads");
+    let colors = s.meshes[0].colors.as_ref().expect("COLOR_0 read");
+    assert_eq!(
+        colors,
+        &vec![
+            glam::Vec4::new(1.0, 0.0, 0.0, 1.0),
+            glam::Vec4::new(0.0, 1.0, 0.0, 1.0),
+            glam::Vec4::new(0.0, 0.0, 1.0, 1.0)
+        ]
+    );
+}

@@ -224,3 +224,23 @@ fn cornell_box_matches_mitsuba_reference() {
     }
     eprintln!("worst block: {worst:.2} sigma");
 }
+
+/// Vertex colours multiply the base colour: a white quad whose vertices are all (1, 0.5, 0.25)
+/// has that albedo in the albedo layer (camera framing the quad, 8 x 8 x 4 spp).
+#[test]
+fn vertex_colors_multiply_the_base_color() {
+    use glam::Vec3;
+    let mut b = pathfarm_common::scene::demo::GltfBuilder::new();
+    let white = b.material(pathfarm_common::scene::demo::lambert("white", Vec3::splat(0.8)));
+    let p = [Vec3::new(-1., -1., 0.), Vec3::new(1., -1., 0.), Vec3::new(1., 1., 0.), Vec3::new(-1., 1., 0.)];
+    let node = b.mesh("quad", &p, &[Vec3::Z; 4], &[0, 1, 2, 0, 2, 3], white);
+    b.vertex_colors(node, &[Vec3::new(1.0, 0.5, 0.25); 4]);
+    b.camera(Vec3::new(0.0, 0.0, 2.0), Vec3::ZERO, Vec3::Y, 0.5, 1.0);
+    let scene = glb_scene(&b.to_glb());
+    let img = render(&scene, &settings(8, 4, path(2, 3), 1));
+    let a = img.albedo[4 * 8 + 4];
+    let want = [0.8, 0.4, 0.2];
+    for c in 0..3 {
+        assert!((a[c] - want[c]).abs() < 1e-4, "albedo {a:?}, expected {want:?}");
+    }
+}

@@ -75,6 +75,15 @@ impl GltfBuilder {
         self.nodes.len() - 1
     }
 
+    /// Gives the mesh of `node` (as returned by [`GltfBuilder::mesh`]) linear RGB vertex colours
+    /// (COLOR_0, one per position).
+    pub fn vertex_colors(&mut self, node: usize, colors: &[Vec3]) {
+        let acc = self.push_vec3(colors, false);
+        if let Some(mesh) = self.nodes.get(node).and_then(|n| n["mesh"].as_u64()) {
+            self.meshes[mesh as usize]["primitives"][0]["attributes"]["COLOR_0"] = json!(acc);
+        }
+    }
+
     /// Adds a perspective camera at `eye` looking at `target` (vertical field of view in radians).
     pub fn camera(&mut self, eye: Vec3, target: Vec3, up: Vec3, yfov: f32, aspect: f32) {
         self.cameras.push(json!({"type": "perspective", "perspective": {

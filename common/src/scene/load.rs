@@ -977,6 +977,35 @@ impl Loader<'_> {
         Ok(Some(e.values))
     }
 
+    /// COLOR_0 as linear RGBA (VEC3 or VEC4; float or normalized unsigned integers).
+    fn vertex_colors(
+        &self,
+        prim: &json::mesh::Primitive,
+        n: usize,
+        element: &str,
+    ) -> Result<Option<Vec<Vec4>>, SceneError> {
+        let Some(acc) = prim.attributes.get(&Checked::Valid(json::mesh::Semantic::Colors(0))) else { return Ok(None) };
+        let e = self.read_accessor(acc.value(), false).map_err(|m| self.invalid(element, m))?;
+        if !(e.comps == 3 || e.comps == 4) {
+            return Err(self.invalid(element, format!("accessor {}: COLOR_0 must be VEC3 or VEC4", acc.value())));
+        }
+        if e.values.len() != n * e.comps {
+            return Err(self.invalid(
+                element,
+                format!(
+                    "accessor {}: COLOR_0 has {} elements, POSITION has {n}",
+                    acc.value(),
+                    e.values.len() / e.comps
+                ),
+            ));
+        }
+        if !e.values.iter().all(|v| v.is_finite()) {
+            return Err(self.invalid(element, format!("accessor {}: COLOR_0 has non-finite values", acc.value())));
+        }
+        let alpha = |c: &[f32]| c.get(3).copied().unwrap_or(1.0);
+        Ok(Some(e.values.chunks_exact(e.comps).map(|c| Vec4::new(c[0], c[1], c[2], alpha(c))).collect()))
+    }
+
     fn primitive(
         &mut self,
         mi: usize,
@@ -1007,6 +1036,7 @@ impl Loader<'_> {
         let tangents = self.attribute(prim, Semantic::Tangents, 4, Some(n), &element)?;
         let uv0 = self.attribute(prim, Semantic::TexCoords(0), 2, Some(n), &element)?;
         let uv1 = self.attribute(prim, Semantic::TexCoords(1), 2, Some(n), &element)?;
+        let colors = self.vertex_colors(prim, n, &element)?;
         let indices: Vec<u32> = match prim.indices {
             Some(a) => {
                 let e = self.read_accessor(a.value(), true).map_err(|m| self.invalid(&element, m))?;
@@ -1105,7 +1135,7 @@ impl Loader<'_> {
             }
         }
         let name = format!("{element} ({node})");
-        self.scene.meshes.push(Mesh { name, positions, normals, tangents, uv0, uv1, indices: tris, material });
+        self.scene.meshes.push(Mesh { name, positions, normals, tangents, uv0, uv1, colors, indices: tris, material });
         Ok(())
     }
 }

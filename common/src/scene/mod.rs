@@ -47,6 +47,8 @@ pub struct Mesh {
     /// TEXCOORD_0 and TEXCOORD_1 when present.
     pub uv0: Option<Vec<Vec2>>,
     pub uv1: Option<Vec<Vec2>>,
+    /// COLOR_0 (linear RGBA; RGB files get alpha 1): multiplies the base colour.
+    pub colors: Option<Vec<Vec4>>,
     /// Triangles as vertex indices (non-indexed primitives get 0, 1, 2, ...).
     pub indices: Vec<[u32; 3]>,
     /// Index into `Scene::materials` (a default material is appended when a primitive has none).

@@ -34,7 +34,8 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
     let tex = |r: &Option<pathfarm_common::scene::TextureRef>| {
         r.as_ref().map_or(glam::Vec4::ONE, |r| sample_texture(&scene.textures, r, &si.uv))
     };
-    let base = Vec3A::from((m.base_color * tex(&m.base_color_texture)).xyz());
+    // glTF: COLOR_0 multiplies the base colour factor and texture.
+    let base = Vec3A::from((m.base_color * tex(&m.base_color_texture) * si.color).xyz());
     let front = si.ng.dot(wo) > 0.0;
     let transmission = m.transmission * tex(&m.transmission_texture).x;
     let is_glass = matches!(m.model, MaterialModel::Gltf) && transmission > 0.0 && u_lobe < transmission;

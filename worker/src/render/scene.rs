@@ -22,6 +22,8 @@ pub struct SurfaceInteraction {
     /// Interpolated shading normal (`ng` when the mesh has none), not flipped.
     pub ns: Vec3A,
     pub uv: [Vec2; 2],
+    /// Interpolated vertex colour (COLOR_0), white when the mesh has none.
+    pub color: glam::Vec4,
     /// Interpolated tangent (xyz) and handedness (w), when the mesh has tangents.
     pub tangent: Option<Vec4>,
     pub prim: u32,
@@ -171,6 +173,11 @@ impl RenderScene {
             ng,
             ns,
             uv: [interp_uv(&mesh.uv0), interp_uv(&mesh.uv1)],
+            color: mesh
+                .colors
+                .as_ref()
+                .and_then(|c| Some(*c.get(idx[0])? * b0 + *c.get(idx[1])? * b1 + *c.get(idx[2])? * b2))
+                .unwrap_or(glam::Vec4::ONE),
             tangent,
             prim: hit.prim,
             material: mesh.material as u32,
