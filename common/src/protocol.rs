@@ -108,6 +108,81 @@ pub fn validate_tags(tags: &[String], what: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// A job state a webhook may be sent for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum NotifyEvent {
+    /// The first unit was leased.
+    Started,
+    Completed,
+    Failed,
+    Cancelled,
+}
+
+impl NotifyEvent {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Started => "started",
+            Self::Completed => "completed",
+            Self::Failed => "failed",
+            Self::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// Longest webhook URL accepted.
+pub const MAX_NOTIFY_URL_LEN: usize = 2048;
+
+/// A job's webhook: the coordinator POSTs to `url` when the job reaches one of `events`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Notify {
+    /// An `http://` or `https://` URL of at most 2048 characters.
+    #[schema(max_length = 2048)]
+    pub url: String,
+    /// A non-empty subset of `started`, `completed`, `failed`, `cancelled`.
+    #[schema(min_items = 1, max_items = 4)]
+    pub events: Vec<NotifyEvent>,
+}
+
+impl Notify {
+    /// Parses and checks the `notify` field of a job body.
+    pub fn from_json(v: serde_json::Value) -> Result<Self, String> {
+        let n: Notify = serde_json::from_value(v).map_err(|e| format!("notify: {e}"))?;
+        n.validate()?;
+        Ok(n)
+    }
+
+    /// The URL is http or https with a host and at most [`MAX_NOTIFY_URL_LEN`] characters;
+    /// the events are a non-empty set.
+    pub fn validate(&self) -> Result<(), String> {
+        let len = self.url.chars().count();
+        if len > MAX_NOTIFY_URL_LEN {
+            return Err(format!("notify.url is {len} characters long; the limit is {MAX_NOTIFY_URL_LEN}"));
+        }
+        let rest = self.url.strip_prefix("http://").or_else(|| self.url.strip_prefix("https://"));
+        let host = rest.map(|r| r.split(['/', '?', '#']).next().unwrap_or_default());
+        let bad_char = self.url.chars().any(|c| c.is_whitespace() || c.is_control());
+        if host.is_none_or(|h| h.is_empty() || h.starts_with(':')) || bad_char {
+            let shown: String = self.url.chars().take(80).collect();
+            return Err(format!("notify.url {shown:?} is not an http:// or https:// URL with a host"));
+        }
+        if self.events.is_empty() {
+            return Err("notify.events is empty: give some of started, completed, failed, cancelled".into());
+        }
+        for (i, e) in self.events.iter().enumerate() {
+            if self.events[..i].contains(e) {
+                return Err(format!("notify.events: {:?} is given twice", e.as_str()));
+            }
+        }
+        Ok(())
+    }
+
+    pub fn wants(&self, event: NotifyEvent) -> bool {
+        self.events.contains(&event)
+    }
+}
+
 /// `POST /jobs` body: the job's own fields plus every field of [`RenderSettings`] at the top
 /// level, e.g. `{"scene_id": "...", "name": "cornell", "priority": 0, "width": 256, ...}`.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -117,6 +192,9 @@ pub struct JobRequest {
     pub priority: i32,
     /// Tags a worker must have (every one) to be leased this job's units.
     pub requires: Vec<String>,
+    /// Webhook to call when the job reaches some states.
+    #[serde(default)]
+    pub notify: Option<Notify>,
     pub settings: RenderSettings,
 }
 
@@ -132,6 +210,9 @@ impl JobRequest {
             o.insert("priority".into(), self.priority.into());
             if !self.requires.is_empty() {
                 o.insert("requires".into(), self.requires.clone().into());
+            }
+            if let Some(n) = &self.notify {
+                o.insert("notify".into(), serde_json::to_value(n).unwrap_or_default());
             }
         }
         v
@@ -175,8 +256,12 @@ impl JobRequest {
             Some(_) => return Err("requires must be an array of strings".into()),
         };
         validate_tags(&requires, "requires")?;
+        let notify = match o.remove("notify") {
+            None | Some(serde_json::Value::Null) => None,
+            Some(n) => Some(Notify::from_json(n)?),
+        };
         let settings: RenderSettings = serde_json::from_value(v).map_err(|e| e.to_string())?;
-        Ok(Self { scene_id, name, priority, requires, settings })
+        Ok(Self { scene_id, name, priority, requires, notify, settings })
     }
 }
 
@@ -609,6 +694,7 @@ mod tests {
             name: Some("n".into()),
             priority: 3,
             requires: vec!["highmem".into(), "gpu_2".into()],
+            notify: Some(Notify { url: "https://example.com/hook".into(), events: vec![NotifyEvent::Completed] }),
             settings: RenderSettings::new(16, 8, 4),
         };
         let back = JobRequest::from_json(req.to_json()).expect("roundtrip");
@@ -619,6 +705,36 @@ mod tests {
         assert!(e.contains("wdth"), "{e}");
         let e = JobRequest::from_json(serde_json::json!({"width": 4})).expect_err("no scene");
         assert!(e.contains("scene_id"), "{e}");
+    }
+
+    #[test]
+    fn notify_is_validated() {
+        let job = |notify: serde_json::Value| {
+            JobRequest::from_json(
+                serde_json::json!({"scene_id": "x", "width": 4, "height": 4, "spp": 1, "notify": notify}),
+            )
+        };
+        let ok = job(serde_json::json!({"url": "http://127.0.0.1:9/h?x=1", "events": ["completed", "started"]}))
+            .expect("valid notify");
+        assert_eq!(ok.notify.map(|n| n.events), Some(vec![NotifyEvent::Completed, NotifyEvent::Started]));
+        for (bad, want) in [
+            (serde_json::json!({"url": "ftp://h/x", "events": ["completed"]}), "not an http:// or https:// URL"),
+            (serde_json::json!({"url": "https://", "events": ["completed"]}), "not an http:// or https:// URL"),
+            (serde_json::json!({"url": "http://a b/", "events": ["completed"]}), "not an http:// or https:// URL"),
+            (
+                serde_json::json!({"url": format!("https://h/{}", "x".repeat(2100)), "events": ["failed"]}),
+                "limit is 2048",
+            ),
+            (serde_json::json!({"url": "https://h/", "events": ["exploded"]}), "unknown variant `exploded`"),
+            (serde_json::json!({"url": "https://h/", "events": []}), "notify.events is empty"),
+            (serde_json::json!({"url": "https://h/", "events": ["failed", "failed"]}), "given twice"),
+            (serde_json::json!({"url": "https://h/"}), "missing field `events`"),
+            (serde_json::json!({"url": "https://h/", "events": ["failed"], "secret": 1}), "unknown field `secret`"),
+            (serde_json::json!("https://h/"), "notify"),
+        ] {
+            let e = job(bad.clone()).expect_err("invalid notify");
+            assert!(e.contains(want), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -111,6 +111,7 @@ fn main() {
                 name: None,
                 priority: 0,
                 requires: Vec::new(),
+                notify: None,
                 settings: settings.clone(),
             };
             let id = client.submit(&job).unwrap();

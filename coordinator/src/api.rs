@@ -349,12 +349,19 @@ async fn delete_scene(State(state): State<Arc<AppState>>, Path(id): Path<String>
     summary = "Submit a job",
     request_body = crate::openapi::JobRequestBody,
     security(("client_token" = [])),
-    responses((status = 201, description = "Queued", body = JobCreated), (status = 400, description = "Not JSON", body = ErrorBody), (status = 422, description = "Invalid settings or unknown scene", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 201, description = "Queued", body = JobCreated), (status = 400, description = "Not JSON", body = ErrorBody), (status = 422, description = "Invalid settings, `notify` or unknown scene", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResult<(StatusCode, Json<JobCreated>)> {
     let value: serde_json::Value = serde_json::from_slice(&body)
         .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, "bad_json", format!("job body is not JSON: {e}")))?;
     let req = JobRequest::from_json(value).map_err(|e| ApiError::unprocessable("invalid_job", e))?;
+    if req.notify.is_some() && state.config.webhooks.secret.is_none() {
+        return Err(ApiError::unprocessable(
+            "invalid_job",
+            "notify needs a coordinator started with --webhook-secret (PATHFARM_WEBHOOK_SECRET) to sign the \
+             notifications; this one has none",
+        ));
+    }
     let meta = state.scenes.meta(&req.scene_id).ok_or_else(|| {
         ApiError::unprocessable("unknown_scene", format!("scene_id {:?} has not been uploaded", req.scene_id))
     })?;
@@ -375,7 +382,9 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
                 format!("scene_id {:?} has been deleted", req.scene_id),
             ));
         }
-        farm.submit_requiring(req.scene_id, req.name, req.priority, req.settings, req.requires, now_ms())?
+        let id = farm.submit_requiring(req.scene_id, req.name, req.priority, req.settings, req.requires, now_ms())?;
+        farm.set_notify(id, req.notify)?;
+        id
     };
     tracing::info!(job = id, "job submitted");
     if let Err(e) = state.persist_job(id) {

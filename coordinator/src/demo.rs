@@ -55,6 +55,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         name: Some("cornell demo".into()),
         priority: 0,
         requires: Vec::new(),
+        notify: None,
         settings,
     };
     let id = client.submit(&job)?;

@@ -16,7 +16,8 @@
 use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{Limits, Plan, RenderSettings, UnitKey};
 use pathfarm_common::protocol::{
-    JobId, JobInfo, JobState, LeaseGrant, LeaseId, UnitResultFrame, WorkerId, WorkerInfo, WorkerState,
+    JobId, JobInfo, JobState, LeaseGrant, LeaseId, Notify, NotifyEvent, UnitResultFrame, WorkerId, WorkerInfo,
+    WorkerState,
 };
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -134,6 +135,10 @@ pub struct Job {
     pub settings: RenderSettings,
     /// Tags a worker must have (all of them) to be leased this job's units.
     pub requires: Vec<String>,
+    /// Webhook called when the job reaches some states.
+    pub notify: Option<Notify>,
+    /// The `started` event was queued (once per job and coordinator run).
+    started_notified: bool,
     /// Set while units are pending that no live worker may take (its tags lack some of
     /// `requires`): the reason, shown in the job's info and logged once.
     unservable: Option<String>,
@@ -316,6 +321,8 @@ impl Job {
             plan,
             settings,
             requires: Vec::new(),
+            notify: None,
+            started_notified: false,
             unservable: None,
             state: JobState::Queued,
             passes_done: 0,
@@ -356,6 +363,7 @@ impl Job {
             priority: self.priority,
             settings: self.settings.clone(),
             requires: self.requires.clone(),
+            notify: self.notify.clone(),
             state: self.state,
             created_ms: self.created_ms,
             finished_ms: self.finished_ms,
@@ -374,6 +382,7 @@ pub struct JobRecord {
     pub priority: i32,
     pub settings: RenderSettings,
     pub requires: Vec<String>,
+    pub notify: Option<Notify>,
     pub state: JobState,
     pub created_ms: u64,
     pub finished_ms: Option<u64>,
@@ -444,6 +453,9 @@ pub struct Farm {
     last_expire_ms: Option<u64>,
     /// After a stall, nothing is expired, marked offline or pruned before this time.
     grace_until_ms: u64,
+    /// Webhook events of jobs that asked for them, oldest first; the server drains them
+    /// (`take_notifications`).
+    notifications: Vec<(JobId, NotifyEvent)>,
 }
 
 impl Farm {
@@ -462,6 +474,7 @@ impl Farm {
             next_job: 1,
             next_worker: (epoch << 32) + 1,
             next_lease: (epoch << 40) + 1,
+            notifications: Vec::new(),
             counters: Counters::default(),
             last_expire_ms: None,
             grace_until_ms: 0,
@@ -475,6 +488,8 @@ impl Farm {
         job.finished_ms = rec.finished_ms;
         job.error = rec.error;
         job.requires = rec.requires;
+        job.notify = rec.notify;
+        job.started_notified = rec.state != JobState::Queued;
         job.run_ms_before = rec.run_ms;
         if let Some(cp) = cp {
             if cp.job_id != rec.id
@@ -629,6 +644,35 @@ impl Farm {
             job.error = error;
             job.output_dirty = true;
             job.waiting.clear();
+            let event = match state {
+                JobState::Completed => Some(NotifyEvent::Completed),
+                JobState::Failed => Some(NotifyEvent::Failed),
+                JobState::Cancelled => Some(NotifyEvent::Cancelled),
+                _ => None,
+            };
+            if let Some(event) = event
+                && job.notify.as_ref().is_some_and(|n| n.wants(event))
+            {
+                self.notifications.push((id, event));
+            }
+        }
+    }
+
+    /// Sets the webhook of a job (right after submitting it).
+    pub fn set_notify(&mut self, id: JobId, notify: Option<Notify>) -> Result<(), FarmError> {
+        self.job_mut(id)?.notify = notify;
+        Ok(())
+    }
+
+    /// The webhook events queued since the last call, oldest first.
+    pub fn take_notifications(&mut self) -> Vec<(JobId, NotifyEvent)> {
+        std::mem::take(&mut self.notifications)
+    }
+
+    /// Appends a line to a job's log (no-op for a job that is gone).
+    pub fn log_job(&mut self, id: JobId, line: String) {
+        if let Some(job) = self.jobs.get_mut(&id) {
+            job.log(line);
         }
     }
 
@@ -893,6 +937,12 @@ impl Farm {
         if job.state == JobState::Queued {
             job.state = JobState::Running;
             job.started_ms = Some(now_ms);
+        }
+        if !job.started_notified {
+            job.started_notified = true;
+            if job.notify.as_ref().is_some_and(|n| n.wants(NotifyEvent::Started)) {
+                self.notifications.push((job_id, NotifyEvent::Started));
+            }
         }
         let key = job.unit_key(unit);
         let grant = LeaseGrant {
@@ -1161,6 +1211,32 @@ mod tests {
         }
         assert_eq!(farm.job(id).expect("job").state, JobState::Completed);
         farm.job(id).expect("job").film.clone()
+    }
+
+    /// Webhook events are queued once, only for the events a job asked for, in order.
+    #[test]
+    fn notifications_are_queued_for_the_events_asked_for() {
+        let mut farm = Farm::new(FarmConfig::default());
+        let hooked = farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let url = "https://example.com/h".to_string();
+        let events = vec![NotifyEvent::Started, NotifyEvent::Completed, NotifyEvent::Cancelled];
+        farm.set_notify(hooked, Some(Notify { url, events })).expect("notify");
+        let quiet = farm.submit("x".into(), None, 0, settings(), 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        let first = farm.lease(w, 0).expect("lease").expect("work");
+        assert_eq!(first.job_id, hooked);
+        farm.lease(w, 0).expect("lease").expect("work");
+        assert_eq!(farm.take_notifications(), vec![(hooked, NotifyEvent::Started)]);
+        assert!(farm.take_notifications().is_empty(), "drained");
+        farm.pause(hooked, 1).expect("pause");
+        farm.resume(hooked, 2).expect("resume");
+        while farm.lease(w, 3).expect("lease").is_some() {}
+        farm.cancel(quiet, 4).expect("cancel");
+        farm.cancel(hooked, 4).expect("cancel");
+        // Started is not sent again after a resume; the job without notify sends nothing.
+        assert_eq!(farm.take_notifications(), vec![(hooked, NotifyEvent::Cancelled)]);
+        farm.log_job(hooked, "notified cancelled: 200".into());
+        assert_eq!(farm.job(hooked).expect("job").log.last().map(String::as_str), Some("notified cancelled: 200"));
     }
 
     #[test]

@@ -12,3 +12,4 @@ pub mod local;
 pub mod openapi;
 pub mod server;
 pub mod store;
+pub mod webhook;

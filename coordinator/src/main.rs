@@ -135,6 +135,14 @@ struct ServeArgs {
     /// Registrations one address may make at once before the per-minute rate applies.
     #[arg(long, default_value_t = 60)]
     register_burst: u32,
+    /// Key of the HMAC-SHA256 signature (`X-Pathfarm-Signature: sha256=<hex>`) of job webhooks
+    /// (`notify` in a job's body); without it such jobs are refused.
+    #[arg(long, env = "PATHFARM_WEBHOOK_SECRET", hide_env_values = true)]
+    webhook_secret: Option<String>,
+    /// Wait before the first retry of a failed webhook, doubled after each further failure (5
+    /// attempts in all, 5 s each at most).
+    #[arg(long, default_value_t = 1_000)]
+    webhook_retry_ms: u64,
     /// Open connections at most (lowered to fit the open-file limit). Beyond it, the quietest
     /// connection that is not handling a request is closed to make room.
     #[arg(long, default_value_t = 4096)]
@@ -194,6 +202,11 @@ fn main() -> anyhow::Result<()> {
         );
     }
     cfg.metrics_token = a.metrics_token.clone();
+    if a.webhook_secret.as_deref().is_some_and(|t| t.trim().is_empty()) {
+        anyhow::bail!("--webhook-secret / PATHFARM_WEBHOOK_SECRET is empty: give a secret or unset it");
+    }
+    cfg.webhooks.secret = a.webhook_secret.clone();
+    cfg.webhooks.retry_base = std::time::Duration::from_millis(a.webhook_retry_ms);
     cfg.auth = auth(&a)?;
     let worker_token = cfg.auth.worker.clone();
     let rt = tokio::runtime::Runtime::new()?;

@@ -12,8 +12,8 @@ use pathfarm_common::job::{
     IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings, SamplerKind, TileRect, UnitKey,
 };
 use pathfarm_common::protocol::{
-    ErrorBody, ErrorDetail, JobCreated, JobInfo, JobState, LeaseGrant, RegisterRequest, Registered, ReleaseRequest,
-    ResultAccepted, SceneCreated, WorkerInfo, WorkerState,
+    ErrorBody, ErrorDetail, JobCreated, JobInfo, JobState, LeaseGrant, Notify, NotifyEvent, RegisterRequest,
+    Registered, ReleaseRequest, ResultAccepted, SceneCreated, WorkerInfo, WorkerState,
 };
 use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
@@ -39,6 +39,13 @@ pub struct JobRequestBody {
     #[serde(default)]
     #[schema(max_items = 16)]
     pub requires: Vec<String>,
+    /// Webhook: when the job reaches one of `events` the coordinator POSTs `{"event", "job":
+    /// <JobInfo>, "sent_ms"}` to `url` with `X-Pathfarm-Event` and `X-Pathfarm-Signature:
+    /// sha256=<hex HMAC-SHA256 of the body keyed by --webhook-secret>` (5 s per attempt, 5
+    /// attempts with exponential backoff; outcomes in the job's log). Refused (422) when the
+    /// coordinator has no `--webhook-secret`.
+    #[serde(default)]
+    pub notify: Option<pathfarm_common::protocol::Notify>,
     // The RenderSettings fields, spelled out: a flattened struct that refuses unknown fields
     // becomes an `allOf` that no object can satisfy.
     #[schema(minimum = 1)]
@@ -215,7 +222,7 @@ impl utoipa::Modify for SecuritySchemes {
         ErrorBody, ErrorDetail, SceneCreated, JobState, JobCreated, JobInfo, WorkerState, WorkerInfo,
         RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings,
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
-        JobRequestBody, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
+        JobRequestBody, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
     )),
     modifiers(&SecuritySchemes),
     tags(

@@ -64,6 +64,8 @@ pub struct ServerConfig {
     /// Scenes that no job references and that were stored (or uploaded again) longer ago than
     /// this many milliseconds are removed by the maintenance loop; `None`: never.
     pub scene_gc_after_ms: Option<u64>,
+    /// Job webhooks: the signing secret, retries, timeouts.
+    pub webhooks: crate::webhook::WebhookConfig,
 }
 
 /// Default of `--scene-gc-after-ms`: a week.
@@ -89,6 +91,7 @@ impl ServerConfig {
             register_per_minute: 60,
             register_burst: 60,
             scene_gc_after_ms: Some(SCENE_GC_AFTER_MS),
+            webhooks: crate::webhook::WebhookConfig::default(),
         }
     }
 }
@@ -410,6 +413,8 @@ pub struct AppState {
     pub scene_decodes: tokio::sync::Semaphore,
     /// Worker registrations per client address.
     pub register_limiter: RateLimiter,
+    /// Webhook deliveries waiting to be sent.
+    pub webhooks: crate::webhook::Queue,
 }
 
 impl AppState {
@@ -454,6 +459,7 @@ impl AppState {
             started: Instant::now(),
             scene_decodes: tokio::sync::Semaphore::new(config.max_scene_decodes.max(1)),
             register_limiter: RateLimiter::new(config.register_per_minute, config.register_burst),
+            webhooks: crate::webhook::Queue::new(config.webhooks.queue),
             config,
         })
     }
@@ -593,7 +599,8 @@ pub fn write_outputs(dir: &Path, layers: &ImageLayers) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Expires leases every `expiry_tick_ms` (a quarter second), prunes workers, and wakes lease waiters when units came back.
+/// Expires leases every `expiry_tick_ms` (a quarter second), prunes workers, wakes lease waiters
+/// when units came back, collects old scenes and queues the jobs' webhook events.
 async fn maintenance_loop(state: Arc<AppState>) {
     let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
     loop {
@@ -616,6 +623,7 @@ async fn maintenance_loop(state: Arc<AppState>) {
         if let Some(after) = state.config.scene_gc_after_ms {
             collect_scenes(&state, now_ms().saturating_sub(after));
         }
+        crate::webhook::enqueue_pending(&state);
     }
 }
 
@@ -753,6 +761,7 @@ impl Server {
         tokio::spawn(maintenance_loop(state.clone()));
         tokio::spawn(output_loop(state.clone()));
         tokio::spawn(checkpoint_loop(state.clone()));
+        tokio::spawn(crate::webhook::run(state.clone()));
         let tls = match &config.tls {
             Some((cert, key)) => Some(crate::conn::tls_acceptor(cert, key)?),
             None => None,

@@ -10,7 +10,7 @@ use crate::farm::{Checkpoint, JobRecord};
 use anyhow::{Context, bail};
 use pathfarm_common::film::{Film, SplatBuffer, ch, write_atomic};
 use pathfarm_common::job::RenderSettings;
-use pathfarm_common::protocol::{JobId, JobState, bytes_to_fixed, push_section, read_section};
+use pathfarm_common::protocol::{JobId, JobState, Notify, bytes_to_fixed, push_section, read_section};
 use rusqlite::{Connection, OptionalExtension, params};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -58,7 +58,8 @@ impl Store {
                  finished_ms INTEGER,
                  error TEXT,
                  run_ms INTEGER NOT NULL DEFAULT 0,
-                 requires TEXT NOT NULL DEFAULT '[]'
+                 requires TEXT NOT NULL DEFAULT '[]',
+                 notify TEXT
              );
              CREATE TABLE IF NOT EXISTS workers (
                  id INTEGER PRIMARY KEY,
@@ -70,6 +71,10 @@ impl Store {
         // Databases of versions before worker tags lack `requires`.
         if conn.prepare("SELECT requires FROM jobs LIMIT 0").is_err() {
             conn.execute_batch("ALTER TABLE jobs ADD COLUMN requires TEXT NOT NULL DEFAULT '[]'")?;
+        }
+        // ... and those before webhooks lack `notify` (JSON of the job's `notify`, or NULL).
+        if conn.prepare("SELECT notify FROM jobs LIMIT 0").is_err() {
+            conn.execute_batch("ALTER TABLE jobs ADD COLUMN notify TEXT")?;
         }
         let jobs_dir = data_dir.join("jobs");
         std::fs::create_dir_all(&jobs_dir)?;
@@ -90,8 +95,8 @@ impl Store {
 
     pub fn put_job(&self, r: &JobRecord) -> anyhow::Result<()> {
         self.conn.execute(
-            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)
+            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires, notify)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)
              ON CONFLICT(id) DO UPDATE SET name = ?2, priority = ?4, state = ?6, finished_ms = ?8, error = ?9, run_ms = ?10",
             params![
                 r.id as i64,
@@ -105,6 +110,7 @@ impl Store {
                 r.error,
                 r.run_ms as i64,
                 serde_json::to_string(&r.requires)?,
+                r.notify.as_ref().map(serde_json::to_string).transpose()?,
             ],
         )?;
         Ok(())
@@ -137,7 +143,7 @@ impl Store {
 
     pub fn jobs(&self) -> anyhow::Result<Vec<JobRecord>> {
         let mut stmt = self.conn.prepare(
-            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires FROM jobs ORDER BY id",
+            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires, notify FROM jobs ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
             Ok((
@@ -152,28 +158,33 @@ impl Store {
                 r.get::<_, Option<String>>(8)?,
                 r.get::<_, i64>(9)?,
                 r.get::<_, String>(10)?,
+                r.get::<_, Option<String>>(11)?,
             ))
         })?;
         let mut out = Vec::new();
         for (i, row) in rows.enumerate() {
             // One damaged row (a state this version does not know, settings that do not parse,
             // a column of the wrong type) must not stop the coordinator: skip it, loudly.
-            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms, requires) = match row
-            {
-                Ok(r) => r,
-                Err(e) => {
-                    tracing::warn!(row = i, "skipping an unreadable job row in the database: {e}");
-                    continue;
-                }
-            };
+            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms, requires, notify) =
+                match row {
+                    Ok(r) => r,
+                    Err(e) => {
+                        tracing::warn!(row = i, "skipping an unreadable job row in the database: {e}");
+                        continue;
+                    }
+                };
             let parsed = serde_json::from_str::<RenderSettings>(&settings)
                 .map_err(|e| anyhow::anyhow!("settings do not parse: {e}"))
                 .and_then(|settings| {
                     let requires = serde_json::from_str::<Vec<String>>(&requires)
                         .map_err(|e| anyhow::anyhow!("requires does not parse: {e}"))?;
-                    Ok((settings, state_from_str(&state)?, requires))
+                    let notify = notify
+                        .map(|n| serde_json::from_str::<Notify>(&n))
+                        .transpose()
+                        .map_err(|e| anyhow::anyhow!("notify does not parse: {e}"))?;
+                    Ok((settings, state_from_str(&state)?, requires, notify))
                 });
-            let (settings, state, requires) = match parsed {
+            let (settings, state, requires, notify) = match parsed {
                 Ok(p) => p,
                 Err(e) => {
                     tracing::warn!(job = id, "skipping job {id} from the database: {e:#}");
@@ -187,6 +198,7 @@ impl Store {
                 priority,
                 settings,
                 requires,
+                notify,
                 state,
                 created_ms: created as u64,
                 finished_ms: finished.map(|v| v as u64),
@@ -317,6 +329,7 @@ pub fn read_checkpoint(path: &Path) -> Option<Checkpoint> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use pathfarm_common::protocol::NotifyEvent;
 
     #[test]
     fn checkpoint_roundtrip_and_corruption() {
@@ -347,6 +360,10 @@ mod tests {
             priority: 2,
             settings: RenderSettings::new(8, 8, 4),
             requires: vec!["highmem".into()],
+            notify: Some(Notify {
+                url: "https://example.com/hook?job=3".into(),
+                events: vec![NotifyEvent::Completed, NotifyEvent::Failed],
+            }),
             state: JobState::Running,
             created_ms: 10,
             finished_ms: None,
@@ -368,6 +385,28 @@ mod tests {
         assert_eq!(jobs[0].state, JobState::Paused);
         assert_eq!(jobs[0].settings, rec.settings);
         assert_eq!(jobs[0].requires, rec.requires);
+        assert_eq!(jobs[0].notify, rec.notify);
+    }
+
+    #[test]
+    fn databases_without_notify_are_migrated() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        {
+            let conn = Connection::open(dir.path().join("pathfarm.db")).expect("db");
+            conn.execute_batch(
+                "CREATE TABLE jobs (id INTEGER PRIMARY KEY, name TEXT NOT NULL, scene_id TEXT NOT NULL,
+                     priority INTEGER NOT NULL, settings TEXT NOT NULL, state TEXT NOT NULL,
+                     created_ms INTEGER NOT NULL, finished_ms INTEGER, error TEXT,
+                     run_ms INTEGER NOT NULL DEFAULT 0, requires TEXT NOT NULL DEFAULT '[]');
+                 INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms)
+                     VALUES (1, 'old', 's', 0, '{\"width\":8,\"height\":8,\"spp\":4}', 'queued', 0);",
+            )
+            .expect("old schema");
+        }
+        let store = Store::open(dir.path()).expect("open");
+        let jobs = store.jobs().expect("jobs");
+        assert_eq!(jobs.len(), 1);
+        assert_eq!(jobs[0].notify, None);
     }
 
     #[test]
@@ -381,6 +420,7 @@ mod tests {
             priority: 0,
             settings: RenderSettings::new(8, 8, 4),
             requires: vec!["highmem".into()],
+            notify: None,
             state: JobState::Queued,
             created_ms: 10,
             finished_ms: None,

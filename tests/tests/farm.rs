@@ -32,6 +32,7 @@ fn submit(client: &Client, scene: &[u8], s: &RenderSettings, priority: i32, name
         name: Some(name.into()),
         priority,
         requires: Vec::new(),
+        notify: None,
         settings: s.clone(),
     };
     client.submit(&req).expect("submit")
@@ -101,6 +102,7 @@ fn a_job_requiring_a_tag_is_rendered_only_by_workers_having_it() {
         name: Some("highmem".into()),
         priority: 0,
         requires: vec!["highmem".into()],
+        notify: None,
         settings: s.clone(),
     };
     let id = client.submit(&req).expect("submit");

@@ -37,6 +37,7 @@ fn a_job_survives_repeated_coordinator_kills() {
             name: Some("crash".into()),
             priority: 0,
             requires: Vec::new(),
+            notify: None,
             settings: s.clone(),
         })
         .expect("submit");
@@ -97,6 +98,7 @@ fn deleted_jobs_stay_deleted_and_their_ids_are_not_reused() {
         name: Some(name.into()),
         priority: 0,
         requires: Vec::new(),
+        notify: None,
         settings: RenderSettings::new(512, 512, 16),
     };
     let keep = client.submit(&request("kept")).expect("submit");

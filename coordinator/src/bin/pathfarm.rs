@@ -71,8 +71,14 @@ fn main() -> anyhow::Result<()> {
             for w in &created.warnings {
                 eprintln!("scene warning: {w}");
             }
-            let job =
-                JobRequest { scene_id: created.scene_id, name, priority, requires, settings: settings.to_settings() };
+            let job = JobRequest {
+                scene_id: created.scene_id,
+                name,
+                priority,
+                requires,
+                notify: None,
+                settings: settings.to_settings(),
+            };
             let id = client.submit(&job)?;
             writeln!(stdout, "{id}")?;
             if wait {
