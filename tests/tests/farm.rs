@@ -138,9 +138,10 @@ fn a_worker_killed_mid_unit_loses_nothing() {
     let coord = start_coordinator(&dir.path().join("data"), &["--lease-timeout-ms", "1500", "--heartbeat-ms", "300"]);
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_demo_glb();
-    // Big units (one 64x64 tile, 16 spp per pass) so the kill lands inside a render.
-    let mut s = settings(128, 64, 48, 64);
-    s.passes = PassSchedule::Fixed { spp: 16 };
+    // Big units (one 64x64 tile, 160 spp per pass: about a second on one thread) so the kill
+    // lands inside a render (16-spp units took ~65 ms and a busy machine let one finish first).
+    let mut s = settings(128, 64, 480, 64);
+    s.passes = PassSchedule::Fixed { spp: 160 };
     let id = submit(&client, &scene, &s, 0, "kill");
     let mut victim = start_worker(&coord.url, "victim", &dir.path().join("c1"), &[]);
     // Wait until the victim holds a lease, then SIGKILL it in the middle of rendering.
@@ -149,7 +150,6 @@ fn a_worker_killed_mid_unit_loses_nothing() {
             reqwest::blocking::get(format!("{}{API}/workers", coord.url)).ok()?.json().ok()?;
         ws.iter().any(|w| w.name == "victim" && w.current.is_some()).then_some(())
     });
-    std::thread::sleep(Duration::from_millis(100));
     victim.kill();
     let _survivor = start_worker(&coord.url, "survivor", &dir.path().join("c2"), &[]);
     let info = wait_done(&client, id, Duration::from_secs(180));
