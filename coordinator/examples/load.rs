@@ -105,14 +105,18 @@ fn section(w: u32, h: u32, noise: bool) -> Vec<u8> {
     let mut raw = Vec::with_capacity(n * 16);
     let mut x: u64 = 0x9E37_79B9_7F4A_7C15 ^ u64::from(w * 131 + h);
     for i in 0..n {
-        let v: i128 = if noise {
+        let v: i128 = if i % ch::COUNT == ch::WEIGHT {
+            // Exactly one sample per pixel (the job's passes are 1 spp; the coordinator checks
+            // weights against the pass), so the image resolves to finite values either way.
+            1 << 32
+        } else if i % ch::COUNT == ch::HITS {
+            // Every sample hit something: at most the weight.
+            if noise { 1 << 32 } else { 0 }
+        } else if noise {
             x ^= x << 13;
             x ^= x >> 7;
             x ^= x << 17;
             ((x >> 40) & 0xFF_FFFF) as i128
-        } else if i % ch::COUNT == ch::WEIGHT {
-            // One sample's weight, so the image resolves to finite values either way.
-            1 << 32
         } else {
             0
         };
@@ -292,6 +296,8 @@ async fn run(a: Args) -> anyhow::Result<()> {
             .arg("--listen")
             .arg("127.0.0.1:0")
             .arg("--no-auth")
+            // Every simulated worker registers from 127.0.0.1: no per-address rate limit.
+            .args(["--register-per-minute", "0"])
             .arg("--data-dir")
             .arg(dir.path())
             .arg("--lease-timeout-ms")
