@@ -9,29 +9,37 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 use support::*;
 
+/// `pathfarm-coordinator --listen 127.0.0.1:0 --data-dir DATA EXTRA...` with no token in the
+/// environment (so it generates or reads its own).
+fn coordinator(data: &std::path::Path, extra: &[&std::ffi::OsStr]) -> Command {
+    let mut cmd = Command::new(bin("pathfarm-coordinator"));
+    cmd.args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(data)
+        .args(extra)
+        .env_remove("PATHFARM_CLIENT_TOKEN")
+        .env_remove("PATHFARM_WORKER_TOKEN")
+        .stdout(Stdio::null());
+    cmd
+}
+
+fn wait_listening(data: &std::path::Path) -> String {
+    wait_for("the coordinator to listen", Duration::from_secs(30), || {
+        std::fs::read_to_string(data.join("coordinator.addr")).ok().filter(|a| !a.is_empty())
+    })
+}
+
 #[test]
 fn generated_tokens_are_not_logged() {
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("data");
     let log_path = dir.path().join("coordinator.log");
     let log = std::fs::File::create(&log_path).expect("log");
-    let child = Command::new(bin("pathfarm-coordinator"))
-        .args(["--listen", "127.0.0.1:0", "--data-dir"])
-        .arg(&data)
-        .env_remove("PATHFARM_CLIENT_TOKEN")
-        .env_remove("PATHFARM_WORKER_TOKEN")
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(log)
-        .spawn()
-        .expect("spawn");
+    let child = coordinator(&data, &[]).env("RUST_LOG", "info").stderr(log).spawn().expect("spawn");
     let _coordinator = Proc { child };
     let tokens: serde_json::Value = wait_for("tokens.json", Duration::from_secs(30), || {
         serde_json::from_slice(&std::fs::read(data.join("tokens.json")).ok()?).ok()
     });
-    wait_for("the coordinator to listen", Duration::from_secs(30), || {
-        std::fs::read_to_string(data.join("coordinator.addr")).ok().filter(|a| !a.is_empty())
-    });
+    wait_listening(&data);
     let mode = std::fs::metadata(data.join("tokens.json")).expect("meta").permissions().mode() & 0o777;
     assert_eq!(mode, 0o600, "tokens.json must be private");
     let log = std::fs::read_to_string(&log_path).expect("read log");
@@ -52,23 +60,15 @@ fn token_files_and_the_healthcheck_subcommand() {
     let (client_file, worker_file) = (dir.path().join("client"), dir.path().join("worker"));
     std::fs::write(&client_file, "client-secret-from-a-file-0123456789\n").expect("write");
     std::fs::write(&worker_file, "worker-secret-from-a-file-0123456789\n").expect("write");
-    let child = Command::new(bin("pathfarm-coordinator"))
-        .args(["--listen", "127.0.0.1:0", "--data-dir"])
-        .arg(&data)
-        .arg("--client-token-file")
-        .arg(&client_file)
-        .arg("--worker-token-file")
-        .arg(&worker_file)
-        .env_remove("PATHFARM_CLIENT_TOKEN")
-        .env_remove("PATHFARM_WORKER_TOKEN")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("spawn");
+    let files = [
+        "--client-token-file".as_ref(),
+        client_file.as_os_str(),
+        "--worker-token-file".as_ref(),
+        worker_file.as_os_str(),
+    ];
+    let child = coordinator(&data, &files).stderr(Stdio::null()).spawn().expect("spawn");
     let _coordinator = Proc { child };
-    let addr = wait_for("the coordinator to listen", Duration::from_secs(30), || {
-        std::fs::read_to_string(data.join("coordinator.addr")).ok().filter(|a| !a.is_empty())
-    });
+    let addr = wait_listening(&data);
     let url = format!("http://{addr}");
     let healthcheck = |url: &str| {
         let mut cmd = Command::new(bin("pathfarm-coordinator"));
@@ -85,17 +85,7 @@ fn token_files_and_the_healthcheck_subcommand() {
     assert!(!healthcheck(&format!("http://{closed}")).success(), "the healthcheck passed with no coordinator");
     // An empty token file is refused at start-up.
     std::fs::write(&client_file, "\n").expect("write");
-    let out = Command::new(bin("pathfarm-coordinator"))
-        .args(["--listen", "127.0.0.1:0", "--data-dir"])
-        .arg(dir.path().join("data2"))
-        .arg("--client-token-file")
-        .arg(&client_file)
-        .arg("--worker-token-file")
-        .arg(&worker_file)
-        .env_remove("PATHFARM_CLIENT_TOKEN")
-        .env_remove("PATHFARM_WORKER_TOKEN")
-        .output()
-        .expect("run");
+    let out = coordinator(&dir.path().join("data2"), &files).output().expect("run");
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("is empty"), "{}", String::from_utf8_lossy(&out.stderr));
 }
