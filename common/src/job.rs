@@ -161,7 +161,28 @@ pub struct RenderSettings {
     pub tile_size: u32,
     #[serde(default)]
     pub passes: PassSchedule,
+    /// Animation frame to render: the scene is posed at time `frame / fps` seconds (the
+    /// convention of Blender's glTF exporter). A still scene looks the same at every frame.
+    #[serde(default)]
+    pub frame: i32,
+    /// Frames per second: converts frame numbers to animation time.
+    #[serde(default = "default_fps")]
+    pub fps: f32,
+    /// Motion blur: the shutter stays open this fraction of a frame from the frame's time
+    /// (0 = off, 1 = the whole frame). Each camera sample gets its own time in the interval.
+    #[serde(default)]
+    pub shutter: f32,
+    /// Names of the glTF animations that play; `None` = all of them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub animations: Option<Vec<String>>,
 }
+
+fn default_fps() -> f32 {
+    24.0
+}
+
+/// Largest accepted |frame| number.
+pub const MAX_FRAME: i32 = 10_000_000;
 
 /// Errors in settings, each naming the offending field.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -230,6 +251,10 @@ impl RenderSettings {
             sampler: SamplerKind::default(),
             tile_size: default_tile_size(),
             passes: PassSchedule::default(),
+            frame: 0,
+            fps: default_fps(),
+            shutter: 0.0,
+            animations: None,
         }
     }
 
@@ -256,6 +281,31 @@ impl RenderSettings {
                 at_least("passes.max", max.into(), first.into())?;
             }
             PassSchedule::Fixed { spp } => at_least("passes.spp", spp.into(), 1)?,
+        }
+        if self.frame.unsigned_abs() > MAX_FRAME.unsigned_abs() {
+            return Err(SettingsError::Invalid(format!(
+                "frame must be between -{MAX_FRAME} and {MAX_FRAME}, got {}",
+                self.frame
+            )));
+        }
+        if !(self.fps.is_finite() && self.fps > 0.0 && self.fps <= 10_000.0) {
+            return Err(SettingsError::Invalid(format!("fps must be a number in (0, 10000], got {}", self.fps)));
+        }
+        if !(self.shutter.is_finite() && (0.0..=1.0).contains(&self.shutter)) {
+            return Err(SettingsError::Invalid(format!(
+                "shutter must be a fraction of a frame in [0, 1], got {}",
+                self.shutter
+            )));
+        }
+        if let Some(names) = &self.animations {
+            at_most("animations (count)", names.len() as u64, 1024)?;
+            if let Some(n) = names.iter().find(|n| n.len() > 256) {
+                return Err(SettingsError::Invalid(format!(
+                    "animation name {:?}... is {} bytes long; the limit is 256",
+                    n.chars().take(32).collect::<String>(),
+                    n.len()
+                )));
+            }
         }
         // Counted, not built: 8192^2 in 8-px tiles with 1-spp passes of 2^20 spp would be 10^12.
         at_most("units (tiles x passes)", self.tile_count().saturating_mul(self.pass_count()), limits.max_units)?;
@@ -296,6 +346,16 @@ impl RenderSettings {
             }
         }
         Ok(())
+    }
+
+    /// Animation time of the frame's shutter opening, in seconds.
+    pub fn frame_time(&self) -> f32 {
+        self.frame as f32 / self.fps
+    }
+
+    /// Animation time of the shutter's closing, in seconds (= [`Self::frame_time`] without blur).
+    pub fn shutter_close_time(&self) -> f32 {
+        (self.frame as f32 + self.shutter) / self.fps
     }
 
     /// The work-unit plan of these settings.

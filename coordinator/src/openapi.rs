@@ -66,6 +66,17 @@ pub struct JobRequestBody {
     pub tile_size: Option<u32>,
     #[serde(default)]
     pub passes: Option<pathfarm_common::job::PassSchedule>,
+    /// Animation frame: the scene is posed at `frame / fps` seconds.
+    #[serde(default)]
+    pub frame: i32,
+    /// Frames per second (default 24).
+    #[schema(exclusive_minimum = 0.0, maximum = 10000.0)]
+    pub fps: Option<f32>,
+    /// Motion blur: shutter open for this fraction of a frame (default 0 = off).
+    #[schema(minimum = 0.0, maximum = 1.0)]
+    pub shutter: Option<f32>,
+    /// glTF animations that play (by name); absent = all.
+    pub animations: Option<Vec<String>>,
 }
 
 /// `PUT /jobs/{id}/priority` body.
