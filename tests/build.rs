@@ -2,12 +2,14 @@
 //! (`$PATHFARM_CHROMIUM` or /usr/bin/chromium), `node` on PATH and playwright-core in
 //! tests/browser/node_modules (`npm ci` there). Without them the test is `#[ignore]`d with that
 //! reason instead of passing without running; `scripts/test` installs them first.
+//! Likewise `cfg(slurm_tools)` when munge and Slurm's daemons and `sbatch` are installed.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn main() {
     println!("cargo:rustc-check-cfg=cfg(browser_tools)");
+    println!("cargo:rustc-check-cfg=cfg(slurm_tools)");
     println!("cargo:rerun-if-env-changed=PATHFARM_CHROMIUM");
     println!("cargo:rerun-if-env-changed=PATH");
     let chromium =
@@ -20,5 +22,13 @@ fn main() {
     let node = Command::new("node").arg("--version").output().is_ok_and(|o| o.status.success());
     if chromium.exists() && playwright.exists() && node {
         println!("cargo:rustc-cfg=browser_tools");
+    }
+    // The Slurm test (tests/tests/slurm.rs): a single-node cluster from Debian's packages.
+    let slurm = ["/usr/sbin/munged", "/usr/sbin/slurmctld", "/usr/sbin/slurmd", "/usr/bin/sbatch"];
+    for p in slurm {
+        println!("cargo:rerun-if-changed={p}");
+    }
+    if slurm.iter().all(|p| Path::new(p).exists()) {
+        println!("cargo:rustc-cfg=slurm_tools");
     }
 }

@@ -329,6 +329,9 @@ impl Daemon {
         };
         let body = frame.encode();
         tracing::debug!(lease, ms = t0.elapsed().as_millis() as u64, bytes = body.len(), "unit rendered");
+        if shutdown.load(Ordering::Relaxed) {
+            tracing::info!(lease, "stop requested: delivering the unit in progress before exiting");
+        }
         self.upload(lease, body, shutdown);
     }
 
