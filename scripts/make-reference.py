@@ -16,15 +16,158 @@ the mean of each channel.
         --threads 2 --out /tmp/cb.exr      # timing for the renderer benchmark (RESULT {json} line)
 
 On a 2-core machine the 16,384-spp render takes about 8 minutes.
+
+With `--glb FILE` the scene is one our exporter wrote (reference/cornell_spheres.glb: the box's
+walls with a mirror and a glass sphere), converted here to Mitsuba: every triangle mesh becomes a
+PLY file (written next to the output in a `<out>.ply/` folder, removed afterwards unless
+`--keep-ply`), glTF materials map to Mitsuba BSDFs (Lambertian with KHR_materials_specular 0 ->
+`diffuse`; metallic 1, roughness 0, base colour 1 -> `conductor` with `material: none`, a perfect
+mirror; transmission 1, roughness 0 -> `dielectric` with the glTF ior), emissive materials get an
+`area` emitter of radiance emissiveFactor x emissiveStrength, and the first camera becomes a
+perspective sensor. Anything else is refused rather than approximated.
+
+    python3 scripts/make-reference.py --glb reference/cornell_spheres.glb --max-depth 16 \
+        --spp 8192 --spp-per-pass 512 --out reference/cornell_spheres_8192spp.exr
 """
 import argparse
 import json
+import math
 import os
+import shutil
+import struct
 import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "..", "reference", "cornell_mitsuba_box_16384spp.exr")
+
+
+def read_glb(path):
+    """The JSON document and binary chunk of a .glb file."""
+    with open(path, "rb") as f:
+        data = f.read()
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    if magic != b"glTF" or version != 2:
+        sys.exit(f"{path}: not a glTF 2.0 binary")
+    offset, doc, binary = 12, None, b""
+    while offset < length:
+        chunk_len, chunk_type = struct.unpack_from("<II", data, offset)
+        chunk = data[offset + 8: offset + 8 + chunk_len]
+        if chunk_type == 0x4E4F534A:
+            doc = json.loads(chunk)
+        elif chunk_type == 0x004E4942:
+            binary = chunk
+        offset += 8 + chunk_len
+    return doc, binary
+
+
+def accessor(doc, binary, index, np):
+    """An accessor as a numpy array (float32 VEC3 or uint32/uint16 SCALAR, as our exporter writes)."""
+    acc = doc["accessors"][index]
+    view = doc["bufferViews"][acc["bufferView"]]
+    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}[acc["componentType"]]
+    width = {"SCALAR": 1, "VEC3": 3}[acc["type"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    a = np.frombuffer(binary, dtype=dtype, count=acc["count"] * width, offset=start)
+    return a.reshape(-1, width) if width > 1 else a
+
+
+def write_ply(path, positions, normals, faces):
+    """A binary little-endian PLY with per-vertex normals."""
+    import numpy as np
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(positions)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property float nx\nproperty float ny\nproperty float nz\n"
+        f"element face {len(faces)}\nproperty list uchar uint vertex_indices\nend_header\n"
+    )
+    verts = np.hstack([positions, normals]).astype("<f4")
+    face_rec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<u4", (3,))])
+    face_rec["n"] = 3
+    face_rec["i"] = faces
+    with open(path, "wb") as f:
+        f.write(header.encode())
+        f.write(verts.tobytes())
+        f.write(face_rec.tobytes())
+
+
+def quat_rotate(q, v):
+    x, y, z, w = q
+    u = (x, y, z)
+    def cross(a, b):
+        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    t = tuple(2 * c for c in cross(u, v))
+    c2 = cross(u, t)
+    return tuple(v[i] + w * t[i] + c2[i] for i in range(3))
+
+
+def glb_scene_dict(path, ply_dir, res, max_depth):
+    """Mitsuba scene dictionary of one of our exported .glb scenes (see the module doc)."""
+    import numpy as np
+    doc, binary = read_glb(path)
+    os.makedirs(ply_dir, exist_ok=True)
+
+    def bsdf_of(mat):
+        pbr = mat.get("pbrMetallicRoughness", {})
+        ext = mat.get("extensions", {})
+        base = pbr.get("baseColorFactor", [1, 1, 1, 1])[:3]
+        metallic = pbr.get("metallicFactor", 1.0)
+        rough = pbr.get("roughnessFactor", 1.0)
+        transmission = ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0)
+        name = mat.get("name", "?")
+        if transmission > 0:
+            if transmission != 1 or rough != 0 or metallic != 0:
+                sys.exit(f"material {name}: only smooth, fully transmissive glass is converted")
+            ior = ext.get("KHR_materials_ior", {}).get("ior", 1.5)
+            return {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
+        if metallic == 1 and rough == 0:
+            if base != [1, 1, 1]:
+                sys.exit(f"material {name}: a mirror must have base colour 1 (Schlick = 1 at every angle)")
+            return {"type": "conductor", "material": "none"}
+        if ext.get("KHR_materials_specular", {}).get("specularFactor", 1.0) == 0 and metallic == 0:
+            return {"type": "diffuse", "reflectance": {"type": "rgb", "value": base}}
+        sys.exit(f"material {name}: no exact Mitsuba equivalent")
+
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": max_depth}}
+    for n, node in enumerate(doc["nodes"]):
+        if "mesh" in node:
+            if any(k in node for k in ("translation", "rotation", "scale", "matrix")):
+                sys.exit(f"node {n}: transformed meshes are not converted (our exporter writes world space)")
+            for p, prim in enumerate(doc["meshes"][node["mesh"]]["primitives"]):
+                pos = accessor(doc, binary, prim["attributes"]["POSITION"], np)
+                nrm = accessor(doc, binary, prim["attributes"]["NORMAL"], np)
+                faces = accessor(doc, binary, prim["indices"], np).reshape(-1, 3)
+                ply = os.path.join(ply_dir, f"node{n}_{p}.ply")
+                write_ply(ply, pos, nrm, faces)
+                mat = doc["materials"][prim["material"]]
+                shape = {"type": "ply", "filename": ply, "bsdf": bsdf_of(mat)}
+                emissive = mat.get("emissiveFactor", [0, 0, 0])
+                strength = mat.get("extensions", {}).get("KHR_materials_emissive_strength", {}).get(
+                    "emissiveStrength", 1.0)
+                if max(emissive) > 0:
+                    shape["emitter"] = {"type": "area",
+                                        "radiance": {"type": "rgb", "value": [c * strength for c in emissive]}}
+                scene[f"shape_{n}_{p}"] = shape
+        if "camera" in node and "sensor" not in scene:
+            cam = doc["cameras"][node["camera"]]["perspective"]
+            eye = node.get("translation", [0, 0, 0])
+            q = node.get("rotation", [0, 0, 0, 1])
+            fwd = quat_rotate(q, (0.0, 0.0, -1.0))
+            up = quat_rotate(q, (0.0, 1.0, 0.0))
+            import mitsuba as mi
+            scene["sensor"] = {
+                "type": "perspective",
+                "fov": math.degrees(cam["yfov"]),
+                "fov_axis": "y",
+                "to_world": mi.ScalarTransform4f().look_at(
+                    origin=eye, target=[eye[i] + fwd[i] for i in range(3)], up=up),
+                "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"},
+                         "pixel_format": "rgb"},
+            }
+    if "sensor" not in scene:
+        sys.exit(f"{path}: no camera")
+    return scene
 
 
 def main():
@@ -37,6 +180,8 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=0, help="0 = all cores")
     ap.add_argument("--out", default=DEFAULT_OUT)
+    ap.add_argument("--glb", help="render this .glb written by our exporter instead of mitsuba.cornell_box()")
+    ap.add_argument("--keep-ply", action="store_true", help="keep the converted PLY meshes")
     ap.add_argument("--repeats", type=int, default=1,
                     help="render this many times (timing; the image is the first); the LLVM variant "
                          "compiles its kernels in the first repeat")
@@ -58,12 +203,19 @@ def main():
     if args.threads > 0:
         dr.set_thread_count(args.threads)
 
-    scene_dict = mi.cornell_box()
-    scene_dict["sensor"]["film"]["width"] = args.res
-    scene_dict["sensor"]["film"]["height"] = args.res
-    scene_dict["sensor"]["film"]["rfilter"] = {"type": "box"}
-    scene_dict["integrator"] = {"type": "path", "max_depth": args.max_depth}
+    ply_dir = None
+    if args.glb:
+        ply_dir = os.path.splitext(os.path.abspath(args.out))[0] + ".ply"
+        scene_dict = glb_scene_dict(args.glb, ply_dir, args.res, args.max_depth)
+    else:
+        scene_dict = mi.cornell_box()
+        scene_dict["sensor"]["film"]["width"] = args.res
+        scene_dict["sensor"]["film"]["height"] = args.res
+        scene_dict["sensor"]["film"]["rfilter"] = {"type": "box"}
+        scene_dict["integrator"] = {"type": "path", "max_depth": args.max_depth}
     scene = mi.load_dict(scene_dict)
+    if ply_dir and not args.keep_ply:
+        shutil.rmtree(ply_dir, ignore_errors=True)
 
     passes = args.spp // args.spp_per_pass
     times = []
@@ -88,6 +240,7 @@ def main():
     bitmap.write(args.out)
     meta = {
         "renderer": "mitsuba",
+        "scene": os.path.basename(args.glb) if args.glb else "mitsuba.cornell_box()",
         "mitsuba_version": mi.__version__,
         "variant": args.variant,
         "threads": dr.thread_count(),

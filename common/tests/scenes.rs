@@ -277,15 +277,19 @@ fn cornell_mitsuba_reference() {
     check_cornell_mitsuba(&built.expect("cornell_mitsuba_glb loads"));
 }
 
-/// The committed `reference/cornell_mitsuba.glb` is what our exporter writes today (regenerate
-/// with `cargo run -p pathfarm-common --example make_reference_scene`).
+/// The committed `reference/*.glb` files are what our exporter writes today (regenerate with
+/// `cargo run -p pathfarm-common --example make_reference_scene`).
 #[test]
-fn committed_cornell_mitsuba_is_current() {
-    let committed = std::fs::read(repo().join("reference/cornell_mitsuba.glb")).expect("reference/cornell_mitsuba.glb");
-    assert!(
-        committed == demo::cornell_mitsuba_glb(),
-        "reference/cornell_mitsuba.glb differs from demo::cornell_mitsuba_glb(): run `cargo run -p pathfarm-common --example make_reference_scene`"
-    );
+fn committed_reference_scenes_are_current() {
+    for (name, built) in
+        [("cornell_mitsuba.glb", demo::cornell_mitsuba_glb()), ("cornell_spheres.glb", demo::cornell_spheres_glb())]
+    {
+        let committed = std::fs::read(repo().join("reference").join(name)).expect("committed reference scene");
+        assert!(
+            committed == built,
+            "reference/{name} differs from what demo.rs writes: run `cargo run -p pathfarm-common --example make_reference_scene`"
+        );
+    }
 }
 
 #[test]

@@ -276,6 +276,46 @@ pub fn cornell_mitsuba_glb() -> Vec<u8> {
     b.to_glb()
 }
 
+/// Centre and radius of the mirror and glass spheres of [`cornell_spheres_glb`].
+pub const CORNELL_MIRROR_SPHERE: (Vec3, f32) = (Vec3::new(-0.45, -0.6, -0.3), 0.4);
+pub const CORNELL_GLASS_SPHERE: (Vec3, f32) = (Vec3::new(0.42, -0.62, 0.32), 0.38);
+
+/// Mitsuba's Cornell box walls and light with a perfect mirror sphere (glTF metal, base colour 1,
+/// roughness 0: reflectance 1 at every angle) and a solid glass sphere (transmission 1, ior 1.5,
+/// `KHR_materials_volume` with the sphere's diameter as thickness, no absorption). Both spheres are
+/// faceted (one normal per triangle, level-3 icospheres) so that no shading-normal convention
+/// differs between renderers. `reference/cornell_spheres.glb` is this file and
+/// `scripts/make-reference.py --glb` renders it with Mitsuba 3 for the tests.
+pub fn cornell_spheres_glb() -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let [white, red, green, light] = mitsuba_cornell_materials(&mut b);
+    let mirror = b.material(json!({"name": "mirror",
+        "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 1.0, "roughnessFactor": 0.0}}));
+    let (_, r) = CORNELL_GLASS_SPHERE;
+    let glass = b.material(json!({"name": "glass",
+        "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.0},
+        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5},
+            "KHR_materials_volume": {"thicknessFactor": 2.0 * r}}}));
+    cornell_walls(&mut b, white, red, green, light);
+    for (name, (c, r), m) in
+        [("mirror-sphere", CORNELL_MIRROR_SPHERE, mirror), ("glass-sphere", CORNELL_GLASS_SPHERE, glass)]
+    {
+        let (p, _, i) = inward_sphere(1.0, 3);
+        // Outward and faceted: every triangle gets its own three vertices and its face normal.
+        let (mut pos, mut nrm, mut idx) = (Vec::new(), Vec::new(), Vec::new());
+        for t in i.chunks(3) {
+            let v = [p[t[0] as usize], p[t[2] as usize], p[t[1] as usize]].map(|x| c + x * r);
+            let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize();
+            let base = pos.len() as u32;
+            pos.extend_from_slice(&v);
+            nrm.extend_from_slice(&[n; 3]);
+            idx.extend_from_slice(&[base, base + 1, base + 2]);
+        }
+        b.mesh(name, &pos, &nrm, &idx, m);
+    }
+    b.to_glb()
+}
+
 /// An icosphere of radius `r` subdivided `level` times; normals point inward (toward the centre)
 /// and triangles wind counter-clockwise seen from inside.
 pub fn inward_sphere(r: f32, level: u32) -> (Vec<Vec3>, Vec<Vec3>, Vec<u32>) {
