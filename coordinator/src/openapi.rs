@@ -189,6 +189,59 @@ impl utoipa::Modify for SecuritySchemes {
     }
 }
 
+/// Binary bodies (scene bundles, result frames, EXR and PNG images) as OpenAPI types them:
+/// `{"type": "string", "format": "binary", "contentMediaType": ...}`. utoipa writes `Vec<u8>` as an
+/// array of integers, which generated clients then try to send and parse as JSON.
+struct BinaryBodies;
+
+fn is_binary_media_type(media_type: &str) -> bool {
+    media_type == "application/octet-stream" || media_type.starts_with("image/")
+}
+
+fn binary_schema(media_type: &str) -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
+    ObjectBuilder::new()
+        .schema_type(Type::String)
+        .format(Some(SchemaFormat::KnownFormat(KnownFormat::Binary)))
+        .content_media_type(media_type)
+        .into()
+}
+
+fn type_binary_content<'a>(content: impl IntoIterator<Item = (&'a String, &'a mut utoipa::openapi::content::Content)>) {
+    for (media_type, c) in content {
+        if is_binary_media_type(media_type) {
+            c.schema = Some(binary_schema(media_type));
+        }
+    }
+}
+
+impl utoipa::Modify for BinaryBodies {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        for item in openapi.paths.paths.values_mut() {
+            let operations = [
+                &mut item.get,
+                &mut item.put,
+                &mut item.post,
+                &mut item.delete,
+                &mut item.options,
+                &mut item.head,
+                &mut item.patch,
+                &mut item.trace,
+            ];
+            for op in operations.into_iter().flatten() {
+                if let Some(body) = &mut op.request_body {
+                    type_binary_content(body.content.iter_mut());
+                }
+                for response in op.responses.responses.values_mut() {
+                    if let utoipa::openapi::RefOr::T(r) = response {
+                        type_binary_content(r.content.iter_mut());
+                    }
+                }
+            }
+        }
+    }
+}
+
 #[derive(OpenApi)]
 #[openapi(
     info(
@@ -235,7 +288,7 @@ impl utoipa::Modify for SecuritySchemes {
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
         JobRequestBody, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
     )),
-    modifiers(&SecuritySchemes),
+    modifiers(&SecuritySchemes, &BinaryBodies),
     tags(
         (name = "scenes", description = "Scene bundles, content-addressed"),
         (name = "jobs", description = "Render jobs and their progress"),
