@@ -183,9 +183,11 @@ fn binary_bodies_are_typed_binary() {
     };
     let upload = &doc["paths"]["/api/v1/scenes"]["post"]["requestBody"]["content"]["application/octet-stream"];
     expect_binary(&upload["schema"], "application/octet-stream", "POST /scenes body");
-    let result = &doc["paths"]["/api/v1/leases/{id}/result"]["put"]["requestBody"]["content"]["application/octet-stream"];
+    let result =
+        &doc["paths"]["/api/v1/leases/{id}/result"]["put"]["requestBody"]["content"]["application/octet-stream"];
     expect_binary(&result["schema"], "application/octet-stream", "PUT /leases/{id}/result body");
-    let download = &doc["paths"]["/api/v1/scenes/{id}"]["get"]["responses"]["200"]["content"]["application/octet-stream"];
+    let download =
+        &doc["paths"]["/api/v1/scenes/{id}"]["get"]["responses"]["200"]["content"]["application/octet-stream"];
     expect_binary(&download["schema"], "application/octet-stream", "GET /scenes/{id}");
     let exr = &doc["paths"]["/api/v1/jobs/{id}/image.exr"]["get"]["responses"]["200"]["content"]["image/x-exr"];
     expect_binary(&exr["schema"], "image/x-exr", "GET image.exr");

@@ -192,7 +192,7 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), String> {
 }
 
 /// Why a URI may not be read, or the relative path it names.
-fn check_uri(uri: &str) -> Result<PathBuf, String> {
+pub(crate) fn check_uri(uri: &str) -> Result<PathBuf, String> {
     if uri.contains(':') {
         return Err("only data: URIs and relative paths are allowed".into());
     }
