@@ -242,6 +242,27 @@ impl utoipa::Modify for BinaryBodies {
     }
 }
 
+/// Tuples (`(JobId, UnitKey)`, `[u32; 2]`) as generators read them: utoipa writes
+/// `"prefixItems": [...], "items": false`, and `"items": false` is refused by generators such as
+/// openapi-python-client. Here `items` becomes `{}` with `minItems` = `maxItems` = the tuple's
+/// length; `prefixItems` still types each position.
+fn open_tuples(v: &mut serde_json::Value) {
+    match v {
+        serde_json::Value::Object(map) => {
+            if map.get("items") == Some(&serde_json::Value::Bool(false))
+                && let Some(n) = map.get("prefixItems").and_then(|p| p.as_array()).map(Vec::len)
+            {
+                map.insert("items".into(), serde_json::json!({}));
+                map.insert("minItems".into(), n.into());
+                map.insert("maxItems".into(), n.into());
+            }
+            map.values_mut().for_each(open_tuples);
+        }
+        serde_json::Value::Array(items) => items.iter_mut().for_each(open_tuples),
+        _ => {}
+    }
+}
+
 #[derive(OpenApi)]
 #[openapi(
     info(
@@ -309,9 +330,18 @@ pub fn document() -> utoipa::openapi::OpenApi {
     doc
 }
 
+/// The document as served: [`document`] with tuples opened (see `open_tuples`).
+pub fn document_json() -> serde_json::Value {
+    let mut value = serde_json::to_value(document()).unwrap_or_else(|e| serde_json::json!({"error": e.to_string()}));
+    open_tuples(&mut value);
+    value
+}
+
 /// `GET /api/v1/openapi.json`.
 pub async fn openapi_json() -> impl IntoResponse {
     static JSON: OnceLock<String> = OnceLock::new();
-    let body = JSON.get_or_init(|| document().to_pretty_json().unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}")));
+    let body = JSON.get_or_init(|| {
+        serde_json::to_string_pretty(&document_json()).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    });
     ([(header::CONTENT_TYPE, "application/json")], body.as_str())
 }

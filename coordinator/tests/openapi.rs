@@ -213,3 +213,15 @@ fn binary_bodies_are_typed_binary() {
     }
     assert!(checked >= 5, "only {checked} binary bodies found");
 }
+
+/// No `"items": false` (utoipa's tuples) anywhere in the served document: generators refuse it. Tuples keep their
+/// length and per-position types.
+#[test]
+fn tuples_are_arrays_of_fixed_length() {
+    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document_json()).expect("serialize");
+    let text = doc.to_string();
+    assert!(!text.contains(r#""items":false"#), "a tuple is left with items: false");
+    let current = &doc["components"]["schemas"]["WorkerInfo"]["properties"]["current"];
+    assert_eq!(current["prefixItems"].as_array().map(Vec::len), Some(2), "{current}");
+    assert_eq!((current["minItems"].as_u64(), current["maxItems"].as_u64()), (Some(2), Some(2)), "{current}");
+}
