@@ -89,9 +89,11 @@ def sphere(name, center, radius, mat):
     return ob
 
 
-def cornell(lights=LIGHTS, panel_strength=8.0, size=(48, 48)):
+def cornell(lights=LIGHTS, panel_strength=8.0, size=(48, 48), default_walls=False):
     """Builds the box (see the module's doc) into the current, emptied file, rendering at
-    `size` pixels (the exporter writes the camera's aspect ratio from it); returns the scene."""
+    `size` pixels (the exporter writes the camera's aspect ratio from it); returns the scene.
+    `default_walls`: the walls keep the Principled BSDF's defaults (Specular IOR Level 0.5,
+    roughness 0.5: a GGX dielectric coat over the diffuse base) instead of pure Lambertian."""
     unknown = set(lights) - set(LIGHTS)
     if unknown:
         raise ValueError(f"unknown lights {sorted(unknown)}")
@@ -99,9 +101,10 @@ def cornell(lights=LIGHTS, panel_strength=8.0, size=(48, 48)):
     scene = bpy.context.scene
     scene.render.resolution_x, scene.render.resolution_y = size
     scene.render.resolution_percentage = 100
-    white = principled("white", (0.8, 0.8, 0.8))
-    red = principled("red", (0.6, 0.05, 0.05))
-    green = principled("green", (0.1, 0.4, 0.08))
+    wall = {"roughness": 0.5, "specular": 0.5} if default_walls else {}
+    white = principled("white", (0.8, 0.8, 0.8), **wall)
+    red = principled("red", (0.6, 0.05, 0.05), **wall)
+    green = principled("green", (0.1, 0.4, 0.08), **wall)
     metal = principled("gold metal", (0.9, 0.65, 0.3), roughness=0.3, metallic=1.0, specular=0.5)
     glass = principled("glass", (1.0, 1.0, 1.0), roughness=0.0, specular=0.5, transmission=1.0)
     strength = panel_strength if "panel" in lights else 0.0
