@@ -162,8 +162,7 @@ class PATHFARM_OT_check(bpy.types.Operator):
     def execute(self, context):
         try:
             client = client_from_prefs(context)
-            _offers[client.base] = client.job_body_fields()
-            client._json("GET", api.API + "/jobs?limit=1")  # checks the token
+            _offers[client.base] = client.check()
         except api.PathfarmError as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}

@@ -117,5 +117,12 @@ class Client:
         except (KeyError, TypeError):
             return set()
 
+    def check(self):
+        """Checks the URL and the token (a one-job page of `GET /jobs` needs a client token) and
+        returns `job_body_fields()`."""
+        fields = self.job_body_fields()
+        self._json("GET", API + "/jobs?limit=1")
+        return fields
+
     def dashboard_url(self, job_id=None):
         return self.base + "/" + (f"#job={int(job_id)}" if job_id is not None else "")

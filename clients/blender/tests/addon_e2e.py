@@ -67,6 +67,31 @@ def local_render(worker, glb, out, frame):
         return f.read()
 
 
+def blender_rgb(image, w, h):
+    """The image's colour as Blender decodes it: an image texture (its ImageUser on the first
+    layer and pass, R, G, B) evaluated at every pixel centre, rows top to bottom."""
+    tex = bpy.data.textures.new("pathfarm-test", "IMAGE")
+    tex.image = image
+    tex.use_interpolation = False
+    tex.use_mipmap = False
+    tex.filter_type = "BOX"
+    tex.filter_size = 0.1
+    tex.extension = "EXTEND"
+    rows = []
+    for r in range(h):
+        y = (h - r - 0.5) / h * 2.0 - 1.0
+        rows.append([tuple(tex.evaluate(((c + 0.5) / w * 2.0 - 1.0, y, 0.0)))[:3] for c in range(w)])
+    bpy.data.textures.remove(tex)
+    return rows
+
+
+def exr_rgb(path):
+    import OpenEXR
+
+    with OpenEXR.File(path) as f:
+        return f.channels()["RGB"].pixels
+
+
 def configure(scene, out_dir, animation):
     s = scene.pathfarm
     bpy.ops.pathfarm.sync()
@@ -95,6 +120,7 @@ def main():
     from importlib import import_module
 
     export = import_module(module + ".export")
+    assert bpy.ops.pathfarm.check() == {"FINISHED"}, "Check connection failed"
     print("installed and enabled", module, flush=True)
 
     # 2. One frame.
@@ -114,6 +140,18 @@ def main():
     # Image Editor shows them by layer and pass.
     image.size[:]  # reads the file's header
     assert image.type == "MULTILAYER", image.type
+    # And decodes the colour layer: Blender's texture sampling of it equals the EXR's float
+    # pixels (read by OpenEXR) to 1e-5 relative (the sampler's arithmetic; the file is bit-exact).
+    expected = exr_rgb(path)
+    got = blender_rgb(image, W, H)
+    worst = max(
+        abs(got[r][c][k] - float(expected[r, c, k])) / max(abs(float(expected[r, c, k])), 1e-3)
+        for r in range(H)
+        for c in range(W)
+        for k in range(3)
+    )
+    assert worst < 1e-5, f"Blender decodes the EXR differently: worst relative difference {worst}"
+    assert max(v for row in got for px in row for v in px) > 0.0, "Blender sees a black image"
     print(f"still: {path} equals the local render bit for bit ({len(farm)} bytes)", flush=True)
 
     # 3. Three frames of an animation.
@@ -163,6 +201,12 @@ def main():
     message = refusal()
     assert "client token" in message and "401" in message, message
     print(f"bad token: {message}", flush=True)
+    try:
+        bpy.ops.pathfarm.check()
+    except RuntimeError as e:
+        assert "client token" in str(e), e
+    else:
+        raise AssertionError("Check connection passed with a wrong token")
     print("PASS", flush=True)
 
 
