@@ -130,6 +130,16 @@ def load_images(name, done):
     image.name = name
     if len(done) > 1:
         image.source = "SEQUENCE"
+    # Show it in the open Image Editors, a sequence over its frames.
+    for window in getattr(bpy.context.window_manager, "windows", []):
+        for area in window.screen.areas:
+            if area.type == "IMAGE_EDITOR":
+                space = area.spaces.active
+                space.image = image
+                if len(done) > 1:
+                    space.image_user.frame_start = done[0][0]
+                    space.image_user.frame_offset = done[0][0] - 1
+                    space.image_user.frame_duration = len(done)
     return image
 
 
@@ -238,6 +248,8 @@ class PATHFARM_OT_submit(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def modal(self, context, event):
+        if event.type == "ESC" and event.value == "PRESS":
+            self._submission.cancel()  # cancels the jobs; the thread then finishes with "cancelled"
         if event.type == "TIMER":
             redraw_all()
             if self._submission.snapshot()["finished"]:

@@ -109,7 +109,7 @@ class Submission:
                         self.client.cancel(job_id)
                     except PathfarmError:
                         pass
-                raise PathfarmError("cancelled")
+                raise PathfarmError("pathfarm: submission cancelled; its jobs were cancelled")
             for frame, job_id in list(pending.items()):
                 info = self.client.job(job_id)
                 progress[frame] = float(info.get("progress", 0.0))
