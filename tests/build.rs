@@ -3,6 +3,8 @@
 //! tests/browser/node_modules (`npm ci` there). Without them the test is `#[ignore]`d with that
 //! reason instead of passing without running; `scripts/test` installs them first.
 //! Likewise `cfg(slurm_tools)` when munge and Slurm's daemons and `sbatch` are installed.
+//! Likewise `cfg(bpy)`: `python3` imports `bpy` (Blender as a module), OpenEXR and numpy, for the
+//! Blender add-on's tests; `cfg(openapi_client)`: `openapi-python-client` is on PATH.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -30,5 +32,16 @@ fn main() {
     }
     if slurm.iter().all(|p| Path::new(p).exists()) {
         println!("cargo:rustc-cfg=slurm_tools");
+    }
+    println!("cargo:rustc-check-cfg=cfg(bpy)");
+    println!("cargo:rustc-check-cfg=cfg(openapi_client)");
+    println!("cargo:rerun-if-env-changed=PATHFARM_RECHECK_PYTHON");
+    let python = |code: &str| Command::new("python3").args(["-c", code]).output().is_ok_and(|o| o.status.success());
+    if python("import bpy, OpenEXR, numpy") {
+        println!("cargo:rustc-cfg=bpy");
+    }
+    let generator = Command::new("openapi-python-client").arg("--version").output().is_ok_and(|o| o.status.success());
+    if generator && python("import httpx, attrs") {
+        println!("cargo:rustc-cfg=openapi_client");
     }
 }

@@ -189,6 +189,80 @@ impl utoipa::Modify for SecuritySchemes {
     }
 }
 
+/// Binary bodies (scene bundles, result frames, EXR and PNG images) as OpenAPI types them:
+/// `{"type": "string", "format": "binary", "contentMediaType": ...}`. utoipa writes `Vec<u8>` as an
+/// array of integers, which generated clients then try to send and parse as JSON.
+struct BinaryBodies;
+
+fn is_binary_media_type(media_type: &str) -> bool {
+    media_type == "application/octet-stream" || media_type.starts_with("image/")
+}
+
+fn binary_schema(media_type: &str) -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
+    ObjectBuilder::new()
+        .schema_type(Type::String)
+        .format(Some(SchemaFormat::KnownFormat(KnownFormat::Binary)))
+        .content_media_type(media_type)
+        .into()
+}
+
+fn type_binary_content<'a>(content: impl IntoIterator<Item = (&'a String, &'a mut utoipa::openapi::content::Content)>) {
+    for (media_type, c) in content {
+        if is_binary_media_type(media_type) {
+            c.schema = Some(binary_schema(media_type));
+        }
+    }
+}
+
+impl utoipa::Modify for BinaryBodies {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        for item in openapi.paths.paths.values_mut() {
+            let operations = [
+                &mut item.get,
+                &mut item.put,
+                &mut item.post,
+                &mut item.delete,
+                &mut item.options,
+                &mut item.head,
+                &mut item.patch,
+                &mut item.trace,
+            ];
+            for op in operations.into_iter().flatten() {
+                if let Some(body) = &mut op.request_body {
+                    type_binary_content(body.content.iter_mut());
+                }
+                for response in op.responses.responses.values_mut() {
+                    if let utoipa::openapi::RefOr::T(r) = response {
+                        type_binary_content(r.content.iter_mut());
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Tuples (`(JobId, UnitKey)`, `[u32; 2]`) as generators read them: utoipa writes
+/// `"prefixItems": [...], "items": false`, and `"items": false` is refused by generators such as
+/// openapi-python-client. Here `items` becomes `{}` with `minItems` = `maxItems` = the tuple's
+/// length; `prefixItems` still types each position.
+fn open_tuples(v: &mut serde_json::Value) {
+    match v {
+        serde_json::Value::Object(map) => {
+            if map.get("items") == Some(&serde_json::Value::Bool(false))
+                && let Some(n) = map.get("prefixItems").and_then(|p| p.as_array()).map(Vec::len)
+            {
+                map.insert("items".into(), serde_json::json!({}));
+                map.insert("minItems".into(), n.into());
+                map.insert("maxItems".into(), n.into());
+            }
+            map.values_mut().for_each(open_tuples);
+        }
+        serde_json::Value::Array(items) => items.iter_mut().for_each(open_tuples),
+        _ => {}
+    }
+}
+
 #[derive(OpenApi)]
 #[openapi(
     info(
@@ -235,7 +309,7 @@ impl utoipa::Modify for SecuritySchemes {
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
         JobRequestBody, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
     )),
-    modifiers(&SecuritySchemes),
+    modifiers(&SecuritySchemes, &BinaryBodies),
     tags(
         (name = "scenes", description = "Scene bundles, content-addressed"),
         (name = "jobs", description = "Render jobs and their progress"),
@@ -256,9 +330,18 @@ pub fn document() -> utoipa::openapi::OpenApi {
     doc
 }
 
+/// The document as served: [`document`] with tuples opened (see `open_tuples`).
+pub fn document_json() -> serde_json::Value {
+    let mut value = serde_json::to_value(document()).unwrap_or_else(|e| serde_json::json!({"error": e.to_string()}));
+    open_tuples(&mut value);
+    value
+}
+
 /// `GET /api/v1/openapi.json`.
 pub async fn openapi_json() -> impl IntoResponse {
     static JSON: OnceLock<String> = OnceLock::new();
-    let body = JSON.get_or_init(|| document().to_pretty_json().unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}")));
+    let body = JSON.get_or_init(|| {
+        serde_json::to_string_pretty(&document_json()).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    });
     ([(header::CONTENT_TYPE, "application/json")], body.as_str())
 }

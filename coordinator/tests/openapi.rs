@@ -169,3 +169,59 @@ async fn document_is_served_and_self_consistent() {
     let security = doc["components"]["securitySchemes"].as_object().expect("security schemes");
     assert!(security.contains_key("client_token") && security.contains_key("worker_token"));
 }
+
+/// Binary bodies are typed as binary (`format: binary`, `contentMediaType`), never as arrays of
+/// integers, so generated clients send and receive bytes: scene uploads and downloads, result
+/// frames, the EXR and the PNG.
+#[test]
+fn binary_bodies_are_typed_binary() {
+    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let expect_binary = |schema: &serde_json::Value, media: &str, at: &str| {
+        assert_eq!(schema["type"], "string", "{at}: {schema}");
+        assert_eq!(schema["format"], "binary", "{at}: {schema}");
+        assert_eq!(schema["contentMediaType"], media, "{at}: {schema}");
+    };
+    let upload = &doc["paths"]["/api/v1/scenes"]["post"]["requestBody"]["content"]["application/octet-stream"];
+    expect_binary(&upload["schema"], "application/octet-stream", "POST /scenes body");
+    let result =
+        &doc["paths"]["/api/v1/leases/{id}/result"]["put"]["requestBody"]["content"]["application/octet-stream"];
+    expect_binary(&result["schema"], "application/octet-stream", "PUT /leases/{id}/result body");
+    let download =
+        &doc["paths"]["/api/v1/scenes/{id}"]["get"]["responses"]["200"]["content"]["application/octet-stream"];
+    expect_binary(&download["schema"], "application/octet-stream", "GET /scenes/{id}");
+    let exr = &doc["paths"]["/api/v1/jobs/{id}/image.exr"]["get"]["responses"]["200"]["content"]["image/x-exr"];
+    expect_binary(&exr["schema"], "image/x-exr", "GET image.exr");
+    let png = &doc["paths"]["/api/v1/jobs/{id}/preview.png"]["get"]["responses"]["200"]["content"]["image/png"];
+    expect_binary(&png["schema"], "image/png", "GET preview.png");
+    // Every non-text body in the document is binary.
+    let mut checked = 0;
+    for (path, item) in doc["paths"].as_object().expect("paths") {
+        for (method, op) in item.as_object().expect("path item") {
+            let mut contents: Vec<&serde_json::Value> = vec![&op["requestBody"]["content"]];
+            if let Some(responses) = op["responses"].as_object() {
+                contents.extend(responses.values().map(|r| &r["content"]));
+            }
+            for content in contents.into_iter().filter_map(|c| c.as_object()) {
+                for (media, c) in content {
+                    if media == "application/octet-stream" || media.starts_with("image/") {
+                        expect_binary(&c["schema"], media, &format!("{method} {path}"));
+                        checked += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert!(checked >= 5, "only {checked} binary bodies found");
+}
+
+/// No `"items": false` (utoipa's tuples) anywhere in the served document: generators refuse it. Tuples keep their
+/// length and per-position types.
+#[test]
+fn tuples_are_arrays_of_fixed_length() {
+    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document_json()).expect("serialize");
+    let text = doc.to_string();
+    assert!(!text.contains(r#""items":false"#), "a tuple is left with items: false");
+    let current = &doc["components"]["schemas"]["WorkerInfo"]["properties"]["current"];
+    assert_eq!(current["prefixItems"].as_array().map(Vec::len), Some(2), "{current}");
+    assert_eq!((current["minItems"].as_u64(), current["maxItems"].as_u64()), (Some(2), Some(2)), "{current}");
+}

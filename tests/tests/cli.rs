@@ -62,3 +62,45 @@ fn the_client_submits_waits_and_fetches_the_same_bits_as_a_local_render() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("job 999 does not exist"));
 }
+
+/// `pathfarm submit scene.gltf` of a "glTF Separate" export (.gltf + .bin + .png) packs the
+/// files itself; the farm's image equals a local render of the same files as a tar bundle. A
+/// missing buffer is refused before anything is uploaded, naming the file.
+#[test]
+fn the_client_packs_a_separate_gltf_with_its_files() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let _w = start_worker(&coord.url, "w", &dir.path().join("cache"), &[]);
+    let export = dir.path().join("export");
+    let files = pathfarm_common::scene::demo::cornell_separate_files();
+    for (name, bytes) in &files {
+        std::fs::create_dir_all(export.join(name).parent().expect("parent")).expect("mkdir");
+        std::fs::write(export.join(name), bytes).expect("write");
+    }
+    let out = dir.path().join("out.exr");
+    let output = Command::new(bin("pathfarm"))
+        .args(["--server", &coord.url, "submit"])
+        .arg(export.join("cornell.gltf"))
+        .args(["--width", "32", "--height", "24", "--spp", "4", "--integrator", "direct", "--tile-size", "16"])
+        .args(["--wait", "--out"])
+        .arg(&out)
+        .output()
+        .expect("run client");
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
+    let bundle = pathfarm_common::scene::bundle::tar_bundle(&refs).expect("tar");
+    let mut s = RenderSettings::new(32, 24, 4);
+    s.tile_size = 16;
+    s.integrator = IntegratorSettings::Direct { mis: Default::default(), light_sampling: Default::default() };
+    assert!(std::fs::read(&out).expect("out.exr") == local_exr(&bundle, &s), "packed .gltf renders differently");
+
+    std::fs::remove_file(export.join("cornell.bin")).expect("rm");
+    let output = Command::new(bin("pathfarm"))
+        .args(["--server", &coord.url, "submit"])
+        .arg(export.join("cornell.gltf"))
+        .args(["--width", "32", "--height", "24", "--spp", "4"])
+        .output()
+        .expect("run client");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success() && stderr.contains("cornell.bin"), "{stderr}");
+}

@@ -128,6 +128,47 @@ pub fn tar_bundle(files: &[(&str, &[u8])]) -> std::io::Result<Vec<u8>> {
     builder.into_inner()
 }
 
+/// Packs a `.gltf` and every file it names (`buffers[].uri`, `images[].uri`; `data:` URIs stay
+/// inline) into a tar bundle, so a "glTF Separate" export uploads as one body. The files keep
+/// their relative paths; a URI that is absolute, has a scheme, leaves the `.gltf`'s folder
+/// (`..`, or a link pointing outside it) or names a missing file is refused by name.
+pub fn pack_gltf(gltf: &Path) -> Result<Vec<u8>, SceneError> {
+    let file = gltf.display().to_string();
+    let failed = |message: String| SceneError::Invalid { file: file.clone(), message };
+    let text = std::fs::read(gltf).map_err(|e| failed(format!("cannot read it: {e}")))?;
+    let doc: serde_json::Value =
+        serde_json::from_slice(&text).map_err(|e| failed(format!("not a glTF JSON document: {e}")))?;
+    let base = gltf.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let root = base.canonicalize().map_err(|e| failed(format!("its folder {}: {e}", base.display())))?;
+    let name = gltf.file_name().and_then(|n| n.to_str()).unwrap_or("scene.gltf");
+    let mut files: Vec<(String, Vec<u8>)> = vec![(name.to_string(), text.clone())];
+    for kind in ["buffers", "images"] {
+        let Some(list) = doc.get(kind).and_then(|v| v.as_array()) else { continue };
+        for (i, item) in list.iter().enumerate() {
+            let Some(uri) = item.get("uri").and_then(|u| u.as_str()) else { continue };
+            if uri.starts_with("data:") {
+                continue;
+            }
+            let element = format!("{kind}[{i}] \"{uri}\"");
+            let rel = super::load::check_uri(uri).map_err(|m| failed(format!("{element}: {m}")))?;
+            let entry: Vec<&str> = rel.iter().filter_map(|c| c.to_str()).collect();
+            let entry = entry.join("/");
+            if entry == name || files.iter().any(|(n, _)| *n == entry) {
+                continue;
+            }
+            let path = root.join(&rel);
+            let real = path.canonicalize().map_err(|e| failed(format!("{element}: {}: {e}", path.display())))?;
+            if !real.starts_with(&root) {
+                return Err(failed(format!("{element}: {} leaves the scene's folder", path.display())));
+            }
+            let bytes = std::fs::read(&real).map_err(|e| failed(format!("{element}: {}: {e}", path.display())))?;
+            files.push((entry, bytes));
+        }
+    }
+    let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
+    tar_bundle(&refs).map_err(|e| io("packing the tar bundle", e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -182,5 +223,62 @@ mod tests {
         let e = unpack_bundle(&bytes, &dir.path().join("x")).expect_err("escape");
         assert!(e.to_string().contains("inside the bundle"), "{e}");
         assert!(!dir.path().join("escape.gltf").exists());
+    }
+
+    fn write_files(dir: &Path, files: &[(String, Vec<u8>)]) {
+        for (name, bytes) in files {
+            let path = dir.join(name);
+            std::fs::create_dir_all(path.parent().expect("parent")).expect("mkdir");
+            std::fs::write(path, bytes).expect("write");
+        }
+    }
+
+    #[test]
+    fn a_separate_gltf_is_packed_with_its_files() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let files = demo::cornell_separate_files();
+        write_files(&dir.path().join("export"), &files);
+        let gltf = dir.path().join("export/cornell.gltf");
+        let bundle = pack_gltf(&gltf).expect("pack");
+        let packed = load_bundle(&bundle, &dir.path().join("unpacked"), &LoadOptions::default()).expect("loads");
+        let direct = load_scene(&gltf, &LoadOptions::default()).expect("direct");
+        assert_eq!(packed.triangle_count(), direct.triangle_count());
+        assert_eq!(packed.textures.len(), 1, "the checker texture travels with it");
+        // Every file of the export is in the tar, under its relative path.
+        let mut names: Vec<String> = tar::Archive::new(bundle.as_slice())
+            .entries()
+            .expect("entries")
+            .map(|e| e.expect("entry").path().expect("path").display().to_string())
+            .collect();
+        names.sort();
+        let mut expected: Vec<String> = files.iter().map(|(n, _)| n.clone()).collect();
+        expected.sort();
+        assert_eq!(names, expected);
+    }
+
+    #[test]
+    fn packing_refuses_missing_and_escaping_files_by_name() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let files = demo::cornell_separate_files();
+        let folder = dir.path().join("export");
+        write_files(&folder, &files);
+        std::fs::remove_file(folder.join("cornell.bin")).expect("rm");
+        let e = pack_gltf(&folder.join("cornell.gltf")).expect_err("missing buffer");
+        assert!(e.to_string().contains("buffers[0] \"cornell.bin\""), "{e}");
+
+        std::fs::write(dir.path().join("secret.bin"), b"x").expect("write");
+        let mut doc: serde_json::Value = serde_json::from_slice(&files[0].1).expect("json");
+        doc["buffers"][0]["uri"] = "../secret.bin".into();
+        std::fs::write(folder.join("cornell.gltf"), doc.to_string()).expect("write");
+        let e = pack_gltf(&folder.join("cornell.gltf")).expect_err("escape");
+        assert!(e.to_string().contains("outside the bundle"), "{e}");
+        #[cfg(unix)]
+        {
+            std::os::unix::fs::symlink(dir.path().join("secret.bin"), folder.join("link.bin")).expect("symlink");
+            doc["buffers"][0]["uri"] = "link.bin".into();
+            std::fs::write(folder.join("cornell.gltf"), doc.to_string()).expect("write");
+            let e = pack_gltf(&folder.join("cornell.gltf")).expect_err("link out");
+            assert!(e.to_string().contains("leaves the scene's folder"), "{e}");
+        }
     }
 }

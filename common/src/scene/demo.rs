@@ -93,9 +93,11 @@ impl GltfBuilder {
             "translation": eye.to_array(), "rotation": rot.to_array()}));
     }
 
-    /// Adds a KHR_lights_punctual point light (intensity in cd, see README "Units").
+    /// Adds a KHR_lights_punctual point light of radiant intensity `intensity` (W/sr), written in
+    /// cd (x [`super::LUMENS_PER_WATT`], see README "Units").
     pub fn point_light(&mut self, position: Vec3, color: Vec3, intensity: f32) {
-        self.lights.push(json!({"type": "point", "color": color.to_array(), "intensity": intensity}));
+        let candela = intensity * super::LUMENS_PER_WATT;
+        self.lights.push(json!({"type": "point", "color": color.to_array(), "intensity": candela}));
         self.nodes
             .push(json!({"name": "light", "extensions": {"KHR_lights_punctual": {"light": self.lights.len() - 1}},
             "translation": position.to_array()}));

@@ -192,7 +192,7 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), String> {
 }
 
 /// Why a URI may not be read, or the relative path it names.
-fn check_uri(uri: &str) -> Result<PathBuf, String> {
+pub(crate) fn check_uri(uri: &str) -> Result<PathBuf, String> {
     if uri.contains(':') {
         return Err("only data: URIs and relative paths are allowed".into());
     }
@@ -935,7 +935,8 @@ impl Loader<'_> {
                 return Ok(());
             }
         };
-        let intensity = Vec3::from(l.color) * l.intensity;
+        // cd or lux -> W/sr or W/m^2 (see LUMENS_PER_WATT).
+        let intensity = Vec3::from(l.color) * (l.intensity / super::LUMENS_PER_WATT);
         if !intensity.is_finite() {
             return Err(self.invalid(format!("light {index} ({node})"), "non-finite intensity"));
         }
@@ -1273,6 +1274,33 @@ mod tests {
         assert!(lit.has_emitters() && !lit.warnings.iter().any(|w| w == NO_LIGHT_WARNING), "{:?}", lit.warnings);
         let point = load(&point_furnace_glb(1.0, 0.5, 1.0));
         assert!(point.has_emitters() && !point.warnings.iter().any(|w| w == NO_LIGHT_WARNING));
+    }
+
+    #[test]
+    fn photometric_light_units_become_radiometric_at_683_lumens_per_watt() {
+        // Blender's exporter writes a 50 W point light as 50 / (4 pi) x 683 cd and a 2 W/m^2 sun
+        // as 2 x 683 lux; they must load as Cycles' 50 / (4 pi) W/sr and 2 W/m^2.
+        let cd = 50.0 / (4.0 * std::f32::consts::PI) * 683.0;
+        let doc = serde_json::json!({
+            "asset": {"version": "2.0"},
+            "extensionsUsed": ["KHR_lights_punctual"],
+            "extensions": {"KHR_lights_punctual": {"lights": [
+                {"type": "point", "intensity": cd, "color": [1.0, 0.5, 0.25]},
+                {"type": "directional", "intensity": 2.0 * 683.0},
+            ]}},
+            "nodes": [
+                {"extensions": {"KHR_lights_punctual": {"light": 0}}},
+                {"extensions": {"KHR_lights_punctual": {"light": 1}}},
+            ],
+            "scenes": [{"nodes": [0, 1]}],
+        });
+        let bytes = serde_json::to_vec(&doc).expect("json");
+        let s = super::super::load_scene_from_slice(&bytes, "t.gltf", None, &LoadOptions::default()).expect("loads");
+        let watts_per_sr = 50.0 / (4.0 * std::f32::consts::PI);
+        let point = s.lights[0].intensity;
+        assert!((point - Vec3::new(1.0, 0.5, 0.25) * watts_per_sr).abs().max_element() < 1e-4, "{point}");
+        let sun = s.lights[1].intensity;
+        assert!((sun - Vec3::splat(2.0)).abs().max_element() < 1e-5, "{sun}");
     }
 
     #[test]

@@ -171,14 +171,21 @@ pub enum PunctualKind {
     Directional,
 }
 
-/// A KHR_lights_punctual light in world space. Units: see README.md ("Units"): intensity in cd
-/// (point, spot) becomes radiant intensity and lux (directional) becomes irradiance, 1:1, the
-/// same scale as emissive radiance (nits).
+/// Luminous efficacy (lm/W) at which glTF's photometric light units become our radiometric
+/// scale: `intensity` in cd (point, spot) / 683 = radiant intensity (W/sr), lux (directional) /
+/// 683 = irradiance (W/m^2). Blender's glTF exporter writes lights with this factor (its default
+/// lighting mode: W / 4 pi x 683 -> cd, W/m^2 x 683 -> lux), so a Blender scene renders as
+/// bright as in Cycles (`clients/blender/tests/brightness.py`). Emission is not photometric:
+/// `emissiveFactor x emissiveStrength` is radiance as is. See README.md ("Units").
+pub const LUMENS_PER_WATT: f32 = 683.0;
+
+/// A KHR_lights_punctual light in world space, in radiometric units ([`LUMENS_PER_WATT`]).
 #[derive(Clone, Debug)]
 pub struct PunctualLight {
     pub name: String,
     pub kind: PunctualKind,
-    /// Linear RGB colour x intensity.
+    /// Linear RGB colour x radiant intensity (W/sr; point, spot) or irradiance (W/m^2;
+    /// directional): glTF's `color x intensity / LUMENS_PER_WATT`.
     pub intensity: Vec3,
     pub position: Vec3,
     /// Direction the light points to (spot axis, directional light's travel direction), normalized.

@@ -25,7 +25,8 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Upload a scene (.glb, .gltf, or a tar bundle) and submit a job.
+    /// Upload a scene (.glb, .gltf, or a tar bundle) and submit a job. A .gltf goes up with every
+    /// file it names (buffers, images), packed into a tar bundle.
     Submit {
         scene: PathBuf,
         #[command(flatten)]
@@ -66,7 +67,12 @@ fn main() -> anyhow::Result<()> {
     let mut stdout = std::io::stdout().lock();
     match cli.command {
         Command::Submit { scene, settings, name, priority, requires, wait, out } => {
-            let bytes = std::fs::read(&scene).with_context(|| format!("reading {}", scene.display()))?;
+            let is_gltf = scene.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("gltf"));
+            let bytes = if is_gltf {
+                pathfarm_common::scene::bundle::pack_gltf(&scene)?
+            } else {
+                std::fs::read(&scene).with_context(|| format!("reading {}", scene.display()))?
+            };
             let created = client.upload_scene(bytes)?;
             for w in &created.warnings {
                 eprintln!("scene warning: {w}");
