@@ -33,6 +33,8 @@ fn a_job_survives_repeated_coordinator_kills() {
     let created = client.upload_scene(scene.clone()).expect("upload");
     let id = client
         .submit(&JobRequest {
+            frames: None,
+            order: Default::default(),
             scene_id: created.scene_id,
             name: Some("crash".into()),
             priority: 0,
@@ -94,6 +96,8 @@ fn deleted_jobs_stay_deleted_and_their_ids_are_not_reused() {
     let client = Client::new(&coord.url, None).expect("client");
     let created = client.upload_scene(cornell_demo_glb()).expect("upload");
     let request = |name: &str| JobRequest {
+        frames: None,
+        order: Default::default(),
         scene_id: created.scene_id.clone(),
         name: Some(name.into()),
         priority: 0,

@@ -72,6 +72,8 @@ fn main() -> anyhow::Result<()> {
                 eprintln!("scene warning: {w}");
             }
             let job = JobRequest {
+                frames: None,
+                order: Default::default(),
                 scene_id: created.scene_id,
                 name,
                 priority,
