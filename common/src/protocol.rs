@@ -258,6 +258,9 @@ pub struct FrameInfo {
 /// A job's frames, summarized (bounded whatever the frame count).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct FramesSummary {
+    /// The job was submitted with `frames`: each frame has its own image
+    /// (`/jobs/{id}/frames/{frame}/image.exr`); otherwise the job's image is `/jobs/{id}/image.exr`.
+    pub sequence: bool,
     /// The frame set as submitted (`"7"` for a single-frame job).
     pub spec: String,
     pub order: FrameOrder,

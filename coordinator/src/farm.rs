@@ -496,6 +496,7 @@ impl Job {
 
     pub fn frames_summary(&self) -> FramesSummary {
         FramesSummary {
+            sequence: self.sequence,
             spec: self.frames.spec().to_string(),
             order: self.order,
             total: self.frames.len() as u32,
