@@ -60,7 +60,7 @@ impl Default for FarmConfig {
             film_budget_bytes: None,
             worker_prune_ms: Some(3_600_000),
             expiry_tick_ms: 250,
-            max_open_frames: 4,
+            max_open_frames: 2,
         }
     }
 }
@@ -652,13 +652,15 @@ impl Job {
         }
     }
 
-    /// For each frame in progress that merged units since the last call: its film and merged
-    /// set, for a checkpoint (`all`: every frame in progress).
-    pub fn take_checkpoints(&mut self, all: bool) -> Vec<Checkpoint> {
+    /// For at most `limit` frames in progress that merged units since the last call: the film
+    /// and merged set, for a checkpoint (`all`: every frame in progress). Each is a copy of a
+    /// film: the caller takes one at a time to bound the memory.
+    pub fn take_checkpoints(&mut self, all: bool, limit: usize) -> Vec<Checkpoint> {
         let (id, frames) = (self.id, self.frames.frames());
         self.open
             .iter_mut()
             .filter(|(_, f)| all || f.checkpoint_dirty)
+            .take(limit)
             .map(|(&i, f)| {
                 f.checkpoint_dirty = false;
                 Checkpoint {
@@ -1883,9 +1885,9 @@ mod tests {
         for (i, _, _) in farm.job(id).expect("job").frames_to_write() {
             farm.frame_written(id, i);
         }
-        let cps = farm.job_mut(id).expect("job").take_checkpoints(true);
+        let cps = farm.job_mut(id).expect("job").take_checkpoints(true, usize::MAX);
         assert_eq!(cps.iter().map(|c| c.frame).collect::<Vec<_>>(), vec![2]);
-        assert!(farm.job_mut(id).expect("job").take_checkpoints(false).is_empty(), "nothing merged since");
+        assert!(farm.job_mut(id).expect("job").take_checkpoints(false, 1).is_empty(), "nothing merged since");
         let rec = farm.job(id).expect("job").record(0);
         let mut again = Farm::new(FarmConfig::default());
         again.restore(rec, cps, &[0], 0).expect("restore");
@@ -1908,7 +1910,7 @@ mod tests {
         }
         assert_eq!(again.job(id).expect("job").units_merged, 3 * per_frame as u64);
         // A checkpoint of another job, or of a frame not in the set, is refused.
-        let mut bad = farm.job_mut(id).expect("job").take_checkpoints(true);
+        let mut bad = farm.job_mut(id).expect("job").take_checkpoints(true, 1);
         bad[0].frame = 9;
         let rec = farm.job(id).expect("job").record(0);
         assert!(Farm::new(FarmConfig::default()).restore(rec, bad, &[], 0).is_err());

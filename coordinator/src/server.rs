@@ -661,10 +661,55 @@ pub fn collect_scenes(state: &AppState, stored_before: u64) -> Vec<String> {
 /// A sequence's merged frame: job, index in its frame set, frame number, film.
 type FrameToWrite = (JobId, usize, i32, Arc<Film>);
 
+type FrameWrite = (PathBuf, Arc<Film>, tokio::sync::oneshot::Sender<anyhow::Result<()>>);
+
+/// One thread that resolves and encodes sequence frames, one after the other. A frame's
+/// working set (float layers, EXR and PNG buffers: ~100 MiB at 1080p) is then reused frame
+/// after frame in one allocator arena; spread over the blocking pool's threads, glibc kept a
+/// copy per thread and a 1080p sequence's RSS climbed from 1 to 4.5 GiB over 40 frames.
+struct FrameWriter {
+    tx: std::sync::mpsc::Sender<FrameWrite>,
+}
+
+impl FrameWriter {
+    fn start() -> std::io::Result<Self> {
+        let (tx, rx) = std::sync::mpsc::channel::<FrameWrite>();
+        std::thread::Builder::new().name("frame-writer".into()).spawn(move || {
+            for (dir, film, reply) in rx {
+                let r = (|| -> anyhow::Result<()> {
+                    write_outputs(&dir, &film.resolve())?;
+                    // The frame is written: its checkpoint is of no more use.
+                    match std::fs::remove_file(dir.join("checkpoint.bin")) {
+                        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e.into()),
+                        _ => Ok(()),
+                    }
+                })();
+                drop(film);
+                let _ = reply.send(r);
+            }
+        })?;
+        Ok(Self { tx })
+    }
+
+    /// Writes `dir/image.exr` and `preview.png` of `film`; `Err` also when the thread is gone.
+    async fn write(&self, dir: PathBuf, film: Arc<Film>) -> Result<anyhow::Result<()>, String> {
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        self.tx.send((dir, film, reply)).map_err(|_| "the frame writer thread is gone".to_string())?;
+        answer.await.map_err(|_| "the frame writer thread panicked".to_string())
+    }
+}
+
 /// Writes each job's EXR and PNG after a pass completes, at most every `output_interval` per
 /// running job, and always when the job ends.
 async fn output_loop(state: Arc<AppState>) {
     let mut last: HashMap<JobId, Instant> = HashMap::new();
+    let writer = match FrameWriter::start() {
+        Ok(w) => w,
+        Err(e) => {
+            tracing::error!("cannot start the frame writer thread: {e}");
+            return;
+        }
+    };
     loop {
         let _ = tokio::time::timeout(Duration::from_millis(500), state.output_ready.notified()).await;
         let (due, frames): (Vec<(JobId, JobState)>, Vec<FrameToWrite>) = {
@@ -693,20 +738,13 @@ async fn output_loop(state: Arc<AppState>) {
         // A sequence's merged frames: written once, then their films are dropped.
         for (id, index, frame, film) in frames {
             let dir = crate::store::frame_dir(&state.job_dir(id), frame);
-            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-                write_outputs(&dir, &film.resolve())?;
-                // The frame is written: its checkpoint is of no more use.
-                match std::fs::remove_file(dir.join("checkpoint.bin")) {
-                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e.into()),
-                    _ => Ok(()),
-                }
-            })
-            .await;
-            match r {
+            match writer.write(dir, film).await {
                 Ok(Ok(())) => {
                     if state.farm.lock().frame_written(id, index).is_some() {
                         tracing::info!(job = id, frame, "frame written");
                         state.publish_frame(id, frame);
+                        // Its film is freed: the next frame may start now.
+                        state.work_ready.notify_waiters();
                     }
                 }
                 Ok(Err(e)) => {
@@ -762,46 +800,57 @@ async fn checkpoint_loop(state: Arc<AppState>) {
         };
         for id in due {
             let t0 = Instant::now();
-            // One job's snapshot at a time: the lock is held for one film copy, not all of them.
-            // A sequence checkpoints its frames in progress that merged units since the last
-            // snapshot, each in its own file.
-            let snapshot = {
-                let mut farm = state.farm.lock();
-                farm.job_mut(id).ok().map(|j| {
-                    ((j.units_merged, j.state, j.priority), j.record(now_ms()), j.sequence, j.take_checkpoints(false))
-                })
-            };
-            let Some((key, rec, sequence, cps)) = snapshot else { continue };
-            let st = state.clone();
-            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-                for cp in &cps {
-                    let path = if sequence {
-                        st.store().frame_checkpoint_path(id, cp.frame)
+            // One film copy at a time: the lock is held for one copy, and a sequence's frames
+            // in progress that merged units since their last checkpoint are copied and written
+            // one after the other, each to its own file (the job's row with each).
+            let mut outcome = None;
+            loop {
+                let snapshot = {
+                    let mut farm = state.farm.lock();
+                    farm.job_mut(id).ok().map(|j| {
+                        let key = (j.units_merged, j.state, j.priority);
+                        (key, j.record(now_ms()), j.sequence, j.take_checkpoints(false, 1))
+                    })
+                };
+                let Some((key, rec, sequence, cps)) = snapshot else { break };
+                let more = sequence && !cps.is_empty();
+                let st = state.clone();
+                let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+                    for cp in &cps {
+                        let path = if sequence {
+                            st.store().frame_checkpoint_path(id, cp.frame)
+                        } else {
+                            st.store().checkpoint_path(id)
+                        };
+                        write_checkpoint(&path, cp)?;
+                    }
+                    // Only a job that still exists gets its row written back: a DELETE that ran
+                    // during the snapshot or the write must not be undone (it came back after a
+                    // restart). Lock order: store, then farm (as in persist_job).
+                    let store = st.store();
+                    if st.farm.lock().job(id).is_ok() {
+                        store.put_job(&rec)?;
                     } else {
-                        st.store().checkpoint_path(id)
-                    };
-                    write_checkpoint(&path, cp)?;
+                        drop(store);
+                        let _ = std::fs::remove_dir_all(st.job_dir(id));
+                    }
+                    Ok(())
+                })
+                .await;
+                let ok = matches!(r, Ok(Ok(())));
+                outcome = Some((key, r));
+                if !ok || !more {
+                    break;
                 }
-                // Only a job that still exists gets its row written back: a DELETE that ran
-                // during the snapshot or the write must not be undone (it came back after a
-                // restart). Lock order: store, then farm (as in persist_job).
-                let store = st.store();
-                if st.farm.lock().job(id).is_ok() {
-                    store.put_job(&rec)?;
-                } else {
-                    drop(store);
-                    let _ = std::fs::remove_dir_all(st.job_dir(id));
-                }
-                Ok(())
-            })
-            .await;
-            match r {
-                Ok(Ok(())) => {
+            }
+            match outcome {
+                Some((key, Ok(Ok(())))) => {
                     let took = t0.elapsed();
                     seen.insert(id, (key, Instant::now() + took * 9));
                 }
-                Ok(Err(e)) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
-                Err(e) => tracing::error!(job = id, "checkpoint task failed: {e}"),
+                Some((_, Ok(Err(e)))) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
+                Some((_, Err(e))) => tracing::error!(job = id, "checkpoint task failed: {e}"),
+                None => {}
             }
         }
     }
