@@ -1472,6 +1472,79 @@ mod tests {
         assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
     }
 
+    /// Sequences through the API: bad `frames` and `order` are 422 naming them, a sequence that
+    /// cannot fit the film budget in sequence-preview order is 422 saying why, the frame list is
+    /// paged, a frame not started is 409 and a frame not in the set 404, the job's own image 409.
+    #[tokio::test]
+    async fn sequences_are_validated_listed_and_served_per_frame() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.farm.film_budget_bytes = Some(pathfarm_common::film::Film::bytes_for(16, 16) * 4);
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        let app = router(state.clone());
+        let scene = upload(&app, pathfarm_common::scene::demo::cornell_demo_glb()).await;
+        let job = |extra: serde_json::Value| {
+            let mut j = serde_json::json!({"scene_id": scene, "width": 16, "height": 16, "spp": 2});
+            for (k, v) in extra.as_object().expect("object") {
+                j[k] = v.clone();
+            }
+            serde_json::to_vec(&j).expect("json")
+        };
+        for (extra, needle) in [
+            (serde_json::json!({"frames": "3-1"}), "backwards"),
+            (serde_json::json!({"frames": "1-100001"}), "more than 100000 frames"),
+            (serde_json::json!({"frames": "a"}), "not a frame number"),
+            (serde_json::json!({"frames": "1-3", "order": "shuffle"}), "order must be"),
+            (serde_json::json!({"frames": "1-5", "order": "sequence_preview"}), "5 frames x"),
+        ] {
+            let (status, v) = send(&app, "POST", "/api/v1/jobs", job(extra.clone())).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{extra}: {v}");
+            assert!(v["error"]["message"].as_str().is_some_and(|m| m.contains(needle)), "{extra}: {v}");
+        }
+        let (status, created) = send(&app, "POST", "/api/v1/jobs", job(serde_json::json!({"frames": "10-14"}))).await;
+        assert_eq!(status, StatusCode::CREATED, "{created}");
+        let id = created["id"].as_u64().expect("id");
+        let (status, _, info) = get(&app, &format!("/api/v1/jobs/{id}")).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(info["frames"]["total"], 5);
+        assert_eq!(info["frames"]["sequence"], true);
+        assert_eq!(info["frames"]["current"][0]["frame"], 10);
+        let (_, link, page) = get(&app, &format!("/api/v1/jobs/{id}/frames?limit=2")).await;
+        let frames = |v: &serde_json::Value| -> Vec<i64> {
+            v.as_array().expect("array").iter().map(|f| f["frame"].as_i64().expect("frame")).collect()
+        };
+        assert_eq!(frames(&page), vec![10, 11]);
+        assert_eq!(link.as_deref(), Some(format!("</api/v1/jobs/{id}/frames?limit=2&after=1>; rel=\"next\"").as_str()));
+        let (_, link, page) = get(&app, &format!("/api/v1/jobs/{id}/frames?limit=2&after=3")).await;
+        assert_eq!((frames(&page), link), (vec![14], None));
+        assert_eq!(page[0]["state"], "pending");
+        // Frame 10 is rendering (its film exists): served; frame 14 has not started: 409.
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/10/preview.png")).await, StatusCode::OK);
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/14/image.exr")).await,
+            StatusCode::CONFLICT
+        );
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/9/image.exr")).await,
+            StatusCode::NOT_FOUND
+        );
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/x/image.exr")).await,
+            StatusCode::BAD_REQUEST
+        );
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/image.exr")).await, StatusCode::CONFLICT);
+        // A single-frame job serves its one frame under the frame route too.
+        let single = submit(&app, &scene).await;
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{single}/frames/0/preview.png")).await,
+            StatusCode::OK
+        );
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{single}/frames/1/preview.png")).await,
+            StatusCode::NOT_FOUND
+        );
+    }
+
     #[tokio::test]
     async fn list_routes_are_paged() {
         let dir = tempfile::tempdir().expect("tempdir");
