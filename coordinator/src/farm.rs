@@ -891,11 +891,15 @@ impl Farm {
                 job.frame_merged(index);
             }
         }
+        // A single-frame job always has its film (empty without a checkpoint, as before frames).
+        if !job.sequence && job.open.is_empty() && job.frames_merged == 0 {
+            job.open_frame(0);
+        }
         let total = job.frames.len() as u32;
         job.state = match rec.state {
             // A sequence recorded completed whose last frames were merged but not written (and
             // whose checkpoints were older) renders them again.
-            JobState::Completed if job.frames_merged < total => {
+            JobState::Completed if job.sequence && job.frames_merged < total => {
                 job.finished_ms = None;
                 JobState::Queued
             }

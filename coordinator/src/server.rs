@@ -740,11 +740,18 @@ async fn output_loop(state: Arc<AppState>) {
             let dir = crate::store::frame_dir(&state.job_dir(id), frame);
             match writer.write(dir, film).await {
                 Ok(Ok(())) => {
-                    if state.farm.lock().frame_written(id, index).is_some() {
+                    let (written, exists) = {
+                        let mut farm = state.farm.lock();
+                        (farm.frame_written(id, index).is_some(), farm.job(id).is_ok())
+                    };
+                    if written {
                         tracing::info!(job = id, frame, "frame written");
                         state.publish_frame(id, frame);
                         // Its film is freed: the next frame may start now.
                         state.work_ready.notify_waiters();
+                    } else if !exists {
+                        // Deleted while its frame was being written: no files may remain.
+                        state.delete_job_files(id);
                     }
                 }
                 Ok(Err(e)) => {
