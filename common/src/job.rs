@@ -402,9 +402,12 @@ impl Pass {
     }
 }
 
-/// Address of a work unit inside a job.
+/// Address of a work unit inside a job: (frame, pass, tile). `frame` is the animation frame
+/// number (`settings.frame` of the lease); a single-frame job's units all have its one frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct UnitKey {
+    #[serde(default)]
+    pub frame: i32,
     pub pass: u32,
     pub tile: u32,
 }
@@ -449,7 +452,7 @@ impl Plan {
     /// Units in canonical (pass-major) order.
     pub fn units(&self) -> impl Iterator<Item = UnitKey> + '_ {
         (0..self.passes.len() as u32)
-            .flat_map(move |pass| (0..self.tiles.len() as u32).map(move |tile| UnitKey { pass, tile }))
+            .flat_map(move |pass| (0..self.tiles.len() as u32).map(move |tile| UnitKey { frame: 0, pass, tile }))
     }
 }
 

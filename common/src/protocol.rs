@@ -5,6 +5,7 @@
 //! channels of 128-bit sums (850 KB raw), which lz4 shrinks several times over.
 
 use crate::film::{Fixed, SplatBuffer, TileAccum, ch};
+use crate::frames::FrameSet;
 use crate::job::{Pass, RenderSettings, TileRect, UnitKey};
 use serde::{Deserialize, Serialize};
 
@@ -195,7 +196,80 @@ pub struct JobRequest {
     /// Webhook to call when the job reaches some states.
     #[serde(default)]
     pub notify: Option<Notify>,
+    /// The frames to render (`"1-100"`, `"1-100x5"`, `"1,5,10-20"`); `None`: the one frame
+    /// `settings.frame`.
+    #[serde(default)]
+    pub frames: Option<FrameSet>,
+    /// In which order a multi-frame job's units are handed out.
+    #[serde(default)]
+    pub order: FrameOrder,
     pub settings: RenderSettings,
+}
+
+/// In which order a multi-frame job's units are handed out.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameOrder {
+    /// Frame by frame: a frame's units (pass-major) before the next frame's. Frames in
+    /// progress at once are bounded (film memory), so coordinator memory does not grow with the
+    /// sequence's length.
+    #[default]
+    Frame,
+    /// Every frame gets its first pass before any frame gets its second (a rough preview of the
+    /// whole shot early). Every frame's film is held at once: the job must fit the film budget.
+    SequencePreview,
+}
+
+impl FrameOrder {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            FrameOrder::Frame => "frame",
+            FrameOrder::SequencePreview => "sequence_preview",
+        }
+    }
+}
+
+/// Where one frame of a job stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameState {
+    /// Not started: no film, no units yet.
+    Pending,
+    /// Its film exists and units are handed out or merging.
+    Rendering,
+    /// Every unit is merged; its image is being written.
+    Writing,
+    /// Written to `frames/NNNN/image.exr` and `preview.png`; its film is dropped.
+    Done,
+}
+
+/// One frame of a job (`GET /jobs/{id}/frames`, and the frames in progress in `JobInfo`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct FrameInfo {
+    /// Position in the job's frame set (0-based): the `after` cursor of the paged list.
+    pub index: u32,
+    /// The frame number.
+    pub frame: i32,
+    pub state: FrameState,
+    /// Passes merged for every tile of the frame.
+    pub passes_done: u32,
+}
+
+/// A job's frames, summarized (bounded whatever the frame count).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct FramesSummary {
+    /// The job was submitted with `frames`: each frame has its own image
+    /// (`/jobs/{id}/frames/{frame}/image.exr`); otherwise the job's image is `/jobs/{id}/image.exr`.
+    pub sequence: bool,
+    /// The frame set as submitted (`"7"` for a single-frame job).
+    pub spec: String,
+    pub order: FrameOrder,
+    pub total: u32,
+    pub done: u32,
+    /// Frames whose film exists (rendering or writing).
+    pub in_progress: u32,
+    /// The first frames in progress (at most 64); every frame: `GET /jobs/{id}/frames`.
+    pub current: Vec<FrameInfo>,
 }
 
 impl JobRequest {
@@ -213,6 +287,12 @@ impl JobRequest {
             }
             if let Some(n) = &self.notify {
                 o.insert("notify".into(), serde_json::to_value(n).unwrap_or_default());
+            }
+            if let Some(f) = &self.frames {
+                o.insert("frames".into(), f.spec().into());
+            }
+            if self.order != FrameOrder::Frame {
+                o.insert("order".into(), self.order.as_str().into());
             }
         }
         v
@@ -260,8 +340,20 @@ impl JobRequest {
             None | Some(serde_json::Value::Null) => None,
             Some(n) => Some(Notify::from_json(n)?),
         };
+        let frames = match o.remove("frames") {
+            None | Some(serde_json::Value::Null) => None,
+            Some(serde_json::Value::String(s)) => Some(FrameSet::parse(&s).map_err(|e| e.to_string())?),
+            Some(serde_json::Value::Number(n)) => Some(FrameSet::parse(&n.to_string()).map_err(|e| e.to_string())?),
+            Some(_) => return Err("frames must be a string such as \"1-100\", \"1-100x5\" or \"1,5,10-20\"".into()),
+        };
+        let order = match o.remove("order") {
+            None | Some(serde_json::Value::Null) => FrameOrder::Frame,
+            Some(serde_json::Value::String(s)) if s == "frame" => FrameOrder::Frame,
+            Some(serde_json::Value::String(s)) if s == "sequence_preview" => FrameOrder::SequencePreview,
+            Some(other) => return Err(format!("order must be \"frame\" or \"sequence_preview\", got {other}")),
+        };
         let settings: RenderSettings = serde_json::from_value(v).map_err(|e| e.to_string())?;
-        Ok(Self { scene_id, name, priority, requires, notify, settings })
+        Ok(Self { scene_id, name, priority, requires, notify, frames, order, settings })
     }
 }
 
@@ -311,6 +403,10 @@ pub struct JobInfo {
     /// [highmem]`); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub waiting: Option<String>,
+    /// The job's frames: counts and the frames in progress. Progress fields above
+    /// (`passes_done`, `units_*`, `samples_*`) count over every frame.
+    #[serde(default)]
+    pub frames: FramesSummary,
 }
 
 /// Worker states as the coordinator sees them.
@@ -628,7 +724,7 @@ mod tests {
             s.add(3, 4, [1.0, 2.0, 3.0]);
             s
         });
-        UnitResultFrame { lease_id: 7, job_id: 3, unit: UnitKey { pass: 2, tile: 5 }, accum, splats }
+        UnitResultFrame { lease_id: 7, job_id: 3, unit: UnitKey { frame: 0, pass: 2, tile: 5 }, accum, splats }
     }
 
     #[test]
@@ -695,10 +791,31 @@ mod tests {
             priority: 3,
             requires: vec!["highmem".into(), "gpu_2".into()],
             notify: Some(Notify { url: "https://example.com/hook".into(), events: vec![NotifyEvent::Completed] }),
+            frames: Some(FrameSet::parse("1-3,7").expect("frames")),
+            order: FrameOrder::SequencePreview,
             settings: RenderSettings::new(16, 8, 4),
         };
         let back = JobRequest::from_json(req.to_json()).expect("roundtrip");
         assert_eq!(back, req);
+        let base = serde_json::json!({"scene_id": "x", "width": 4, "height": 4, "spp": 1});
+        let with = |k: &str, v: serde_json::Value| {
+            let mut b = base.clone();
+            b[k] = v;
+            JobRequest::from_json(b)
+        };
+        assert_eq!(
+            with("frames", serde_json::json!(12)).expect("a number is one frame").frames.map(|f| f.frames().to_vec()),
+            Some(vec![12])
+        );
+        for (k, v, needle) in [
+            ("frames", serde_json::json!("5-1"), "backwards"),
+            ("frames", serde_json::json!([1, 2]), "frames must be a string"),
+            ("frames", serde_json::json!("1-200000"), "more than 100000 frames"),
+            ("order", serde_json::json!("random"), "order must be"),
+        ] {
+            let e = with(k, v).expect_err("refused");
+            assert!(e.contains(needle), "{e}");
+        }
         let e =
             JobRequest::from_json(serde_json::json!({"scene_id": "x", "width": 4, "height": 4, "spp": 1, "wdth": 3}))
                 .expect_err("unknown field");

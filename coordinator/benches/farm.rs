@@ -107,6 +107,8 @@ fn main() {
             let cpu0 = cpu_secs();
             let t0 = Instant::now();
             let job = JobRequest {
+                frames: None,
+                order: Default::default(),
                 scene_id: created.scene_id.clone(),
                 name: None,
                 priority: 0,

@@ -5,7 +5,11 @@
 //! ```text
 //! cargo build --release -p pathfarm-coordinator --bins --example load
 //! target/release/examples/load --workers 500 --width 1024 --height 1024 --tile 64 --spp 100
+//! target/release/examples/load --workers 50 --width 1920 --height 1080 --spp 1 --frames 1-1000 --stop-after-frames 40
 //! ```
+//!
+//! `--frames` makes the job a sequence (frame order) and prints the coordinator's RSS as frames
+//! are written: it stays flat, bounded by the frames in progress, not by the frames in the job.
 //!
 //! By default the coordinator is the `pathfarm-coordinator` binary next to this example
 //! (`target/release/`), run as its own process so that its CPU time (`/proc/PID/stat`) and peak
@@ -49,6 +53,11 @@ struct Args {
     threads: usize,
     wait_ms: u64,
     render_ms: u64,
+    /// A sequence: the job's `frames`.
+    frames: Option<String>,
+    /// Cancel the job once this many frames are written (a long sequence's memory is flat
+    /// long before its end).
+    stop_after_frames: Option<u32>,
 }
 
 fn parse_args() -> anyhow::Result<Args> {
@@ -64,6 +73,8 @@ fn parse_args() -> anyhow::Result<Args> {
         threads: 2,
         wait_ms: 5000,
         render_ms: 0,
+        frames: None,
+        stop_after_frames: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -86,10 +97,12 @@ fn parse_args() -> anyhow::Result<Args> {
             "--client-threads" => a.threads = val()?.parse()?,
             "--wait-ms" => a.wait_ms = val()?.parse()?,
             "--render-ms" => a.render_ms = val()?.parse()?,
+            "--frames" => a.frames = Some(val()?),
+            "--stop-after-frames" => a.stop_after_frames = Some(val()?.parse()?),
             "-h" | "--help" => {
                 eprintln!(
                     "load [--workers 500] [--width 1024] [--height 1024] [--tile 64] [--spp 100 | --units N] \
-                     [--payload noise|zeros] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0]"
+                     [--payload noise|zeros] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]]"
                 );
                 std::process::exit(0);
             }
@@ -148,6 +161,13 @@ fn frame(g: &LeaseGrant, section: &[u8]) -> Vec<u8> {
     let crc = crc32fast::hash(&out);
     out.extend_from_slice(&crc.to_le_bytes());
     out
+}
+
+/// `VmRSS` of a process in MiB.
+fn proc_rss(pid: u32) -> Option<f64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let kb: f64 = status.lines().find(|l| l.starts_with("VmRSS:"))?.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
 }
 
 /// `/proc/PID/stat` utime + stime in seconds, and `VmHWM` in MiB.
@@ -379,14 +399,25 @@ async fn run(a: Args) -> anyhow::Result<()> {
     }
     barrier.wait().await;
     let before = pid.and_then(proc_figures);
-    let body = serde_json::json!({
+    let mut body = serde_json::json!({
         "scene_id": scene_id, "name": "load", "width": a.width, "height": a.height, "spp": a.spp,
         "tile_size": a.tile, "passes": {"type": "fixed", "spp": 1},
     });
+    if let Some(f) = &a.frames {
+        body["frames"] = f.clone().into();
+    }
+    let rss_before = pid.and_then(proc_rss);
+    if let Some(r) = rss_before {
+        eprintln!("coordinator RSS before the job: {r:.0} MiB");
+    }
     let t0 = Instant::now();
     let job: serde_json::Value =
         http.post(format!("{base}{API}/jobs")).json(&body).send().await?.error_for_status()?.json().await?;
     let job_id = job["id"].as_u64().context("job id")?;
+    if let Some(r) = pid.and_then(proc_rss) {
+        eprintln!("coordinator RSS after submitting: {r:.0} MiB");
+    }
+    let mut rss_max_after_first_frame: f64 = 0.0;
     let mut last = (Instant::now(), 0u64);
     let info: JobInfo = loop {
         tokio::time::sleep(Duration::from_millis(500)).await;
@@ -394,16 +425,28 @@ async fn run(a: Args) -> anyhow::Result<()> {
         let now = Instant::now();
         let rate = (info.units_merged - last.1) as f64 / (now - last.0).as_secs_f64();
         last = (now, info.units_merged);
+        let rss = pid.and_then(proc_rss).unwrap_or(f64::NAN);
+        if info.frames.done >= 1 {
+            rss_max_after_first_frame = rss_max_after_first_frame.max(rss);
+        }
         eprintln!(
-            "{:6.1} s  merged {:>8}/{}  {:>8.0} units/s  state {:?}",
+            "{:6.1} s  merged {:>8}/{}  {:>8.0} units/s  frames written {}/{} (in progress {})  RSS {rss:.0} MiB  state {:?}",
             t0.elapsed().as_secs_f64(),
             info.units_merged,
             info.units_total,
             rate,
+            info.frames.done,
+            info.frames.total,
+            info.frames.in_progress,
             info.state
         );
         if info.state.is_finished() {
             break info;
+        }
+        if a.stop_after_frames.is_some_and(|n| info.frames.done >= n) {
+            http.post(format!("{base}{API}/jobs/{job_id}/cancel")).send().await?.error_for_status()?;
+            eprintln!("cancelled after {} frames", info.frames.done);
+            break http.get(format!("{base}{API}/jobs/{job_id}")).send().await?.json().await?;
         }
     };
     let elapsed = t0.elapsed().as_secs_f64();
@@ -449,6 +492,14 @@ async fn run(a: Args) -> anyhow::Result<()> {
             1e6 * (c1 - c0) / info.units_merged.max(1) as f64
         );
         println!("{who} peak memory (VmHWM)  {hwm:.0} MiB");
+        if a.frames.is_some() {
+            println!(
+                "{who} RSS: before the job {:.0} MiB, highest sampled after the first frame was written {rss_max_after_first_frame:.0} MiB; frames written {}/{}",
+                rss_before.unwrap_or(f64::NAN),
+                info.frames.done,
+                info.frames.total
+            );
+        }
     }
     drop(server);
     if let Some(mut c) = child {

@@ -185,6 +185,9 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
         .route("/jobs/{id}/tiles", get(job_tiles))
         .route("/jobs/{id}/image.exr", get(job_exr))
         .route("/jobs/{id}/preview.png", get(job_png))
+        .route("/jobs/{id}/frames", get(job_frames))
+        .route("/jobs/{id}/frames/{frame}/image.exr", get(frame_exr))
+        .route("/jobs/{id}/frames/{frame}/preview.png", get(frame_png))
         .route("/workers", get(list_workers))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_client));
     let worker = Router::new()
@@ -382,7 +385,16 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
                 format!("scene_id {:?} has been deleted", req.scene_id),
             ));
         }
-        let id = farm.submit_requiring(req.scene_id, req.name, req.priority, req.settings, req.requires, now_ms())?;
+        let spec = crate::farm::JobSpec {
+            scene_id: req.scene_id,
+            name: req.name,
+            priority: req.priority,
+            settings: req.settings,
+            requires: req.requires,
+            frames: req.frames,
+            order: req.order,
+        };
+        let id = farm.submit_job(spec, now_ms())?;
         farm.set_notify(id, req.notify)?;
         id
     };
@@ -618,11 +630,56 @@ const RESOLVE_BAND_ROWS: usize = 16;
 /// Each band copies its sums, its splats and the splat sample count under one lock, so every
 /// pixel is consistent; bands may be a few units apart, as tiles are anyway.
 pub fn resolve_banded(state: &AppState, id: JobId) -> ApiResult<ImageLayers> {
+    resolve_film_banded(state, id, None)
+}
+
+/// The film of job `id` (`frame`: `None` the job's image, `Some(n)` frame `n`), given to `f`.
+/// A sequence has no single image (409 pointing at the frame URLs); a frame not started or
+/// already written and dropped is 409 too (a written frame is served from its file).
+fn with_film<T>(
+    farm: &crate::farm::Farm,
+    id: JobId,
+    frame: Option<i32>,
+    f: impl FnOnce(&pathfarm_common::film::Film) -> T,
+) -> ApiResult<T> {
+    let job = farm.job(id)?;
+    let conflict = |m: String| ApiError::new(StatusCode::CONFLICT, "no_image", m);
+    match frame {
+        None if job.sequence => Err(conflict(format!(
+            "job {id} is a sequence of {} frames ({}): each frame has its own image at              {API}/jobs/{id}/frames/{{frame}}/image.exr and preview.png; {API}/jobs/{id}/frames lists them",
+            job.frames.len(),
+            job.frames.spec()
+        ))),
+        None => job.film().map(f).ok_or_else(|| conflict(format!("job {id} has no film"))),
+        Some(n) if !job.sequence => {
+            if job.frames.frames().first() == Some(&n) {
+                job.film().map(f).ok_or_else(|| conflict(format!("job {id} has no film")))
+            } else {
+                Err(ApiError::not_found(format!("job {id} renders frame {} only, not frame {n}", job.settings.frame)))
+            }
+        }
+        Some(n) => {
+            let index = job.frame_index(n).ok_or_else(|| {
+                ApiError::not_found(format!("frame {n} is not in job {id}'s frames {}", job.frames.spec()))
+            })?;
+            match job.frame_film(n) {
+                Some(film) => Ok(f(&film)),
+                None => {
+                    let state = job.frame_info(index).map(|i| i.state);
+                    Err(conflict(format!("frame {n} of job {id} has no image in memory (it is {state:?})")))
+                }
+            }
+        }
+    }
+}
+
+/// Resolves a film a band of rows at a time (see [`resolve_banded`]); `frame` as in [`with_film`].
+pub fn resolve_film_banded(state: &AppState, id: JobId, frame: Option<i32>) -> ApiResult<ImageLayers> {
     use pathfarm_common::film::{Film, SplatBuffer, ch};
+    // A film's size never changes; a frame dropped between bands is refused by `with_film`.
     let (w, h) = {
         let farm = state.farm.lock();
-        let f = &farm.job(id)?.film;
-        (f.width as usize, f.height as usize)
+        with_film(&farm, id, frame, |f| (f.width as usize, f.height as usize))?
     };
     let n = w * h;
     let mut out = ImageLayers {
@@ -641,8 +698,7 @@ pub fn resolve_banded(state: &AppState, id: JobId) -> ApiResult<ImageLayers> {
         let y1 = (y0 + RESOLVE_BAND_ROWS).min(h);
         let band = {
             let farm = state.farm.lock();
-            let f = &farm.job(id)?.film;
-            Film {
+            with_film(&farm, id, frame, |f| Film {
                 width: w as u32,
                 height: (y1 - y0) as u32,
                 sums: f.sums[y0 * w * ch::COUNT..y1 * w * ch::COUNT].to_vec(),
@@ -652,7 +708,7 @@ pub fn resolve_banded(state: &AppState, id: JobId) -> ApiResult<ImageLayers> {
                     sums: f.splats.sums[y0 * w * 3..y1 * w * 3].to_vec(),
                 },
                 splat_spp: f.splat_spp,
-            }
+            })?
         };
         let r = band.resolve();
         out.rgb.extend(r.rgb);
@@ -681,7 +737,7 @@ async fn resolve_job(state: &Arc<AppState>, id: &str) -> ApiResult<ImageLayers> 
     summary = "The image so far as multi-layer OpenEXR (RGB, albedo, normal, depth, samples, variance)",
     params(("id" = u64, Path, description = "Job id")),
     security(("client_token" = [])),
-    responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 409, description = "The job is a sequence: each frame has its own image (`/jobs/{id}/frames/{frame}/image.exr`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     let layers = resolve_job(&state, &id).await?;
@@ -699,7 +755,7 @@ async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
     summary = "The image so far as an sRGB PNG preview",
     params(("id" = u64, Path, description = "Job id")),
     security(("client_token" = [])),
-    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     let layers = resolve_job(&state, &id).await?;
@@ -710,6 +766,133 @@ async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
     let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     Ok(resp)
+}
+
+// ------------------------------------------------------------------------------------ frames
+
+/// Query of `GET /jobs/{id}/frames`: `?limit=N&after=INDEX`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct FramePageQuery {
+    /// Frames per page: 1 to 1000, default 100.
+    #[param(minimum = 1, maximum = 1000)]
+    pub limit: Option<usize>,
+    /// Only frames after this position in the frame set: the last `index` of the previous page.
+    pub after: Option<u32>,
+}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/frames",
+    tag = "jobs",
+    summary = "A job's frames with their state and progress, a page at a time",
+    description = "Frames in the order of the job's frame set, at most `limit` (default 100, at most 1000) \
+        with `index` above `after`. When more follow, the `Link` header holds the next page's URL. A \
+        single-frame job lists its one frame.",
+    params(("id" = u64, Path, description = "Job id"), FramePageQuery),
+    security(("client_token" = [])),
+    responses((status = 200, description = "A page of frames", body = Vec<pathfarm_common::protocol::FrameInfo>, headers(("link" = String, description = "`<URL>; rel=\"next\"` when more frames follow"))), (status = 422, description = "`limit` out of range", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id, `limit` or `after` is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
+async fn job_frames(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    Query(q): Query<FramePageQuery>,
+) -> ApiResult<Response> {
+    let id = parse_id("job", &id)?;
+    let limit = PageQuery { limit: q.limit, after: None }.limit()?;
+    let mut page = state.farm.lock().job(id)?.frames_page(q.after, limit + 1);
+    let more = page.len() > limit;
+    page.truncate(limit);
+    let last = page.last().map(|f| u64::from(f.index));
+    Ok(paged(Json(page), &format!("/jobs/{id}/frames"), limit, more, last))
+}
+
+/// Where a frame's image comes from.
+enum FrameSource {
+    /// Written: `frames/NNNN/` on disk.
+    File(std::path::PathBuf),
+    /// Rendering or being written: resolved from its film.
+    Film,
+}
+
+fn frame_source(state: &AppState, id: &str, frame: &str) -> ApiResult<(JobId, i32, FrameSource)> {
+    let id = parse_id("job", id)?;
+    let n: i32 = frame.parse().map_err(|_| {
+        ApiError::new(StatusCode::BAD_REQUEST, "bad_id", format!("frame {frame:?} is not a frame number"))
+    })?;
+    let farm = state.farm.lock();
+    let job = farm.job(id)?;
+    if job.sequence
+        && let Some(index) = job.frame_index(n)
+        && job.frame_info(index).is_some_and(|f| f.state == pathfarm_common::protocol::FrameState::Done)
+    {
+        return Ok((id, n, FrameSource::File(crate::store::frame_dir(&state.job_dir(id), n))));
+    }
+    Ok((id, n, FrameSource::Film))
+}
+
+async fn frame_image(state: Arc<AppState>, id: String, frame: String, png: bool) -> ApiResult<Response> {
+    let (id, n, source) = frame_source(&state, &id, &frame)?;
+    let bytes = match source {
+        FrameSource::File(dir) => {
+            let path = dir.join(if png { "preview.png" } else { "image.exr" });
+            tokio::fs::read(&path).await.map_err(|e| {
+                if e.kind() == std::io::ErrorKind::NotFound {
+                    ApiError::not_found(format!("frame {n} of job {id} has no image on disk (its files were removed)"))
+                } else {
+                    crate::server::storage_error(&e, "the frame's image")
+                }
+            })?
+        }
+        FrameSource::Film => {
+            let st = state.clone();
+            tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
+                let layers = resolve_film_banded(&st, id, Some(n))?;
+                if png {
+                    layers.encode_png(0.0).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))
+                } else {
+                    layers.encode_exr().map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))
+                }
+            })
+            .await
+            .map_err(|e| ApiError::internal(format!("resolve task: {e}")))??
+        }
+    };
+    let mut resp = ([(header::CONTENT_TYPE, if png { "image/png" } else { "image/x-exr" })], bytes).into_response();
+    resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    Ok(resp)
+}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/frames/{frame}/image.exr",
+    tag = "images",
+    summary = "One frame as multi-layer OpenEXR: the written file once the frame is done, its film so far before",
+    params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
+async fn frame_exr(
+    State(state): State<Arc<AppState>>,
+    Path((id, frame)): Path<(String, String)>,
+) -> ApiResult<Response> {
+    frame_image(state, id, frame, false).await
+}
+
+#[utoipa::path(
+    get,
+    path = "/api/v1/jobs/{id}/frames/{frame}/preview.png",
+    tag = "images",
+    summary = "One frame as an sRGB PNG preview (the dashboard's thumbnails)",
+    params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number")),
+    security(("client_token" = [])),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+)]
+async fn frame_png(
+    State(state): State<Arc<AppState>>,
+    Path((id, frame)): Path<(String, String)>,
+) -> ApiResult<Response> {
+    frame_image(state, id, frame, true).await
 }
 
 // ------------------------------------------------------------------------------------ workers
@@ -1289,6 +1472,79 @@ mod tests {
         assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
     }
 
+    /// Sequences through the API: bad `frames` and `order` are 422 naming them, a sequence that
+    /// cannot fit the film budget in sequence-preview order is 422 saying why, the frame list is
+    /// paged, a frame not started is 409 and a frame not in the set 404, the job's own image 409.
+    #[tokio::test]
+    async fn sequences_are_validated_listed_and_served_per_frame() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        cfg.farm.film_budget_bytes = Some(pathfarm_common::film::Film::bytes_for(16, 16) * 4);
+        let state = Arc::new(AppState::new(cfg).expect("state"));
+        let app = router(state.clone());
+        let scene = upload(&app, pathfarm_common::scene::demo::cornell_demo_glb()).await;
+        let job = |extra: serde_json::Value| {
+            let mut j = serde_json::json!({"scene_id": scene, "width": 16, "height": 16, "spp": 2});
+            for (k, v) in extra.as_object().expect("object") {
+                j[k] = v.clone();
+            }
+            serde_json::to_vec(&j).expect("json")
+        };
+        for (extra, needle) in [
+            (serde_json::json!({"frames": "3-1"}), "backwards"),
+            (serde_json::json!({"frames": "1-100001"}), "more than 100000 frames"),
+            (serde_json::json!({"frames": "a"}), "not a frame number"),
+            (serde_json::json!({"frames": "1-3", "order": "shuffle"}), "order must be"),
+            (serde_json::json!({"frames": "1-5", "order": "sequence_preview"}), "5 frames x"),
+        ] {
+            let (status, v) = send(&app, "POST", "/api/v1/jobs", job(extra.clone())).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{extra}: {v}");
+            assert!(v["error"]["message"].as_str().is_some_and(|m| m.contains(needle)), "{extra}: {v}");
+        }
+        let (status, created) = send(&app, "POST", "/api/v1/jobs", job(serde_json::json!({"frames": "10-14"}))).await;
+        assert_eq!(status, StatusCode::CREATED, "{created}");
+        let id = created["id"].as_u64().expect("id");
+        let (status, _, info) = get(&app, &format!("/api/v1/jobs/{id}")).await;
+        assert_eq!(status, StatusCode::OK);
+        assert_eq!(info["frames"]["total"], 5);
+        assert_eq!(info["frames"]["sequence"], true);
+        assert_eq!(info["frames"]["current"][0]["frame"], 10);
+        let (_, link, page) = get(&app, &format!("/api/v1/jobs/{id}/frames?limit=2")).await;
+        let frames = |v: &serde_json::Value| -> Vec<i64> {
+            v.as_array().expect("array").iter().map(|f| f["frame"].as_i64().expect("frame")).collect()
+        };
+        assert_eq!(frames(&page), vec![10, 11]);
+        assert_eq!(link.as_deref(), Some(format!("</api/v1/jobs/{id}/frames?limit=2&after=1>; rel=\"next\"").as_str()));
+        let (_, link, page) = get(&app, &format!("/api/v1/jobs/{id}/frames?limit=2&after=3")).await;
+        assert_eq!((frames(&page), link), (vec![14], None));
+        assert_eq!(page[0]["state"], "pending");
+        // Frame 10 is rendering (its film exists): served; frame 14 has not started: 409.
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/10/preview.png")).await, StatusCode::OK);
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/14/image.exr")).await,
+            StatusCode::CONFLICT
+        );
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/9/image.exr")).await,
+            StatusCode::NOT_FOUND
+        );
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/x/image.exr")).await,
+            StatusCode::BAD_REQUEST
+        );
+        assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/image.exr")).await, StatusCode::CONFLICT);
+        // A single-frame job serves its one frame under the frame route too.
+        let single = submit(&app, &scene).await;
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{single}/frames/0/preview.png")).await,
+            StatusCode::OK
+        );
+        assert_eq!(
+            status_of(&app, "GET", &format!("/api/v1/jobs/{single}/frames/1/preview.png")).await,
+            StatusCode::NOT_FOUND
+        );
+    }
+
     #[tokio::test]
     async fn list_routes_are_paged() {
         let dir = tempfile::tempdir().expect("tempdir");
@@ -1418,7 +1674,7 @@ mod tests {
         let id = state.farm.lock().submit("s".into(), None, 0, RenderSettings::new(23, 37, 4), 0).expect("submit");
         let expected = {
             let mut farm = state.farm.lock();
-            let film = &mut farm.job_mut(id).expect("job").film;
+            let film = farm.job_mut(id).expect("job").film_mut().expect("film");
             let mut x: u64 = 0x1234_5678_9abc_def1;
             for (i, v) in film.sums.iter_mut().enumerate() {
                 x ^= x << 13;

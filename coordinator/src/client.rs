@@ -2,7 +2,8 @@
 
 use anyhow::{Context, bail};
 use pathfarm_common::protocol::{
-    API, ErrorBody, JobCreated, JobId, JobInfo, JobRequest, JobState, MAX_PAGE_LIMIT, SceneCreated,
+    API, ErrorBody, FrameInfo, FrameState, JobCreated, JobId, JobInfo, JobRequest, JobState, MAX_PAGE_LIMIT,
+    SceneCreated,
 };
 use reqwest::blocking::{Client as Http, RequestBuilder, Response};
 use std::time::Duration;
@@ -91,6 +92,56 @@ impl Client {
         Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/preview.png"))))?.bytes()?.to_vec())
     }
 
+    /// Every frame of a job with its state (the list is paged).
+    pub fn frames(&self, id: JobId) -> anyhow::Result<Vec<FrameInfo>> {
+        let mut all: Vec<FrameInfo> = Vec::new();
+        loop {
+            let mut path = format!("/jobs/{id}/frames?limit={MAX_PAGE_LIMIT}");
+            if let Some(last) = all.last() {
+                path.push_str(&format!("&after={}", last.index));
+            }
+            let page: Vec<FrameInfo> = self.req(self.http.get(self.url(&path)))?.json()?;
+            let done = page.len() < MAX_PAGE_LIMIT;
+            all.extend(page);
+            if done {
+                return Ok(all);
+            }
+        }
+    }
+
+    pub fn frame_exr(&self, id: JobId, frame: i32) -> anyhow::Result<Vec<u8>> {
+        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/frames/{frame}/image.exr"))))?.bytes()?.to_vec())
+    }
+
+    pub fn frame_png(&self, id: JobId, frame: i32) -> anyhow::Result<Vec<u8>> {
+        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/frames/{frame}/preview.png"))))?.bytes()?.to_vec())
+    }
+
+    /// Writes a job's images: a single-frame job's EXR to `out`; every started frame of a
+    /// sequence to `frame_path(out, frame)` (`shot.####.exr` -> `shot.0001.exr`, ...). Frames
+    /// not started are skipped. Returns the files written.
+    pub fn fetch_images(&self, id: JobId, out: &str) -> anyhow::Result<Vec<std::path::PathBuf>> {
+        let write = |path: &std::path::Path, bytes: Vec<u8>| -> anyhow::Result<()> {
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            }
+            std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
+        };
+        let info = self.job(id)?;
+        if !info.frames.sequence {
+            let path = std::path::PathBuf::from(out);
+            write(&path, self.image_exr(id)?)?;
+            return Ok(vec![path]);
+        }
+        let mut written = Vec::new();
+        for f in self.frames(id)?.into_iter().filter(|f| f.state != FrameState::Pending) {
+            let path = std::path::PathBuf::from(pathfarm_common::frames::frame_path(out, f.frame));
+            write(&path, self.frame_exr(id, f.frame)?)?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+
     /// Polls until the job ends, showing a progress bar on a terminal.
     pub fn wait(&self, id: JobId, show_progress: bool) -> anyhow::Result<JobInfo> {
         let bar = indicatif::ProgressBar::new(1000);
@@ -105,8 +156,13 @@ impl Client {
         loop {
             let info = self.job(id)?;
             bar.set_position((info.progress * 1000.0) as u64);
+            let frames = if info.frames.sequence {
+                format!("frames {}/{}  ", info.frames.done, info.frames.total)
+            } else {
+                String::new()
+            };
             bar.set_message(format!(
-                "{} spp {}/{}  {:.2} Msamples/s",
+                "{} {frames}spp {}/{}  {:.2} Msamples/s",
                 info.state.as_str(),
                 info.spp_done,
                 info.settings.spp,

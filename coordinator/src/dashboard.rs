@@ -92,16 +92,18 @@ pub fn noise(film: &Film) -> (f64, f64, f64) {
     (spp / seen as f64, (var / lit as f64).sqrt(), lum / lit as f64)
 }
 
-fn measure(job: &crate::farm::Job) -> ConvergencePoint {
-    let (mean_spp, rmse, mean) = noise(&job.film);
-    ConvergencePoint {
-        passes_done: job.passes_done,
-        spp_done: job.plan.passes.get(job.passes_done as usize).map_or(job.settings.spp, |p| p.s0),
+/// A point of a single-frame job (a sequence's frames have no convergence curve).
+fn measure(job: &crate::farm::Job) -> Option<ConvergencePoint> {
+    let (mean_spp, rmse, mean) = noise(job.film()?);
+    let passes_done = job.passes_done();
+    Some(ConvergencePoint {
+        passes_done,
+        spp_done: job.plan.passes.get(passes_done as usize).map_or(job.settings.spp, |p| p.s0),
         mean_spp,
         rmse,
         mean_luminance: mean,
         relative: if mean > 0.0 { rmse / mean } else { 0.0 },
-    }
+    })
 }
 
 impl History {
@@ -111,7 +113,7 @@ impl History {
         let point = {
             let farm = state.farm.lock();
             match farm.job(id) {
-                Ok(job) if job.passes_done > 0 && last.is_none_or(|l| job.passes_done > l) => Some(measure(job)),
+                Ok(job) if job.passes_done() > 0 && last.is_none_or(|l| job.passes_done() > l) => measure(job),
                 Ok(_) => None,
                 Err(_) => {
                     drop(farm);

@@ -51,6 +51,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     };
     settings.tile_size = 32;
     let job = JobRequest {
+        frames: None,
+        order: Default::default(),
         scene_id: scene.scene_id,
         name: Some("cornell demo".into()),
         priority: 0,

@@ -11,6 +11,7 @@
 //! | `job_deleted` | `{"id": N}`                                             |
 //! | `workers`     | `[WorkerInfo]`, on worker changes and every 2 s         |
 //! | `image`       | `{"id": N}`: the job's preview and EXR were rewritten   |
+//! | `frame`       | `{"id": N, "frame": F}`: frame F of sequence N is written (every one, in order) |
 //! | `resync`      | `{}`: events were dropped; fetch the lists again        |
 //!
 //! A comment line keeps idle connections open. Browsers' `EventSource` cannot send headers, so
@@ -73,11 +74,25 @@ fn snapshot(state: &AppState) -> Snapshot {
     Snapshot { jobs: farm.jobs().map(|j| j.info(now)).collect(), workers: farm.workers(now) }
 }
 
+/// Data of `frame` messages.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct FrameWritten {
+    pub id: u64,
+    pub frame: i32,
+}
+
+/// Frame messages one connection holds at most; beyond, it is told to `resync`.
+const MAX_PENDING_FRAMES: usize = 4096;
+
 /// What one connection still has to say.
 #[derive(Default)]
 struct Pending {
     jobs: BTreeSet<JobId>,
     images: BTreeSet<JobId>,
+    /// Frames written, in order (not coalesced: each is news).
+    frames: Vec<FrameWritten>,
+    /// Frame messages were dropped: the client must fetch the lists again.
+    resync: bool,
     workers: bool,
 }
 
@@ -99,8 +114,14 @@ impl Coalescer {
         }
     }
 
-    fn note(&mut self, kind: &str, id: u64) {
+    fn note(&mut self, kind: &str, id: u64, frame: Option<i32>) {
         match kind {
+            "frame" => match frame {
+                Some(frame) if self.pending.frames.len() < MAX_PENDING_FRAMES => {
+                    self.pending.frames.push(FrameWritten { id, frame });
+                }
+                _ => self.pending.resync = true,
+            },
             "job" => {
                 self.pending.jobs.insert(id);
             }
@@ -137,6 +158,12 @@ impl Coalescer {
             self.pending.jobs.remove(&id);
             self.last_job.insert(id, now);
         }
+        if std::mem::take(&mut self.pending.resync) {
+            out.push(SseEvent::default().event("resync").data("{}"));
+        }
+        for f in std::mem::take(&mut self.pending.frames) {
+            out.push(message("frame", &f));
+        }
         for id in images {
             out.push(message("image", &IdOnly { id }));
             self.pending.images.remove(&id);
@@ -159,7 +186,7 @@ async fn pump(state: Arc<AppState>, mut rx: broadcast::Receiver<crate::server::E
         tokio::select! {
             () = tx.closed() => return,
             r = rx.recv() => match r {
-                Ok(ev) => c.note(ev.kind, ev.id),
+                Ok(ev) => c.note(ev.kind, ev.id, ev.frame),
                 Err(broadcast::error::RecvError::Lagged(_)) => {
                     if tx.send(SseEvent::default().event("resync").data("{}")).await.is_err() {
                         return;
@@ -275,6 +302,8 @@ mod tests {
                     state.publish("image", 7);
                     tokio::task::yield_now().await;
                 }
+                state.publish_frame(7, 12);
+                state.publish_frame(7, 13);
             })
         };
         let text = read_for(body, Duration::from_millis(700)).await;
@@ -285,5 +314,9 @@ mod tests {
         let images = text.matches("event: image\ndata: {\"id\":7}").count();
         assert!((1..=4).contains(&jobs), "{jobs} job messages:\n{text}");
         assert!((1..=4).contains(&images), "{images} image messages:\n{text}");
+        // Frame messages are not coalesced: both, in order.
+        let f12 = text.find("event: frame\ndata: {\"id\":7,\"frame\":12}").expect("frame 12");
+        let f13 = text.find("event: frame\ndata: {\"id\":7,\"frame\":13}").expect("frame 13");
+        assert!(f12 < f13, "{text}");
     }
 }

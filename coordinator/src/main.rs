@@ -103,7 +103,7 @@ struct ServeArgs {
     /// The private key (PEM) of --tls-cert.
     #[arg(long, env = "PATHFARM_TLS_KEY", requires = "tls_cert")]
     tls_key: Option<PathBuf>,
-    /// Refuse jobs with more work units (tiles x passes) than this.
+    /// Refuse jobs with more work units (frames x tiles x passes) than this.
     #[arg(long, default_value_t = 1 << 22)]
     max_units: u64,
     /// Memory for the films of all jobs held (queued, running and finished until deleted), in
@@ -111,6 +111,11 @@ struct ServeArgs {
     /// refused with 422. Checkpoints copy one film at a time on top.
     #[arg(long, default_value_t = 16384)]
     film_memory_mb: u64,
+    /// Frames of one sequence (frame order) holding a film at once: the frames rendering plus
+    /// those being written. The next frame starts when the frames in progress have no unit
+    /// left to hand out, if it fits this and --film-memory-mb.
+    #[arg(long, default_value_t = 2)]
+    max_open_frames: usize,
     /// A connection must send a complete request head within this long of being opened (or, on
     /// a kept-alive connection, of the head's first byte); otherwise it is closed.
     #[arg(long, default_value_t = 10_000)]
@@ -182,6 +187,7 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.limits.max_units = a.max_units;
     cfg.tls = a.tls_cert.clone().zip(a.tls_key.clone());
     cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
+    cfg.farm.max_open_frames = a.max_open_frames.max(1);
     cfg.farm.worker_prune_ms = (a.prune_workers_after_ms > 0).then_some(a.prune_workers_after_ms);
     cfg.register_per_minute = a.register_per_minute;
     cfg.register_burst = a.register_burst;

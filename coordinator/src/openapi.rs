@@ -5,15 +5,16 @@
 //! fails when a route registered in the router is missing here.
 
 use crate::dashboard::{Convergence, ConvergencePoint};
-use crate::events::{IdOnly, Snapshot};
+use crate::events::{FrameWritten, IdOnly, Snapshot};
 use axum::http::header;
 use axum::response::IntoResponse;
 use pathfarm_common::job::{
     IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings, SamplerKind, TileRect, UnitKey,
 };
 use pathfarm_common::protocol::{
-    ErrorBody, ErrorDetail, JobCreated, JobInfo, JobState, LeaseGrant, Notify, NotifyEvent, RegisterRequest,
-    Registered, ReleaseRequest, ResultAccepted, SceneCreated, WorkerInfo, WorkerState,
+    ErrorBody, ErrorDetail, FrameInfo, FrameOrder, FrameState, FramesSummary, JobCreated, JobInfo, JobState,
+    LeaseGrant, Notify, NotifyEvent, RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated,
+    WorkerInfo, WorkerState,
 };
 use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
@@ -77,6 +78,15 @@ pub struct JobRequestBody {
     pub shutter: Option<f32>,
     /// glTF animations that play (by name); absent = all.
     pub animations: Option<Vec<String>>,
+    /// A sequence: the frames to render, `"1-100"`, `"1-100x5"` (every 5th) or `"1,5,10-20"`
+    /// (at most 100,000; frames x tiles x passes count against the unit limit). Each frame is
+    /// rendered with `frame` set to it and written to `frames/NNNN/image.exr` and
+    /// `preview.png`; the job's own `image.exr` is then 409. Absent: the one frame `frame`.
+    pub frames: Option<String>,
+    /// `frame` (default): frame by frame, memory bounded by the frames in progress;
+    /// `sequence_preview`: every frame's first pass before any frame's second (every frame's
+    /// film at once: refused when they do not fit `--film-memory-mb`).
+    pub order: Option<pathfarm_common::protocol::FrameOrder>,
 }
 
 /// `PUT /jobs/{id}/priority` body.
@@ -287,6 +297,9 @@ fn open_tuples(v: &mut serde_json::Value) {
         crate::api::job_tiles,
         crate::api::job_exr,
         crate::api::job_png,
+        crate::api::job_frames,
+        crate::api::frame_exr,
+        crate::api::frame_png,
         crate::api::list_workers,
         crate::api::register,
         crate::api::heartbeat,
@@ -307,7 +320,7 @@ fn open_tuples(v: &mut serde_json::Value) {
         ErrorBody, ErrorDetail, SceneCreated, JobState, JobCreated, JobInfo, WorkerState, WorkerInfo,
         RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings,
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
-        JobRequestBody, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
+        JobRequestBody, FrameOrder, FrameState, FrameInfo, FramesSummary, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, FrameWritten, Convergence, ConvergencePoint,
     )),
     modifiers(&SecuritySchemes, &BinaryBodies),
     tags(

@@ -5,7 +5,7 @@ use crate::api::ApiError;
 use crate::farm::{Farm, FarmConfig};
 use crate::store::{Store, read_checkpoint, write_checkpoint};
 use axum::http::StatusCode;
-use pathfarm_common::film::{ImageLayers, write_atomic};
+use pathfarm_common::film::{Film, ImageLayers, write_atomic};
 use pathfarm_common::protocol::{JobId, JobState, SceneCreated};
 use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
 use pathfarm_common::scene::{LoadOptions, load_scene};
@@ -336,6 +336,9 @@ impl SceneStore {
 pub struct Event {
     pub kind: &'static str,
     pub id: u64,
+    /// For `frame` events: the frame number that was written.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frame: Option<i32>,
 }
 
 /// Latency histogram buckets in seconds (Prometheus `le`).
@@ -431,10 +434,13 @@ impl AppState {
         let now = now_ms();
         for rec in store.jobs()? {
             let id = rec.id;
-            let cp = read_checkpoint(&store.checkpoint_path(id));
-            if let Err(e) = farm.restore(rec.clone(), cp, now) {
-                tracing::error!(job = id, "{e}; restarting the job from zero");
-                farm.restore(rec, None, now).map_err(anyhow::Error::msg)?;
+            let (done, checkpoints) = match &rec.frames {
+                Some(frames) => store.sequence_state(id, frames),
+                None => (Vec::new(), read_checkpoint(&store.checkpoint_path(id)).into_iter().collect()),
+            };
+            if let Err(e) = farm.restore(rec.clone(), checkpoints, &done, now) {
+                tracing::error!(job = id, "{e}; restarting the job's unwritten frames from zero");
+                farm.restore(rec, Vec::new(), &done, now).map_err(anyhow::Error::msg)?;
             }
         }
         tracing::info!(epoch, jobs = farm.jobs().count(), "state restored");
@@ -501,7 +507,13 @@ impl AppState {
     }
 
     pub fn publish(&self, kind: &'static str, id: u64) {
-        let _ = self.events.send(Event { kind, id });
+        let _ = self.events.send(Event { kind, id, frame: None });
+    }
+
+    /// Frame `frame` of job `id` is written (and the job's progress changed).
+    pub fn publish_frame(&self, id: JobId, frame: i32) {
+        let _ = self.events.send(Event { kind: "frame", id, frame: Some(frame) });
+        self.publish("job", id);
     }
 
     pub fn job_dir(&self, id: JobId) -> PathBuf {
@@ -646,25 +658,111 @@ pub fn collect_scenes(state: &AppState, stored_before: u64) -> Vec<String> {
     removed
 }
 
+/// A sequence's merged frame: job, index in its frame set, frame number, film.
+type FrameToWrite = (JobId, usize, i32, Arc<Film>);
+
+type FrameWrite = (PathBuf, Arc<Film>, tokio::sync::oneshot::Sender<anyhow::Result<()>>);
+
+/// One thread that resolves and encodes sequence frames, one after the other. A frame's
+/// working set (float layers, EXR and PNG buffers: ~100 MiB at 1080p) is then reused frame
+/// after frame in one allocator arena; spread over the blocking pool's threads, glibc kept a
+/// copy per thread and a 1080p sequence's RSS climbed from 1 to 4.5 GiB over 40 frames.
+struct FrameWriter {
+    tx: std::sync::mpsc::Sender<FrameWrite>,
+}
+
+impl FrameWriter {
+    fn start() -> std::io::Result<Self> {
+        let (tx, rx) = std::sync::mpsc::channel::<FrameWrite>();
+        std::thread::Builder::new().name("frame-writer".into()).spawn(move || {
+            for (dir, film, reply) in rx {
+                let r = (|| -> anyhow::Result<()> {
+                    write_outputs(&dir, &film.resolve())?;
+                    // The frame is written: its checkpoint is of no more use.
+                    match std::fs::remove_file(dir.join("checkpoint.bin")) {
+                        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e.into()),
+                        _ => Ok(()),
+                    }
+                })();
+                drop(film);
+                let _ = reply.send(r);
+            }
+        })?;
+        Ok(Self { tx })
+    }
+
+    /// Writes `dir/image.exr` and `preview.png` of `film`; `Err` also when the thread is gone.
+    async fn write(&self, dir: PathBuf, film: Arc<Film>) -> Result<anyhow::Result<()>, String> {
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        self.tx.send((dir, film, reply)).map_err(|_| "the frame writer thread is gone".to_string())?;
+        answer.await.map_err(|_| "the frame writer thread panicked".to_string())
+    }
+}
+
 /// Writes each job's EXR and PNG after a pass completes, at most every `output_interval` per
 /// running job, and always when the job ends.
 async fn output_loop(state: Arc<AppState>) {
     let mut last: HashMap<JobId, Instant> = HashMap::new();
+    let writer = match FrameWriter::start() {
+        Ok(w) => w,
+        Err(e) => {
+            tracing::error!("cannot start the frame writer thread: {e}");
+            return;
+        }
+    };
     loop {
         let _ = tokio::time::timeout(Duration::from_millis(500), state.output_ready.notified()).await;
-        let due: Vec<(JobId, JobState)> = {
+        let (due, frames): (Vec<(JobId, JobState)>, Vec<FrameToWrite>) = {
             let mut farm = state.farm.lock();
-            farm.jobs_mut()
+            let mut frames = Vec::new();
+            let due = farm
+                .jobs_mut()
                 .filter(|j| j.output_dirty)
                 .filter(|j| {
-                    j.state.is_finished() || last.get(&j.id).is_none_or(|t| t.elapsed() >= state.config.output_interval)
+                    j.sequence
+                        || j.state.is_finished()
+                        || last.get(&j.id).is_none_or(|t| t.elapsed() >= state.config.output_interval)
                 })
-                .map(|j| {
+                .filter_map(|j| {
                     j.output_dirty = false;
-                    (j.id, j.state)
+                    if j.sequence {
+                        frames.extend(j.frames_to_write().into_iter().map(|(i, f, film)| (j.id, i, f, film)));
+                        None
+                    } else {
+                        Some((j.id, j.state))
+                    }
                 })
-                .collect()
+                .collect();
+            (due, frames)
         };
+        // A sequence's merged frames: written once, then their films are dropped.
+        for (id, index, frame, film) in frames {
+            let dir = crate::store::frame_dir(&state.job_dir(id), frame);
+            match writer.write(dir, film).await {
+                Ok(Ok(())) => {
+                    let (written, exists) = {
+                        let mut farm = state.farm.lock();
+                        (farm.frame_written(id, index).is_some(), farm.job(id).is_ok())
+                    };
+                    if written {
+                        tracing::info!(job = id, frame, "frame written");
+                        state.publish_frame(id, frame);
+                        // Its film is freed: the next frame may start now.
+                        state.work_ready.notify_waiters();
+                    } else if !exists {
+                        // Deleted while its frame was being written: no files may remain.
+                        state.delete_job_files(id);
+                    }
+                }
+                Ok(Err(e)) => {
+                    tracing::error!(job = id, frame, "writing the frame's images failed: {e:#}; retrying");
+                    if let Ok(j) = state.farm.lock().job_mut(id) {
+                        j.output_dirty = true;
+                    }
+                }
+                Err(e) => tracing::error!(job = id, frame, "frame writer panicked: {e}"),
+            }
+        }
         for (id, job_state) in due {
             last.insert(id, Instant::now());
             let dir = state.job_dir(id);
@@ -709,36 +807,57 @@ async fn checkpoint_loop(state: Arc<AppState>) {
         };
         for id in due {
             let t0 = Instant::now();
-            // One job's snapshot at a time: the lock is held for one film copy, not all of them.
-            let snapshot = {
-                let farm = state.farm.lock();
-                farm.job(id).ok().map(|j| ((j.units_merged, j.state, j.priority), j.record(now_ms()), j.checkpoint()))
-            };
-            let Some((key, rec, cp)) = snapshot else { continue };
-            let st = state.clone();
-            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-                let path = st.store().checkpoint_path(id);
-                write_checkpoint(&path, &cp)?;
-                // Only a job that still exists gets its row written back: a DELETE that ran
-                // during the snapshot or the write must not be undone (it came back after a
-                // restart). Lock order: store, then farm (as in persist_job).
-                let store = st.store();
-                if st.farm.lock().job(id).is_ok() {
-                    store.put_job(&rec)?;
-                } else {
-                    drop(store);
-                    let _ = std::fs::remove_dir_all(st.job_dir(id));
+            // One film copy at a time: the lock is held for one copy, and a sequence's frames
+            // in progress that merged units since their last checkpoint are copied and written
+            // one after the other, each to its own file (the job's row with each).
+            let mut outcome = None;
+            loop {
+                let snapshot = {
+                    let mut farm = state.farm.lock();
+                    farm.job_mut(id).ok().map(|j| {
+                        let key = (j.units_merged, j.state, j.priority);
+                        (key, j.record(now_ms()), j.sequence, j.take_checkpoints(false, 1))
+                    })
+                };
+                let Some((key, rec, sequence, cps)) = snapshot else { break };
+                let more = sequence && !cps.is_empty();
+                let st = state.clone();
+                let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+                    for cp in &cps {
+                        let path = if sequence {
+                            st.store().frame_checkpoint_path(id, cp.frame)
+                        } else {
+                            st.store().checkpoint_path(id)
+                        };
+                        write_checkpoint(&path, cp)?;
+                    }
+                    // Only a job that still exists gets its row written back: a DELETE that ran
+                    // during the snapshot or the write must not be undone (it came back after a
+                    // restart). Lock order: store, then farm (as in persist_job).
+                    let store = st.store();
+                    if st.farm.lock().job(id).is_ok() {
+                        store.put_job(&rec)?;
+                    } else {
+                        drop(store);
+                        let _ = std::fs::remove_dir_all(st.job_dir(id));
+                    }
+                    Ok(())
+                })
+                .await;
+                let ok = matches!(r, Ok(Ok(())));
+                outcome = Some((key, r));
+                if !ok || !more {
+                    break;
                 }
-                Ok(())
-            })
-            .await;
-            match r {
-                Ok(Ok(())) => {
+            }
+            match outcome {
+                Some((key, Ok(Ok(())))) => {
                     let took = t0.elapsed();
                     seen.insert(id, (key, Instant::now() + took * 9));
                 }
-                Ok(Err(e)) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
-                Err(e) => tracing::error!(job = id, "checkpoint task failed: {e}"),
+                Some((_, Ok(Err(e)))) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
+                Some((_, Err(e))) => tracing::error!(job = id, "checkpoint task failed: {e}"),
+                None => {}
             }
         }
     }

@@ -9,8 +9,9 @@
 use crate::farm::{Checkpoint, JobRecord};
 use anyhow::{Context, bail};
 use pathfarm_common::film::{Film, SplatBuffer, ch, write_atomic};
+use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::RenderSettings;
-use pathfarm_common::protocol::{JobId, JobState, Notify, bytes_to_fixed, push_section, read_section};
+use pathfarm_common::protocol::{FrameOrder, JobId, JobState, Notify, bytes_to_fixed, push_section, read_section};
 use rusqlite::{Connection, OptionalExtension, params};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -76,6 +77,13 @@ impl Store {
         if conn.prepare("SELECT notify FROM jobs LIMIT 0").is_err() {
             conn.execute_batch("ALTER TABLE jobs ADD COLUMN notify TEXT")?;
         }
+        // ... and those before sequences lack `frames` (the frame set, NULL: one frame) and
+        // `frame_order`.
+        if conn.prepare("SELECT frames FROM jobs LIMIT 0").is_err() {
+            conn.execute_batch(
+                "ALTER TABLE jobs ADD COLUMN frames TEXT; ALTER TABLE jobs ADD COLUMN frame_order TEXT NOT NULL DEFAULT 'frame'",
+            )?;
+        }
         let jobs_dir = data_dir.join("jobs");
         std::fs::create_dir_all(&jobs_dir)?;
         Ok(Self { conn, jobs_dir })
@@ -95,8 +103,8 @@ impl Store {
 
     pub fn put_job(&self, r: &JobRecord) -> anyhow::Result<()> {
         self.conn.execute(
-            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires, notify)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)
+            "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires, notify, frames, frame_order)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)
              ON CONFLICT(id) DO UPDATE SET name = ?2, priority = ?4, state = ?6, finished_ms = ?8, error = ?9, run_ms = ?10",
             params![
                 r.id as i64,
@@ -111,6 +119,8 @@ impl Store {
                 r.run_ms as i64,
                 serde_json::to_string(&r.requires)?,
                 r.notify.as_ref().map(serde_json::to_string).transpose()?,
+                r.frames.as_ref().map(|f| f.spec().to_string()),
+                r.order.as_str(),
             ],
         )?;
         Ok(())
@@ -143,7 +153,7 @@ impl Store {
 
     pub fn jobs(&self) -> anyhow::Result<Vec<JobRecord>> {
         let mut stmt = self.conn.prepare(
-            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires, notify FROM jobs ORDER BY id",
+            "SELECT id, name, scene_id, priority, settings, state, created_ms, finished_ms, error, run_ms, requires, notify, frames, frame_order FROM jobs ORDER BY id",
         )?;
         let rows = stmt.query_map([], |r| {
             Ok((
@@ -159,20 +169,36 @@ impl Store {
                 r.get::<_, i64>(9)?,
                 r.get::<_, String>(10)?,
                 r.get::<_, Option<String>>(11)?,
+                r.get::<_, Option<String>>(12)?,
+                r.get::<_, String>(13)?,
             ))
         })?;
         let mut out = Vec::new();
         for (i, row) in rows.enumerate() {
             // One damaged row (a state this version does not know, settings that do not parse,
             // a column of the wrong type) must not stop the coordinator: skip it, loudly.
-            let (id, name, scene_id, priority, settings, state, created, finished, error, run_ms, requires, notify) =
-                match row {
-                    Ok(r) => r,
-                    Err(e) => {
-                        tracing::warn!(row = i, "skipping an unreadable job row in the database: {e}");
-                        continue;
-                    }
-                };
+            let (
+                id,
+                name,
+                scene_id,
+                priority,
+                settings,
+                state,
+                created,
+                finished,
+                error,
+                run_ms,
+                requires,
+                notify,
+                frames,
+                order,
+            ) = match row {
+                Ok(r) => r,
+                Err(e) => {
+                    tracing::warn!(row = i, "skipping an unreadable job row in the database: {e}");
+                    continue;
+                }
+            };
             let parsed = serde_json::from_str::<RenderSettings>(&settings)
                 .map_err(|e| anyhow::anyhow!("settings do not parse: {e}"))
                 .and_then(|settings| {
@@ -182,9 +208,18 @@ impl Store {
                         .map(|n| serde_json::from_str::<Notify>(&n))
                         .transpose()
                         .map_err(|e| anyhow::anyhow!("notify does not parse: {e}"))?;
-                    Ok((settings, state_from_str(&state)?, requires, notify))
+                    let frames = frames
+                        .map(|f| FrameSet::parse(&f))
+                        .transpose()
+                        .map_err(|e| anyhow::anyhow!("frames do not parse: {e}"))?;
+                    let order = match order.as_str() {
+                        "frame" => FrameOrder::Frame,
+                        "sequence_preview" => FrameOrder::SequencePreview,
+                        other => bail!("unknown frame order {other:?}"),
+                    };
+                    Ok((settings, state_from_str(&state)?, requires, notify, frames, order))
                 });
-            let (settings, state, requires, notify) = match parsed {
+            let (settings, state, requires, notify, frames, order) = match parsed {
                 Ok(p) => p,
                 Err(e) => {
                     tracing::warn!(job = id, "skipping job {id} from the database: {e:#}");
@@ -199,6 +234,8 @@ impl Store {
                 settings,
                 requires,
                 notify,
+                frames,
+                order,
                 state,
                 created_ms: created as u64,
                 finished_ms: finished.map(|v| v as u64),
@@ -234,12 +271,52 @@ impl Store {
     pub fn checkpoint_path(&self, id: JobId) -> PathBuf {
         self.jobs_dir.join(id.to_string()).join("checkpoint.bin")
     }
+
+    /// Where a sequence's checkpoint of `frame` lives (beside its images).
+    pub fn frame_checkpoint_path(&self, id: JobId, frame: i32) -> PathBuf {
+        frame_dir(&self.jobs_dir.join(id.to_string()), frame).join("checkpoint.bin")
+    }
+
+    /// A sequence's frames on disk: the indices (in `frames`) of frames whose `image.exr` is
+    /// written, and the checkpoints of the others. Reads the job's `frames/` folder once.
+    pub fn sequence_state(&self, id: JobId, frames: &FrameSet) -> (Vec<usize>, Vec<Checkpoint>) {
+        let dir = self.jobs_dir.join(id.to_string()).join("frames");
+        let index: std::collections::HashMap<i32, usize> =
+            frames.frames().iter().enumerate().map(|(i, &f)| (f, i)).collect();
+        let (mut done, mut checkpoints) = (Vec::new(), Vec::new());
+        let Ok(entries) = std::fs::read_dir(&dir) else { return (done, checkpoints) };
+        for entry in entries.flatten() {
+            let Some(frame) = entry.file_name().to_str().and_then(|n| n.parse::<i32>().ok()) else { continue };
+            let Some(&i) = index.get(&frame) else { continue };
+            let path = entry.path();
+            if path.join("image.exr").is_file() {
+                done.push(i);
+                // A checkpoint written after the frame's images is stale.
+                let _ = std::fs::remove_file(path.join("checkpoint.bin"));
+            } else if let Some(cp) = read_checkpoint(&path.join("checkpoint.bin")) {
+                checkpoints.push(cp);
+            }
+        }
+        done.sort_unstable();
+        (done, checkpoints)
+    }
 }
+
+/// The folder of frame `frame` of a sequence job whose folder is `job_dir`: `frames/NNNN`
+/// (`frames/-007` for frame -7).
+pub fn frame_dir(job_dir: &Path, frame: i32) -> PathBuf {
+    job_dir.join(pathfarm_common::frames::frame_path("frames/####", frame))
+}
+
+impl Store {}
 
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct CheckpointHeader {
     job_id: JobId,
+    /// The frame number (absent in checkpoints of versions before sequences: frame 0).
+    #[serde(default)]
+    frame: i32,
     width: u32,
     height: u32,
     splat_spp: u32,
@@ -251,6 +328,7 @@ struct CheckpointHeader {
 pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
     let header = CheckpointHeader {
         job_id: cp.job_id,
+        frame: cp.frame,
         width: cp.film.width,
         height: cp.film.height,
         splat_spp: cp.film.splat_spp,
@@ -301,7 +379,7 @@ pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     if !rest.is_empty() {
         bail!("checkpoint has {} trailing bytes", rest.len());
     }
-    Ok(Checkpoint { job_id: h.job_id, next_pass: h.next_pass, film, pending_splats })
+    Ok(Checkpoint { job_id: h.job_id, frame: h.frame, next_pass: h.next_pass, film, pending_splats })
 }
 
 /// Writes a checkpoint atomically.
@@ -341,7 +419,7 @@ mod tests {
         let mut s = SplatBuffer::new(5, 3);
         s.sums[1] = 9;
         pending.insert(3, s);
-        let cp = Checkpoint { job_id: 4, next_pass: vec![1, 2], film, pending_splats: pending };
+        let cp = Checkpoint { job_id: 4, frame: -7, next_pass: vec![1, 2], film, pending_splats: pending };
         let bytes = encode_checkpoint(&cp);
         assert_eq!(decode_checkpoint(&bytes).expect("decode"), cp);
         let mut bad = bytes.clone();
@@ -364,6 +442,8 @@ mod tests {
                 url: "https://example.com/hook?job=3".into(),
                 events: vec![NotifyEvent::Completed, NotifyEvent::Failed],
             }),
+            frames: Some(FrameSet::parse("1-10x3,40").expect("frames")),
+            order: FrameOrder::SequencePreview,
             state: JobState::Running,
             created_ms: 10,
             finished_ms: None,
@@ -386,6 +466,7 @@ mod tests {
         assert_eq!(jobs[0].settings, rec.settings);
         assert_eq!(jobs[0].requires, rec.requires);
         assert_eq!(jobs[0].notify, rec.notify);
+        assert_eq!((&jobs[0].frames, jobs[0].order), (&rec.frames, rec.order));
     }
 
     #[test]
@@ -421,6 +502,8 @@ mod tests {
             settings: RenderSettings::new(8, 8, 4),
             requires: vec!["highmem".into()],
             notify: None,
+            frames: None,
+            order: FrameOrder::Frame,
             state: JobState::Queued,
             created_ms: 10,
             finished_ms: None,

@@ -1,16 +1,18 @@
 // Headless Chromium check of the pathfarm dashboard.
 //
-//   node tests/browser/dashboard.mjs URL JOBID [SCREENSHOT]
+//   node tests/browser/dashboard.mjs URL JOBID [SCREENSHOT] [SEQUENCE_JOBID]
 //
 // With $PATHFARM_TOKEN set, the coordinator is expected to require that client token: the page
 // must ask for it (a dialog), keep it in localStorage and follow the events with `?token=`.
 // Opens URL (the dashboard), waits for job JOBID's row, opens its panel and prints READY; the
 // caller then starts a worker. The job must reach `completed` through live updates (the page
-// is never reloaded), and its preview image must load. Saves a full-page screenshot.
+// is never reloaded), and its preview image must load. Saves a full-page screenshot. With
+// SEQUENCE_JOBID (a 3-frame job rendered after JOBID): its panel shows a frame strip of three
+// frames, each written with a thumbnail, and choosing frame 2 shows frame 2's preview.
 // Chromium: $PATHFARM_CHROMIUM or /usr/bin/chromium.
 import { chromium } from 'playwright-core';
 
-const [url, jobArg, shot = 'target/dashboard.png'] = process.argv.slice(2);
+const [url, jobArg, shot = 'target/dashboard.png', seqArg] = process.argv.slice(2);
 if (!url || !jobArg) {
   console.error('usage: node dashboard.mjs URL JOBID [SCREENSHOT]');
   process.exit(2);
@@ -123,6 +125,29 @@ try {
   await page.screenshot({ path: shot, fullPage: true });
   console.log(`screenshot ${shot}`);
   console.log(`states: ${seen.join(' -> ')}`);
+  if (seqArg) {
+    // The sequence's panel: a strip of three frames that become written, each with a thumbnail.
+    const seq = Number(seqArg);
+    await page.locator(`#jobs tbody tr[data-job-id="${seq}"]`).click();
+    await page.locator('#frame-strip:not([hidden])').waitFor();
+    await page.waitForFunction(() => {
+      const frames = [...document.querySelectorAll('#frame-strip button.frame')];
+      return frames.length === 3 && frames.every((f) => {
+        const img = f.querySelector('img');
+        return f.dataset.state === 'done' && img && img.complete && img.naturalWidth > 0;
+      });
+    });
+    const labels = await page.evaluate(() => [...document.querySelectorAll('#frame-strip button.frame')].map((f) => f.dataset.frame).join(','));
+    if (labels !== '1,2,3') fail(`frame strip shows frames ${labels}, expected 1,2,3`);
+    console.log('frame strip: 3 frames written, thumbnails loaded');
+    await page.click('#frame-strip button.frame[data-frame="2"]');
+    await page.waitForFunction(() => /frame 2 · 48×32/.test(document.querySelector('#preview-cap').textContent));
+    if ((await page.locator('#frame-strip button.frame.chosen').getAttribute('data-frame')) !== '2') fail('frame 2 is not marked chosen');
+    console.log('frame 2 chosen, its preview shown');
+    await page.screenshot({ path: shot.replace(/\.png$/, '-sequence.png'), fullPage: true });
+    await page.locator(`#jobs tbody tr[data-job-id="${job}"]`).click();
+    await page.locator('#frame-strip').waitFor({ state: 'hidden' });
+  }
   // Delete the finished job from the page (confirming the dialog): the row goes, the API 404s.
   page.once('dialog', (d) => d.accept());
   await page.click(`button[data-act="delete"][data-id="${job}"]`);

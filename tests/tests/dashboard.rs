@@ -1,6 +1,7 @@
 //! The web dashboard in a real browser: a coordinator process, a job, headless Chromium driven
 //! by `tests/browser/dashboard.mjs` (playwright-core), then a worker process. The page must show
-//! the job going to `completed` through live updates (no reload) and load its preview image.
+//! the job going to `completed` through live updates (no reload) and load its preview image,
+//! then a 3-frame sequence's frame strip with a thumbnail per frame and the chosen frame's preview.
 //!
 //! Needs `node`, `tests/browser/node_modules` (`npm ci` there) and Chromium (`/usr/bin/chromium`
 //! or `$PATHFARM_CHROMIUM`); `scripts/test` installs them. Where they were missing at build time
@@ -134,6 +135,19 @@ fn run_scenario(tokens: Option<(&str, &str)>, screenshot: &str) {
         .and_then(|r| r.json())
         .expect("create the job");
     let job_id = job["id"].as_u64().expect("job id");
+    // A sequence of three small frames, rendered after the job above: its panel shows the frame
+    // strip with a thumbnail per written frame.
+    let sequence: serde_json::Value = http
+        .post(format!("{url}/api/v1/jobs"))
+        .json(&serde_json::json!({
+            "scene_id": scene["scene_id"], "name": "sequence (browser test)", "frames": "1-3",
+            "width": 48, "height": 32, "spp": 4, "tile_size": 16,
+        }))
+        .send()
+        .and_then(|r| r.error_for_status())
+        .and_then(|r| r.json())
+        .expect("create the sequence job");
+    let sequence_id = sequence["id"].as_u64().expect("sequence job id");
 
     let shot = workspace_root().join("target").join(screenshot);
     let _ = std::fs::remove_file(&shot);
@@ -147,6 +161,7 @@ fn run_scenario(tokens: Option<(&str, &str)>, screenshot: &str) {
         .arg(&url)
         .arg(job_id.to_string())
         .arg(&shot)
+        .arg(sequence_id.to_string())
         .env("PATHFARM_CHROMIUM", &chromium)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())

@@ -28,6 +28,8 @@ fn settings(width: u32, height: u32, spp: u32, tile: u32) -> RenderSettings {
 fn submit(client: &Client, scene: &[u8], s: &RenderSettings, priority: i32, name: &str) -> JobId {
     let created = client.upload_scene(scene.to_vec()).expect("upload");
     let req = JobRequest {
+        frames: None,
+        order: Default::default(),
         scene_id: created.scene_id,
         name: Some(name.into()),
         priority,
@@ -98,6 +100,8 @@ fn a_job_requiring_a_tag_is_rendered_only_by_workers_having_it() {
     let s = settings(48, 32, 8, 16);
     let created = client.upload_scene(scene.clone()).expect("upload");
     let req = JobRequest {
+        frames: None,
+        order: Default::default(),
         scene_id: created.scene_id,
         name: Some("highmem".into()),
         priority: 0,

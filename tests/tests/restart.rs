@@ -33,6 +33,8 @@ fn a_job_survives_repeated_coordinator_kills() {
     let created = client.upload_scene(scene.clone()).expect("upload");
     let id = client
         .submit(&JobRequest {
+            frames: None,
+            order: Default::default(),
             scene_id: created.scene_id,
             name: Some("crash".into()),
             priority: 0,
@@ -94,6 +96,8 @@ fn deleted_jobs_stay_deleted_and_their_ids_are_not_reused() {
     let client = Client::new(&coord.url, None).expect("client");
     let created = client.upload_scene(cornell_demo_glb()).expect("upload");
     let request = |name: &str| JobRequest {
+        frames: None,
+        order: Default::default(),
         scene_id: created.scene_id.clone(),
         name: Some(name.into()),
         priority: 0,
@@ -123,4 +127,84 @@ fn deleted_jobs_stay_deleted_and_their_ids_are_not_reused() {
     let next = client.submit(&request("after the restart")).expect("submit");
     let max = deleted.iter().copied().max().unwrap_or(keep);
     assert!(next > max, "job id {next} reused (deleted ids go up to {max})");
+}
+
+/// A sequence across a coordinator SIGKILL: frames written before it stay written (their files
+/// are not rewritten), the frame in progress resumes from its checkpoint (every unit merged
+/// before the kill is still merged after it), and every frame is the local render at its frame.
+#[test]
+fn a_sequence_resumes_its_frames_after_a_coordinator_kill() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let flags = ["--lease-timeout-ms", "1500", "--heartbeat-ms", "300", "--checkpoint-ms", "100"];
+    let mut coord = start_coordinator(&data, &flags);
+    let addr = coord.url.trim_start_matches("http://").to_string();
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let mut s = RenderSettings::new(96, 64, 128);
+    s.seed = 5;
+    s.tile_size = 32;
+    s.passes = PassSchedule::Fixed { spp: 16 };
+    s.integrator = IntegratorSettings::Path {
+        max_depth: 5,
+        rr_depth: 3,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    let created = client.upload_scene(scene.clone()).expect("upload");
+    let id = client
+        .submit(&JobRequest {
+            frames: Some(pathfarm_common::frames::FrameSet::parse("1-3").expect("frames")),
+            order: Default::default(),
+            scene_id: created.scene_id,
+            name: Some("sequence crash".into()),
+            priority: 0,
+            requires: Vec::new(),
+            notify: None,
+            settings: s.clone(),
+        })
+        .expect("submit");
+    let mut workers: Vec<Proc> =
+        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    // Frame 1 written, frame 2 under way: stop the workers, let the coordinator settle
+    // (checkpoints, writes), then kill it.
+    wait_for("frame 1 written and frame 2 under way", Duration::from_secs(120), || {
+        let info = client.job(id).ok()?;
+        (info.frames.done >= 1 && info.frames.current.iter().any(|f| f.frame == 2 && f.passes_done >= 1)).then_some(())
+    });
+    for w in &mut workers {
+        w.kill();
+    }
+    let before = wait_for("the coordinator to settle", Duration::from_secs(30), || {
+        let a = client.job(id).ok()?;
+        std::thread::sleep(Duration::from_millis(400));
+        let b = client.job(id).ok()?;
+        let settled = a.units_merged == b.units_merged
+            && b.frames.current.iter().all(|f| f.state == pathfarm_common::protocol::FrameState::Rendering);
+        settled.then_some(b)
+    });
+    assert!(before.frames.done < 3, "the sequence finished before the kill; make it longer");
+    let frame1 = data.join(format!("jobs/{id}/frames/0001/image.exr"));
+    let written = std::fs::metadata(&frame1).and_then(|m| m.modified()).expect("frame 1 on disk");
+    coord.proc.kill();
+    coord = start_coordinator_at(&data, &addr, &flags);
+    let after = client.job(id).expect("job after the restart");
+    assert_eq!(after.frames.done, before.frames.done, "written frames stay written");
+    assert_eq!(after.units_merged, before.units_merged, "units merged before the kill are still merged");
+    let log: Vec<String> =
+        reqwest::blocking::get(format!("{}{API}/jobs/{id}/log", coord.url)).expect("log").json().expect("json");
+    assert!(log.iter().any(|l| l.starts_with("restored") && l.contains("frames written")), "{log:?}");
+    let _workers: Vec<Proc> =
+        (0..2).map(|i| start_worker(&coord.url, &format!("v{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    wait_for("the sequence to be written", Duration::from_secs(180), || {
+        let info = client.job(id).ok()?;
+        assert_ne!(info.state, JobState::Failed, "{:?}", info.error);
+        (info.state == JobState::Completed && info.frames.done == 3).then_some(())
+    });
+    assert_eq!(std::fs::metadata(&frame1).and_then(|m| m.modified()).expect("frame 1"), written, "frame 1 rewritten");
+    for f in 1..=3 {
+        let mut at = s.clone();
+        at.frame = f;
+        assert!(client.frame_exr(id, f).expect("exr") == local_exr(&scene, &at), "frame {f} differs after the kill");
+    }
 }

@@ -158,8 +158,55 @@ pub struct Daemon {
     heartbeat: Duration,
     /// The scene of the last unit, by scene id.
     scene: Option<(String, Arc<Scene>)>,
-    /// The renderer (BVH and all) of the last job.
-    renderer: Option<(JobId, Arc<Renderer>)>,
+    /// Renderers (BVH and all) of the last (job, frame)s.
+    renderers: RendererCache<Renderer>,
+}
+
+/// Prepared renderers of the last few (job, settings) pairs: a sequence's units come frame by
+/// frame (settings differ in `frame`), so a frame's scene is posed and its BVH built once per
+/// worker, not once per unit; two frames are kept, for the tail of one frame interleaving with
+/// the start of the next.
+pub struct RendererCache<R> {
+    entries: std::collections::VecDeque<(JobId, pathfarm_common::job::RenderSettings, Arc<R>)>,
+    capacity: usize,
+}
+
+impl<R> RendererCache<R> {
+    pub fn new(capacity: usize) -> Self {
+        Self { entries: std::collections::VecDeque::new(), capacity: capacity.max(1) }
+    }
+
+    /// The cached renderer for (job, settings), or a new one from `build` (which then evicts
+    /// the least recently used beyond the capacity).
+    pub fn get_or_build(
+        &mut self,
+        job: JobId,
+        settings: &pathfarm_common::job::RenderSettings,
+        build: impl FnOnce() -> anyhow::Result<R>,
+    ) -> anyhow::Result<Arc<R>> {
+        if let Some(i) = self.entries.iter().position(|(j, s, _)| *j == job && s == settings) {
+            let hit = self.entries.remove(i).expect("position is in range");
+            let r = hit.2.clone();
+            self.entries.push_back(hit);
+            return Ok(r);
+        }
+        // Another job's renderers are of no more use: free their memory before building.
+        self.entries.retain(|(j, _, _)| *j == job);
+        while self.entries.len() >= self.capacity {
+            self.entries.pop_front();
+        }
+        let r = Arc::new(build()?);
+        self.entries.push_back((job, settings.clone(), r.clone()));
+        Ok(r)
+    }
+
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
 }
 
 impl Daemon {
@@ -185,7 +232,7 @@ impl Daemon {
             secret: String::new(),
             heartbeat: Duration::from_secs(2),
             scene: None,
-            renderer: None,
+            renderers: RendererCache::new(2),
         })
     }
 
@@ -296,7 +343,14 @@ impl Daemon {
     /// Renders one leased unit and delivers it (or reports the failure).
     fn work(&mut self, worker: WorkerId, grant: LeaseGrant, shutdown: &AtomicBool) {
         let lease = grant.lease_id;
-        tracing::debug!(lease, job = grant.job_id, pass = grant.unit.pass, tile = grant.unit.tile, "rendering unit");
+        tracing::debug!(
+            lease,
+            job = grant.job_id,
+            frame = grant.unit.frame,
+            pass = grant.unit.pass,
+            tile = grant.unit.tile,
+            "rendering unit"
+        );
         // A panic while loading the scene or building the renderer fails this unit, never
         // the worker (a worker that exits leaves the unit to crash the next one).
         let prepared = guarded("preparing the unit", || self.renderer_for(&grant));
@@ -304,7 +358,7 @@ impl Daemon {
             Ok(r) => r,
             Err(reason) => {
                 tracing::error!(lease, job = grant.job_id, "cannot render: {reason}");
-                self.renderer = None;
+                self.renderers = RendererCache::new(2);
                 self.scene = None;
                 self.release(lease, true, &reason);
                 return;
@@ -410,20 +464,16 @@ impl Daemon {
         }
     }
 
-    /// The renderer for the grant's job: reused across units of a job; the scene is downloaded
-    /// once per scene id (disk cache) and parsed once per scene.
+    /// The renderer for the grant's job and frame: reused across units of a (job, frame); the
+    /// scene is downloaded once per scene id (disk cache) and parsed once per scene.
     fn renderer_for(&mut self, grant: &LeaseGrant) -> anyhow::Result<Arc<Renderer>> {
-        if let Some((job, r)) = &self.renderer
-            && *job == grant.job_id
-            && r.settings() == &grant.settings
-        {
-            return Ok(r.clone());
-        }
-        self.renderer = None;
-        let scene = self.scene_for(&grant.scene_id)?;
-        let renderer = Arc::new(Renderer::new(&scene, &grant.settings)?);
-        self.renderer = Some((grant.job_id, renderer.clone()));
-        Ok(renderer)
+        let mut renderers = std::mem::replace(&mut self.renderers, RendererCache::new(2));
+        let r = renderers.get_or_build(grant.job_id, &grant.settings, || {
+            let scene = self.scene_for(&grant.scene_id)?;
+            Ok(Renderer::new(&scene, &grant.settings)?)
+        });
+        self.renderers = renderers;
+        r
     }
 
     fn scene_for(&mut self, id: &str) -> anyhow::Result<Arc<Scene>> {
@@ -514,6 +564,36 @@ mod tests {
     use pathfarm_common::job::RenderSettings;
     use pathfarm_common::scene::demo::cornell_demo_glb;
     use pathfarm_common::scene::load_scene_from_slice;
+
+    /// A renderer is built once per (job, frame); two frames are kept; another job's are dropped.
+    #[test]
+    fn renderers_are_cached_per_job_and_frame() {
+        let mut cache = RendererCache::<i32>::new(2);
+        let builds = std::cell::Cell::new(0);
+        let mut get = |job: u64, f: i32| {
+            let mut s = RenderSettings::new(8, 8, 1);
+            s.frame = f;
+            let r = cache.get_or_build(job, &s, || {
+                builds.set(builds.get() + 1);
+                Ok(f)
+            });
+            (*r.expect("build"), cache.len())
+        };
+        for f in [1, 1, 2, 1, 2, 2] {
+            assert_eq!(get(7, f).0, f);
+        }
+        assert_eq!(builds.get(), 2, "one build per frame");
+        get(7, 3); // evicts frame 1, the least recently used
+        get(7, 2); // cached
+        assert_eq!(builds.get(), 3);
+        assert_eq!(get(7, 1), (1, 2), "built again, two kept");
+        assert_eq!(builds.get(), 4);
+        assert_eq!(get(8, 1), (1, 1), "another job: job 7's renderers are dropped");
+        let mut s = RenderSettings::new(8, 8, 1);
+        s.frame = 5;
+        assert!(cache.get_or_build(9, &s, || anyhow::bail!("no scene")).is_err());
+        assert!(cache.is_empty(), "a failed build caches nothing, and job 8's went");
+    }
 
     #[test]
     fn a_panic_while_preparing_becomes_the_units_failure_reason() {

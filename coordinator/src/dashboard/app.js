@@ -17,7 +17,14 @@ const st = {
   previewUrl: null,
   previewBusy: false,
   previewAgain: false,
+  frames: null, // the selected sequence's frames (first STRIP_MAX)
+  frame: null, // the frame whose preview is shown
+  thumbs: new Map(), // 'job/frame' -> blob URL of a written frame's preview
+  thumbsBusy: false,
 };
+// Frames shown in a sequence's strip.
+const STRIP_MAX = 240;
+const isSequence = (j) => Boolean(j && j.info.frames && j.info.frames.sequence);
 
 // ------------------------------------------------------------------ helpers
 const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;' })[c]);
@@ -155,7 +162,10 @@ function renderSummary() {
 }
 
 async function download(id, kind) {
-  const r = await api(`/jobs/${id}/${kind === 'exr' ? 'image.exr' : 'preview.png'}`);
+  const file = kind === 'exr' ? 'image.exr' : 'preview.png';
+  // A sequence has no single image: the chosen frame's.
+  const seq = isSequence(st.jobs.get(id)) && st.selected === id && st.frame != null;
+  const r = await api(seq ? `/jobs/${id}/frames/${st.frame}/${file}` : `/jobs/${id}/${file}`);
   const url = URL.createObjectURL(await r.blob());
   const a = document.createElement('a');
   const j = st.jobs.get(id);
@@ -194,6 +204,13 @@ document.addEventListener('click', async (e) => {
     } catch (err) { alert(`${act} job ${id}: ${err.message}`); }
     return;
   }
+  const frame = e.target.closest('#frame-strip button.frame');
+  if (frame) {
+    st.frame = Number(frame.dataset.frame);
+    renderStrip();
+    refreshPreview();
+    return;
+  }
   const row = e.target.closest('#jobs tbody tr');
   if (row) select(Number(row.dataset.jobId));
 });
@@ -209,6 +226,8 @@ function upsertJob(info) {
 function select(id) {
   st.selected = id;
   st.tiles = null; st.conv = null; st.lastPasses = -1;
+  st.frames = null; st.frame = null;
+  $('#frame-strip').hidden = true;
   history.replaceState(null, '', id == null ? location.pathname : '#job=' + id);
   $('#preview').removeAttribute('src');
   $('#job-log').textContent = '…';
@@ -229,7 +248,7 @@ function renderPanel(fetchDetails) {
   $('#job-title').textContent = `#${i.id} ${i.name}`;
   $('#job-state').className = 'badge ' + i.state;
   $('#job-state').textContent = i.state;
-  $('#job-meta').textContent = `${s.width}×${s.height} · ${s.integrator.type} · ${i.spp_done}/${s.spp} spp · pass ${i.passes_done}/${i.passes_total} · ${i.units_merged}/${i.units_total} units`;
+  $('#job-meta').textContent = `${s.width}×${s.height} · ${s.integrator.type} · ${i.spp_done}/${s.spp} spp · pass ${i.passes_done}/${i.passes_total} · ${i.units_merged}/${i.units_total} units${isSequence(j) ? ` · frames ${i.frames.spec}: ${i.frames.done}/${i.frames.total} written` : ''}`;
   const acts = actionButtons(i, true);
   if ($('#job-actions').dataset.html !== acts) { $('#job-actions').innerHTML = acts; $('#job-actions').dataset.html = acts; }
   $('#job-error').hidden = !i.error;
@@ -262,6 +281,7 @@ async function fetchDetailsNow() {
     pre.textContent = log.length ? log.join('\n') : '(no log lines yet)';
     if (atEnd) pre.scrollTop = pre.scrollHeight;
     const j = st.jobs.get(id);
+    if (isSequence(j)) await fetchFrames(id);
     if (j && j.info.passes_done !== st.lastPasses) {
       st.lastPasses = j.info.passes_done;
       st.conv = await api(`/jobs/${id}/convergence`).then((r) => r.json());
@@ -270,18 +290,74 @@ async function fetchDetailsNow() {
   } catch (err) { console.warn('job details', err); }
 }
 
+// ------------------------------------------------------------------ frame strip (sequences)
+async function fetchFrames(id) {
+  const frames = await api(`/jobs/${id}/frames?limit=${STRIP_MAX}`).then((r) => r.json());
+  if (st.selected !== id) return;
+  const before = st.frames && st.frames.find((f) => f.frame === st.frame);
+  st.frames = frames;
+  if (st.frame == null || !frames.some((f) => f.frame === st.frame)) {
+    // The first frame in progress, else the last one written.
+    const cur = frames.find((f) => f.state === 'rendering' || f.state === 'writing');
+    const done = frames.filter((f) => f.state === 'done');
+    st.frame = (cur || done[done.length - 1] || frames[0] || { frame: null }).frame;
+  }
+  const now = frames.find((f) => f.frame === st.frame);
+  renderStrip();
+  if (now && (!before || before.passes_done !== now.passes_done || before.state !== now.state)) refreshPreview();
+  loadThumbs(id);
+}
+
+function renderStrip() {
+  const strip = $('#frame-strip');
+  const j = st.jobs.get(st.selected);
+  if (!isSequence(j) || !st.frames) { strip.hidden = true; return; }
+  strip.hidden = false;
+  const total = j.info.frames.total, passes = Math.max(1, j.info.passes_total);
+  const html = st.frames.map((f) => {
+    const thumb = st.thumbs.get(`${st.selected}/${f.frame}`);
+    const pct = Math.round((100 * f.passes_done) / passes);
+    const chosen = f.frame === st.frame ? ' chosen' : '';
+    const face = thumb ? `<img src="${thumb}" alt="frame ${f.frame}">` : `<span class="ph">${f.state === 'pending' ? '' : pct + '%'}</span>`;
+    return `<button type="button" class="frame ${f.state}${chosen}" data-frame="${f.frame}" data-state="${f.state}" title="frame ${f.frame}: ${f.state}, ${f.passes_done}/${passes} passes">${face}<span class="fn">${f.frame}</span></button>`;
+  }).join('') + (total > st.frames.length ? `<span class="muted">first ${st.frames.length} of ${total} frames</span>` : '');
+  if (strip.dataset.html !== html) { strip.innerHTML = html; strip.dataset.html = html; }
+}
+
+// Thumbnails of written frames, one request at a time (a written frame never changes).
+async function loadThumbs(id) {
+  if (st.thumbsBusy) return;
+  st.thumbsBusy = true;
+  try {
+    for (;;) {
+      if (st.selected !== id || !st.frames) break;
+      const f = st.frames.find((x) => x.state === 'done' && !st.thumbs.has(`${id}/${x.frame}`));
+      if (!f) break;
+      const r = await api(`/jobs/${id}/frames/${f.frame}/preview.png`);
+      st.thumbs.set(`${id}/${f.frame}`, URL.createObjectURL(await r.blob()));
+      renderStrip();
+    }
+  } catch (err) { console.warn('thumbnails', err); }
+  st.thumbsBusy = false;
+}
+
 async function refreshPreview() {
   const id = st.selected;
   if (id == null) return;
+  const seq = isSequence(st.jobs.get(id));
+  const frame = st.frame;
+  if (seq && (frame == null || (st.frames || []).some((f) => f.frame === frame && f.state === 'pending'))) return;
   if (st.previewBusy) { st.previewAgain = true; return; }
   st.previewBusy = true;
   try {
-    const r = await api(`/jobs/${id}/preview.png`, { cache: 'no-store' });
+    const path = seq ? `/jobs/${id}/frames/${frame}/preview.png` : `/jobs/${id}/preview.png`;
+    const r = await api(path, { cache: 'no-store' });
     const url = URL.createObjectURL(await r.blob());
     if (st.selected === id) {
       const img = $('#preview');
       img.onload = () => {
-        $('#preview-cap').textContent = `preview · ${img.naturalWidth}×${img.naturalHeight} · updated ${new Date().toLocaleTimeString()}`;
+        const which = seq ? `frame ${frame} · ` : '';
+        $('#preview-cap').textContent = `preview · ${which}${img.naturalWidth}×${img.naturalHeight} · updated ${new Date().toLocaleTimeString()}`;
       };
       img.src = url;
       if (st.previewUrl) URL.revokeObjectURL(st.previewUrl);
@@ -453,6 +529,7 @@ function connect() {
   on('job_deleted', (d) => { st.jobs.delete(d.id); if (st.selected === d.id) select(null); renderJobs(); });
   on('workers', (ws) => { st.workers = ws; st.workersAt = Date.now(); renderWorkers(); if (st.selected != null) drawTiles(); });
   on('image', (d) => { if (d.id === st.selected) { refreshPreview(); renderPanel(true); } });
+  on('frame', (d) => { if (d.id === st.selected) fetchFrames(d.id).catch(() => {}); });
   on('resync', () => fetchAll().catch(() => {}));
 }
 
