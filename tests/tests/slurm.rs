@@ -125,6 +125,8 @@ fn submit(client: &Client, s: &RenderSettings, name: &str) -> JobId {
         priority: 0,
         requires: Vec::new(),
         notify: None,
+        frames: None,
+        order: Default::default(),
         settings: s.clone(),
     };
     client.submit(&req).expect("submit")
