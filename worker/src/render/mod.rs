@@ -70,10 +70,31 @@ type Splat = (Vec2, Vec3A);
 
 impl Renderer {
     /// Prepares `scene` for rendering with `settings` (builds the BVH: do it once per job).
+    ///
+    /// An animated scene is posed at the settings' frame time (`frame / fps`) with the named
+    /// animations playing (all by default); a still scene is used as it is.
     pub fn new(scene: &Scene, settings: &RenderSettings) -> Result<Self, RenderError> {
         settings
             .validate(&pathfarm_common::job::Limits::default())
             .map_err(|e| RenderError::Settings(e.to_string()))?;
+        let names = settings.animations.as_deref();
+        if let Some(unknown) = names.and_then(|n| n.iter().find(|n| !scene.animation_names().contains(&n.as_str()))) {
+            let clips = scene.animation.as_ref().map_or(&[][..], |a| a.clips());
+            return Err(RenderError::Settings(pathfarm_common::scene::anim::unknown_animation(unknown, clips)));
+        }
+        if settings.shutter > 0.0 && scene.animation.is_some() {
+            return Err(RenderError::Settings(
+                "motion blur (shutter > 0) is not supported for animated scenes yet; render with shutter 0".into(),
+            ));
+        }
+        let posed;
+        let scene = match &scene.animation {
+            Some(_) => {
+                posed = scene.posed(settings.frame_time(), names).map_err(|e| RenderError::Scene(e.to_string()))?;
+                &posed
+            }
+            None => scene,
+        };
         // The loader refuses such scenes; a Scene built another way must not reach the BVH.
         let limit = pathfarm_common::scene::MAX_COORDINATE;
         for m in &scene.meshes {
