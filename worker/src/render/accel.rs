@@ -121,6 +121,15 @@ impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
     }
 }
 
+/// The direction given to obvhs: negative zeros made positive (`-0.0 + 0.0 = +0.0`, every other
+/// value unchanged). obvhs orders a node's slabs by `d < 0.0` (false for -0.0) but inverts -0.0
+/// to a large negative number, so a ray with a -0.0 component (an orthographic camera's
+/// axis-aligned rays) had swapped slabs and missed everything.
+#[inline(always)]
+fn bvh_direction(d: Vec3A) -> Vec3A {
+    d + Vec3A::ZERO
+}
+
 impl Accel {
     /// Builds the BVH over `tris` (world space).
     pub fn new(tris: &[[Vec3A; 3]]) -> Self {
@@ -166,7 +175,7 @@ impl Accel {
         t_max: f32,
     ) -> Option<Hit> {
         let bvh = self.bvh.as_ref()?;
-        let ray = obvhs::ray::Ray::new(o, d, 0.0, t_max);
+        let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
         let mut hit = RayHit::none();
         let mut best = (0.0f32, 0.0f32);
         let found = bvh.ray_traverse(ray, &mut hit, |r, slot| {
@@ -201,7 +210,7 @@ impl Accel {
         t_max: f32,
     ) -> bool {
         let Some(bvh) = self.bvh.as_ref() else { return false };
-        let ray = obvhs::ray::Ray::new(o, d, 0.0, t_max);
+        let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
         !bvh.ray_traverse_miss(ray, |r, slot| match shear.intersect(&self.tris[slot], r.tmax) {
             Some((t, _, _)) => t,
             None => f32::INFINITY,
@@ -285,5 +294,21 @@ mod tests {
         assert!(accel.occluded(o, d, 1.5));
         assert!(!accel.occluded(o, d, 0.5));
         assert!(!Accel::new(&[]).occluded(o, d, 10.0));
+    }
+
+    /// Axis-aligned rays whose other components are -0.0 (what an orthographic camera looking
+    /// down -Z makes) hit, like those with +0.0: they used to miss everything.
+    #[test]
+    fn axis_aligned_rays_with_negative_zeros_hit() {
+        let accel = Accel::new(&cube());
+        for d in [Vec3A::new(-0.0, -0.0, -1.0), Vec3A::new(0.0, 0.0, -1.0), Vec3A::new(-1.0, -0.0, 0.0)] {
+            // From 5 units back through (0.3, 0.2, 0.1) to the face of [-1, 1]^3 it meets.
+            let p = Vec3A::new(0.3, 0.2, 0.1);
+            let o = p - d * 5.0;
+            let expected = 5.0 - (1.0 + p.dot(d));
+            let hit = accel.intersect(o, d, f32::INFINITY).map(|h| h.t);
+            assert!(hit.is_some_and(|t| (t - expected).abs() < 1e-5), "{d}: {hit:?}, expected {expected}");
+            assert!(accel.occluded(o, d, 10.0), "{d}");
+        }
     }
 }
