@@ -196,20 +196,61 @@ fn only_the_named_animations_play() {
     assert!(err.contains("\"c\" does not exist") && err.contains("\"a\", \"b\""), "{err}");
 }
 
-/// An emissive 0.5 x 0.5 quad facing the orthographic camera moves from x = -1 to x = 1 in
-/// one second (LINEAR), rendered at 1 fps, frame 0, shutter 1 (the whole second), 64 x 64 x
-/// 64 spp, seed 0: its light spreads over the analytic streak. The image matches the analytic
-/// time-averaged coverage (each pixel's mean over its area and the shutter of "the quad covers
-/// this point", integrated numerically here): total energy within 1% of the still quad's 64
-/// pixel-units, each column's energy within 0.25 pixel-units of the analytic one, and nothing
-/// outside the streak. The still frame (shutter 0) is the sharp quad at x = -1.
+/// Half side of the emissive quad of the motion-blur tests.
+const QUAD_H: f32 = 0.25;
+
+/// An emissive 0.5 x 0.5 quad facing +Z (an orthographic camera at z = 5) on its own node.
+fn glowing_quad(b: &mut GltfBuilder) -> usize {
+    let glow = b.material(pathfarm_common::scene::demo::emitter("glow", Vec3::ZERO, Vec3::ONE));
+    let h = QUAD_H;
+    let quad = [Vec3::new(-h, -h, 0.0), Vec3::new(h, -h, 0.0), Vec3::new(h, h, 0.0), Vec3::new(-h, h, 0.0)];
+    b.mesh("quad", &quad, &[Vec3::Z; 4], &[0, 1, 2, 0, 2, 3], glow)
+}
+
+/// Checks a blurred image of the quad whose image centre moves from x = -1 to x = 1 (world
+/// units at the quad) during the shutter against the analytic time-averaged coverage (each
+/// pixel's mean over its area and the shutter of "the quad covers this point", integrated
+/// numerically here): total energy within 1% of the quad's 64 pixel-units, each column's energy
+/// within 0.25 pixel-units, nothing outside the streak. Returns (energy, worst column error).
+fn assert_streak(blurred: &ImageLayers) -> (f64, f32) {
+    let h = QUAD_H;
+    let px = 2.0 * MAG / W as f32; // world units per pixel
+    let column = |i: usize| -> f32 {
+        let n = 256;
+        (0..n)
+            .map(|k| {
+                let x = -MAG + (i as f32 + (k as f32 + 0.5) / n as f32) * px;
+                let (t0, t1) = (((x - h + 1.0) / 2.0).clamp(0.0, 1.0), ((x + h + 1.0) / 2.0).clamp(0.0, 1.0));
+                t1 - t0
+            })
+            .sum::<f32>()
+            / n as f32
+    };
+    let rows = 2.0 * h / px; // 8 rows, y in [-0.25, 0.25]
+    let total = blurred.rgb.iter().map(|c| f64::from(c[0])).sum::<f64>();
+    let quad_px = f64::from(rows * rows);
+    assert!((total - quad_px).abs() < 0.01 * quad_px, "blurred energy {total}, the quad's {quad_px}");
+    let mut worst = 0.0f32;
+    for i in 0..W as usize {
+        let got: f32 = (0..W as usize).map(|j| blurred.rgb[j * W as usize + i][0]).sum();
+        let expected = column(i) * rows;
+        worst = worst.max((got - expected).abs());
+        assert!((got - expected).abs() < 0.25, "column {i}: energy {got}, analytic {expected}");
+        if expected == 0.0 {
+            assert_eq!(got, 0.0, "column {i} is outside the streak");
+        }
+    }
+    (total, worst)
+}
+
+/// The emissive quad moves from x = -1 to x = 1 in one second (LINEAR), rendered at 1 fps,
+/// frame 0, shutter 1 (the whole second), 64 x 64 x 64 spp, seed 0: its light spreads over the
+/// analytic streak ([`assert_streak`]); the still frame (shutter 0) is the sharp quad at x = -1
+/// (columns exact to 1e-3).
 #[test]
 fn motion_blur_spreads_a_moving_emitter_over_its_streak() {
     let mut b = GltfBuilder::new();
-    let glow = b.material(pathfarm_common::scene::demo::emitter("glow", Vec3::ZERO, Vec3::ONE));
-    let h = 0.25;
-    let quad = [Vec3::new(-h, -h, 0.0), Vec3::new(h, -h, 0.0), Vec3::new(h, h, 0.0), Vec3::new(-h, h, 0.0)];
-    let node = b.mesh("quad", &quad, &[Vec3::Z; 4], &[0, 1, 2, 0, 2, 3], glow);
+    let node = glowing_quad(&mut b);
     b.ortho_camera(Vec3::new(0.0, 0.0, 5.0), MAG, MAG);
     b.animate(
         "slide",
@@ -224,44 +265,39 @@ fn motion_blur_spreads_a_moving_emitter_over_its_streak() {
     s.spp = 64;
     let still = render(&scene, &s);
     s.shutter = 1.0;
-    let blurred = render(&scene, &s);
-    let px = 2.0 * MAG / W as f32; // world units per pixel
-    // Analytic time-averaged coverage of a column: the quad's centre is at -1 + 2t.
-    let column = |i: usize| -> f32 {
-        let n = 256;
-        (0..n)
-            .map(|k| {
-                let x = -MAG + (i as f32 + (k as f32 + 0.5) / n as f32) * px;
-                let (t0, t1) = (((x - h + 1.0) / 2.0).clamp(0.0, 1.0), ((x + h + 1.0) / 2.0).clamp(0.0, 1.0));
-                t1 - t0
-            })
-            .sum::<f32>()
-            / n as f32
-    };
-    let rows = (2.0 * h / px) as usize; // 8 rows, y in [-0.25, 0.25]
-    let energy = |img: &ImageLayers| img.rgb.iter().map(|c| f64::from(c[0])).sum::<f64>();
-    let total = energy(&blurred);
-    let quad_px = f64::from((2.0 * h / px) * (2.0 * h / px));
-    assert!((energy(&still) - quad_px).abs() < 0.01 * quad_px, "still: {} vs {quad_px}", energy(&still));
-    assert!((total - quad_px).abs() < 0.01 * quad_px, "blurred energy {total}, still quad {quad_px}");
-    let mut worst = 0.0f32;
-    for i in 0..W as usize {
-        let got: f32 = (0..W as usize).map(|j| blurred.rgb[j * W as usize + i][0]).sum();
-        let expected = column(i) * rows as f32;
-        worst = worst.max((got - expected).abs());
-        assert!((got - expected).abs() < 0.25, "column {i}: energy {got}, analytic {expected}");
-        if expected == 0.0 {
-            assert_eq!(got, 0.0, "column {i} is outside the streak");
-        }
-    }
-    eprintln!("blurred energy {total:.3} (still quad {quad_px}); worst column error {worst:.3}");
-    // The still frame: the sharp quad centred at x = -1.
+    let (energy, worst) = assert_streak(&render(&scene, &s));
+    eprintln!("moving emitter: blurred energy {energy:.3} (quad 64); worst column error {worst:.3}");
+    let rows = 2.0 * QUAD_H * W as f32 / (2.0 * MAG);
     let (lo, hi) = ((W as f32 * (1.0 - 1.25 / MAG) / 2.0) as usize, (W as f32 * (1.0 - 0.75 / MAG) / 2.0) as usize);
     for i in 0..W as usize {
         let got: f32 = (0..W as usize).map(|j| still.rgb[j * W as usize + i][0]).sum();
-        let expected = if (lo..hi).contains(&i) { rows as f32 } else { 0.0 };
+        let expected = if (lo..hi).contains(&i) { rows } else { 0.0 };
         assert!((got - expected).abs() < 1e-3, "still column {i}: {got}, expected {expected}");
     }
+}
+
+/// The quad stands still and the camera moves from x = 1 to x = -1 during the shutter: the
+/// quad's image moves from x = -1 to 1, the same streak ([`assert_streak`]), so the camera is
+/// interpolated per sample.
+#[test]
+fn motion_blur_follows_a_moving_camera() {
+    let mut b = GltfBuilder::new();
+    glowing_quad(&mut b);
+    let camera = b.ortho_camera(Vec3::new(1.0, 0.0, 5.0), MAG, MAG);
+    b.animate(
+        "pan",
+        json!({"node": camera, "path": "translation"}),
+        "LINEAR",
+        &[0.0, 1.0],
+        &[1.0, 0.0, 5.0, -1.0, 0.0, 5.0],
+        "VEC3",
+    );
+    let scene = glb_scene(&b.to_glb());
+    let mut s = settings(0, 1.0);
+    s.spp = 64;
+    s.shutter = 1.0;
+    let (energy, worst) = assert_streak(&render(&scene, &s));
+    eprintln!("moving camera: blurred energy {energy:.3} (quad 64); worst column error {worst:.3}");
 }
 
 /// Motion blur (shutter > 0) on an animated scene is refused for bdpt and igi with a clear
