@@ -16,7 +16,7 @@ fn close(a: Vec3, b: Vec3, eps: f32) -> bool {
     (a - b).abs().max_element() <= eps
 }
 
-/// A strip along +X (x = 0..2, y = +-0.1) skinned to two joints: j0 at the origin, j1 its child
+/// A strip along +X (x = 0..2, y = +-0.1, tangents +X with handedness -1) skinned to two joints: j0 at the origin, j1 its child
 /// at x = 1; vertex weights blend linearly from j0 (x <= 0.5) to j1 (x >= 1.5). j0 moves
 /// along +Z and j1 bends about Z by up to 90 degrees. The mesh node's own transform must be
 /// ignored (glTF: skinned meshes are placed by their joints).
@@ -29,6 +29,7 @@ fn linear_blend_skinning_matches_a_reference() {
     let nrm = vec![Vec3::Z; pos.len()];
     let idx: Vec<u32> = (0..4u32).flat_map(|i| [2 * i, 2 * i + 2, 2 * i + 3, 2 * i, 2 * i + 3, 2 * i + 1]).collect();
     let strip = b.mesh("strip", &pos, &nrm, &idx, m);
+    b.tangents(strip, &vec![Vec4::new(1.0, 0.0, 0.0, -1.0); pos.len()]);
     b.node_mut(strip)["translation"] = json!([5.0, 5.0, 5.0]);
     let j1 = b.node(json!({"name": "j1", "translation": [1.0, 0.0, 0.0]}));
     let j0 = b.node(json!({"name": "j0", "children": [j1]}));
@@ -65,6 +66,12 @@ fn linear_blend_skinning_matches_a_reference() {
             let n = (Mat3::from_mat4(m).inverse().transpose() * Vec3::Z).normalize();
             let got = mesh.normals.as_ref().expect("normals")[i];
             assert!(close(got, n, 1e-5), "t {t} vertex {i}: normal {got} vs {n}");
+            let tangent = (Mat3::from_mat4(m) * Vec3::X).normalize();
+            let got = mesh.tangents.as_ref().expect("tangents")[i];
+            assert!(
+                close(got.truncate(), tangent, 1e-5) && got.w == -1.0,
+                "t {t} vertex {i}: tangent {got} vs {tangent}"
+            );
         }
     }
     // Halfway, the tip (x = 2, weight 1 on j1) is at j1 rotated by 45 degrees: (1 + cos 45 ...).
@@ -201,6 +208,28 @@ fn broken_channels_are_refused_by_name() {
     assert!(e.contains("channel 0") && e.contains("needs 3 per key"), "{e}");
     let e = broken(json!({"node": 0, "path": "rotation"}), &[f32::NAN; 8], "VEC4");
     assert!(e.contains("non-finite"), "{e}");
+}
+
+/// Animation keys are budgeted from the accessors' declared sizes before they are read: a tiny
+/// file whose sampler names bufferless accessors of 4M keys (all zeros, 20M numbers) is refused.
+#[test]
+fn animation_keys_are_budgeted_before_reading() {
+    use base64::Engine as _;
+    let mut b = GltfBuilder::new();
+    let m = b.material(lambert("grey", Vec3::splat(0.5)));
+    turned_box(&mut b, "cube", Vec3::ZERO, Vec3::ONE, 0.0, m);
+    let uri =
+        format!("data:application/octet-stream;base64,{}", base64::engine::general_purpose::STANDARD.encode(b.bin()));
+    let mut doc = b.document(Some(&uri));
+    let accessors = doc["accessors"].as_array_mut().expect("accessors");
+    let n = accessors.len();
+    accessors.push(json!({"componentType": 5126, "count": 4_000_000, "type": "SCALAR"}));
+    accessors.push(json!({"componentType": 5126, "count": 4_000_000, "type": "VEC4"}));
+    doc["animations"] = json!([{"name": "huge", "samplers": [{"input": n, "output": n + 1}],
+        "channels": [{"sampler": 0, "target": {"node": 0, "path": "rotation"}}]}]);
+    let bytes = serde_json::to_vec(&doc).expect("json");
+    let err = load(&bytes).expect_err("refused").to_string();
+    assert!(err.contains("animation keys hold more than"), "{err}");
 }
 
 fn corpus() -> PathBuf {

@@ -31,8 +31,9 @@ pub enum Interpolation {
 #[derive(Clone, Debug)]
 pub struct KeySampler {
     pub interpolation: Interpolation,
-    pub times: Vec<f32>,
-    pub values: Vec<f32>,
+    /// Shared by every channel whose sampler reads the same accessors.
+    pub times: Arc<[f32]>,
+    pub values: Arc<[f32]>,
     pub key_len: usize,
     /// Unit quaternions (x, y, z, w): slerp and normalize.
     pub rotation: bool,
@@ -314,8 +315,14 @@ fn set_pointer(doc: &mut Value, pointer: &str, value: Value) -> Result<(), Strin
     Ok(())
 }
 
-/// Parses the `animations` array. `read(accessor)` returns (components, floats) of an accessor;
-/// `warn` receives skipped channels. All sizes come from accessors the loader already bounds.
+/// An animation's samplers by index: times, interpolation, values, elements per key (3 for
+/// cubic splines, else 1).
+type SamplerCache = HashMap<usize, (Arc<[f32]>, Interpolation, Arc<[f32]>, usize)>;
+
+/// Parses the `animations` array. `read(accessor)` returns (components, floats) of an accessor
+/// and enforces the loader's budget; each accessor is read once and shared by the channels
+/// using it, so key data costs at most what the file's accessors hold. `warn` receives skipped
+/// channels.
 pub fn parse_clips(
     animations: &Value,
     document: &Value,
@@ -324,12 +331,22 @@ pub fn parse_clips(
 ) -> Result<Vec<Clip>, String> {
     let list = animations.as_array().ok_or("animations: not an array")?;
     let mut clips = Vec::with_capacity(list.len().min(1024));
+    let mut accessors: HashMap<usize, (usize, Arc<[f32]>)> = HashMap::new();
+    let mut read_once = |a: usize| -> Result<(usize, Arc<[f32]>), String> {
+        if let Some((c, v)) = accessors.get(&a) {
+            return Ok((*c, v.clone()));
+        }
+        let (c, v) = read(a)?;
+        let v: Arc<[f32]> = v.into();
+        accessors.insert(a, (c, v.clone()));
+        Ok((c, v))
+    };
     for (ai, a) in list.iter().enumerate() {
         let name = a.get("name").and_then(Value::as_str).map_or_else(|| format!("animation {ai}"), str::to_string);
         let here = format!("animation {ai} {name:?}");
         let samplers = a.get("samplers").and_then(Value::as_array).map_or(&[][..], Vec::as_slice);
         let channels = a.get("channels").and_then(Value::as_array).map_or(&[][..], Vec::as_slice);
-        let mut cache: HashMap<usize, (Vec<f32>, Interpolation, Vec<f32>, usize)> = HashMap::new();
+        let mut cache: SamplerCache = HashMap::new();
         let mut clip = Clip { name, channels: Vec::new(), duration: 0.0 };
         for (ci, c) in channels.iter().enumerate() {
             let at = format!("{here} channel {ci}");
@@ -375,12 +392,14 @@ pub fn parse_clips(
                             .map(|v| v as usize)
                             .ok_or_else(|| format!("{here} sampler {si}: no {k}"))
                     };
-                    let (ic, times) = read(acc("input")?).map_err(|m| format!("{here} sampler {si} input: {m}"))?;
-                    let (_, values) = read(acc("output")?).map_err(|m| format!("{here} sampler {si} output: {m}"))?;
+                    let (ic, times) =
+                        read_once(acc("input")?).map_err(|m| format!("{here} sampler {si} input: {m}"))?;
+                    let (_, values) =
+                        read_once(acc("output")?).map_err(|m| format!("{here} sampler {si} output: {m}"))?;
                     if ic != 1 {
                         return Err(format!("{here} sampler {si}: input must be SCALAR"));
                     }
-                    if !times.iter().chain(&values).all(|v| v.is_finite()) {
+                    if !times.iter().chain(values.iter()).all(|v| v.is_finite()) {
                         return Err(format!("{here} sampler {si}: non-finite keys"));
                     }
                     if times.windows(2).any(|w| w[1] < w[0]) {
@@ -430,7 +449,7 @@ mod tests {
     use super::*;
 
     fn sampler(interpolation: Interpolation, times: &[f32], values: &[f32], key_len: usize) -> KeySampler {
-        KeySampler { interpolation, times: times.to_vec(), values: values.to_vec(), key_len, rotation: false }
+        KeySampler { interpolation, times: times.into(), values: values.into(), key_len, rotation: false }
     }
 
     fn close(a: &[f32], b: &[f32], tol: f32) -> bool {
@@ -464,7 +483,7 @@ mod tests {
         let q = 11.25f32.to_radians();
         assert!(close(&s.sample(0.25), &[0.0, 0.0, q.sin(), q.cos()], 1e-6), "{:?}", s.sample(0.25));
         // The second key given as -q: the same rotation, the short arc is still taken.
-        s.values[4..].iter_mut().for_each(|v| *v = -*v);
+        s.values = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -h, -h].into();
         assert!(close(&s.sample(0.5), &[0.0, 0.0, a.sin(), a.cos()], 1e-6), "{:?}", s.sample(0.5));
     }
 

@@ -145,6 +145,15 @@ impl GltfBuilder {
         }
     }
 
+    /// Gives the mesh of `node` TANGENT data (xyz, handedness w), one per position.
+    pub fn tangents(&mut self, node: usize, tangents: &[glam::Vec4]) {
+        let v: Vec<f32> = tangents.iter().flat_map(|t| t.to_array()).collect();
+        let acc = self.floats(&v, "VEC4");
+        if let Some(mesh) = self.nodes.get(node).and_then(|n| n["mesh"].as_u64()) {
+            self.meshes[mesh as usize]["primitives"][0]["attributes"]["TANGENT"] = json!(acc);
+        }
+    }
+
     /// Adds a morph target (position and normal displacements) to the mesh of `node`, with the
     /// mesh's default weight `weight`.
     pub fn morph_target(&mut self, node: usize, positions: &[Vec3], normals: &[Vec3], weight: f32) {

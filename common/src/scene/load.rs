@@ -144,10 +144,20 @@ pub fn load_scene_from_slice(
         return Ok(loader.scene);
     };
     let mut warnings = Vec::new();
+    // Key data is budgeted from the accessors' declared sizes, before reading them.
+    let mut floats = 0usize;
     let clips = anim::parse_clips(
         &animations,
         &value,
-        |a| loader.read_accessor(a, false).map(|e| (e.comps, e.values)),
+        |a| {
+            floats = floats.saturating_add(loader.accessor_floats(a));
+            if floats > MAX_ANIMATION_FLOATS {
+                return Err(format!(
+                    "accessor {a}: animation keys hold more than {MAX_ANIMATION_FLOATS} numbers in all"
+                ));
+            }
+            loader.read_accessor(a, false).map(|e| (e.comps, e.values))
+        },
         |w| warnings.push(w),
     )
     .map_err(invalid)?;
@@ -172,6 +182,9 @@ pub fn load_scene_from_slice(
     }
     Ok(posed)
 }
+
+/// Most numbers (key times and values) that one file's animations may hold: 64 MiB of f32.
+const MAX_ANIMATION_FLOATS: usize = 1 << 24;
 
 /// Loads the animated scene's document posed at time `t` (see [`Scene::posed`]).
 pub(super) fn load_posed(anim: &Arc<Animation>, t: f32, names: Option<&[String]>) -> Result<Scene, SceneError> {
@@ -433,6 +446,20 @@ impl<'a> Loader<'a> {
             data.len()
         ))?;
         Ok((bytes, view.byte_stride.map(|s| s.0).filter(|&s| s > 0)))
+    }
+
+    /// The number of f32 components accessor `index` declares (0 when it does not exist).
+    fn accessor_floats(&self, index: usize) -> usize {
+        use json::accessor::Type;
+        let Some(acc) = self.root.accessors.get(index) else { return 0 };
+        let comps = match acc.type_ {
+            Checked::Valid(Type::Vec2) => 2,
+            Checked::Valid(Type::Vec3) => 3,
+            Checked::Valid(Type::Vec4) => 4,
+            Checked::Valid(Type::Mat4) => 16,
+            _ => 1,
+        };
+        usize::try_from(acc.count.0).unwrap_or(usize::MAX).saturating_mul(comps)
     }
 
     /// Reads accessor `index` as f32 components (integers normalized when the accessor says so).

@@ -203,7 +203,8 @@ impl Scene {
     pub fn posed(&self, t: f32, names: Option<&[String]>) -> Result<Scene, SceneError> {
         let Some(anim) = &self.animation else {
             if let Some(name) = names.and_then(|n| n.first()) {
-                return Err(SceneError::Invalid { file: String::new(), message: anim::unknown_animation(name, &[]) });
+                let message = anim::unknown_animation(name, &[]);
+                return Err(SceneError::Invalid { file: "scene".into(), message });
             }
             return Ok(self.clone());
         };
