@@ -2,8 +2,10 @@
 //!
 //! `load` turns a glTF 2.0 file (`.glb`, `.gltf` with files beside it, or data URIs) into a
 //! [`Scene`]. Every mesh instance is baked to world space (one [`Mesh`] per primitive per node
-//! instance); materials, textures, cameras and punctual lights keep glTF's meaning, with units
-//! documented in README.md ("Units").
+//! instance, morph targets and skins applied); materials, textures, cameras and punctual lights
+//! keep glTF's meaning, with units documented in README.md ("Units"). A file with animations is
+//! loaded posed at t = 0 and keeps what [`Scene::posed`] needs to pose it at any other time
+//! (`anim`; README.md "Animation").
 
 pub mod anim;
 pub mod bundle;

@@ -199,12 +199,19 @@ impl Accel {
         }
     }
 
-    /// The triangle in BVH slot `slot` at `time`.
+    /// The watertight test against the triangle in BVH slot `slot` at `time` (static triangles
+    /// are tested in place, as without motion blur).
     #[inline(always)]
-    fn slot_triangle(&self, slot: usize, time: f32) -> [Vec3A; 3] {
+    fn test_slot<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        shear: &RayShear<KX, KY, KZ>,
+        slot: usize,
+        t_max: f32,
+        time: f32,
+    ) -> Option<(f32, f32, f32)> {
         match &self.tris_close {
-            None => self.tris[slot],
-            Some(close) => lerp_triangle(&self.tris[slot], &close[slot], time),
+            None => shear.intersect(&self.tris[slot], t_max),
+            Some(close) => shear.intersect(&lerp_triangle(&self.tris[slot], &close[slot], time), t_max),
         }
     }
 
@@ -223,7 +230,7 @@ impl Accel {
         let mut best = (0.0f32, 0.0f32);
         let found = bvh.ray_traverse(ray, &mut hit, |r, slot| {
             // `slot` indexes primitive_indices; tris is stored in that order.
-            match shear.intersect(&self.slot_triangle(slot, time), r.tmax) {
+            match self.test_slot(&shear, slot, r.tmax, time) {
                 Some((t, b1, b2)) => {
                     best = (b1, b2);
                     t
@@ -260,7 +267,7 @@ impl Accel {
     ) -> bool {
         let Some(bvh) = self.bvh.as_ref() else { return false };
         let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
-        !bvh.ray_traverse_miss(ray, |r, slot| match shear.intersect(&self.slot_triangle(slot, time), r.tmax) {
+        !bvh.ray_traverse_miss(ray, |r, slot| match self.test_slot(&shear, slot, r.tmax, time) {
             Some((t, _, _)) => t,
             None => f32::INFINITY,
         })
