@@ -3,11 +3,12 @@
 use crate::render::{Renderer, render_local};
 use anyhow::Context;
 use clap::{Args, ValueEnum};
+use pathfarm_common::frames::{FrameSet, frame_path};
 use pathfarm_common::job::{
     IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings, SamplerKind,
 };
 use pathfarm_common::scene::{LoadOptions, load_scene};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -149,6 +150,37 @@ impl SettingsArgs {
     }
 }
 
+/// Which animation frame(s) `render` draws.
+#[derive(Args, Debug, Clone)]
+pub struct FrameArgs {
+    /// Animation frame: the scene is posed at time frame / fps seconds.
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true, conflicts_with = "frames")]
+    pub frame: i32,
+    /// A sequence ("1-24", "1-100x5", "1,5,10-20"): one image per frame, named by `--out` with
+    /// its `#` run replaced by the zero-padded frame (`out/shot.####.exr`).
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Frames per second (frame numbers -> animation time).
+    #[arg(long, default_value_t = 24.0)]
+    pub fps: f32,
+    /// Motion blur: the fraction of a frame the shutter stays open (0 = off).
+    #[arg(long, default_value_t = 0.0)]
+    pub shutter: f32,
+    /// The animations that play, comma-separated (default: all of them).
+    #[arg(long, value_delimiter = ',')]
+    pub animations: Option<Vec<String>>,
+}
+
+impl FrameArgs {
+    /// Writes frame, fps, shutter and animations into `s`.
+    pub fn apply(&self, s: &mut RenderSettings) {
+        s.frame = self.frame;
+        s.fps = self.fps;
+        s.shutter = self.shutter;
+        s.animations = self.animations.clone();
+    }
+}
+
 /// `pathfarm-worker render` arguments.
 #[derive(Args, Debug, Clone)]
 pub struct RenderArgs {
@@ -156,10 +188,12 @@ pub struct RenderArgs {
     pub scene: PathBuf,
     #[command(flatten)]
     pub settings: SettingsArgs,
-    /// Output OpenEXR file.
+    #[command(flatten)]
+    pub frames: FrameArgs,
+    /// Output OpenEXR file (with `--frames`: a pattern whose `#` run becomes the frame number).
     #[arg(long, default_value = "out.exr")]
     pub out: PathBuf,
-    /// Also write an sRGB PNG preview.
+    /// Also write an sRGB PNG preview (with `--frames`: a pattern like `--out`).
     #[arg(long)]
     pub png: Option<PathBuf>,
     /// PNG exposure in stops.
@@ -186,14 +220,44 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
         // Before the render, not after it.
         crate::denoise::ensure_available()?;
     }
-    let settings = args.settings.to_settings();
+    let mut settings = args.settings.to_settings();
+    args.frames.apply(&mut settings);
     settings.validate(&pathfarm_common::job::Limits::default()).context("invalid settings")?;
+    let frames = match &args.frames.frames {
+        Some(spec) => Some(FrameSet::parse(spec)?),
+        None => None,
+    };
+    // The scene is loaded once; each frame poses it and builds its own BVH.
     let scene = load_scene(&args.scene, &LoadOptions::default())?;
     for w in &scene.warnings {
         tracing::warn!(scene = %args.scene.display(), "{w}");
     }
+    let Some(frames) = frames else { return render_frame(&args, &scene, &settings, &args.out, args.png.as_deref()) };
+    let (out, png) =
+        (args.out.to_string_lossy().into_owned(), args.png.as_ref().map(|p| p.to_string_lossy().into_owned()));
+    for &frame in frames.frames() {
+        settings.frame = frame;
+        settings.validate(&pathfarm_common::job::Limits::default()).context("invalid settings")?;
+        let exr = PathBuf::from(frame_path(&out, frame));
+        let png = png.as_deref().map(|p| PathBuf::from(frame_path(p, frame)));
+        if let Some(dir) = exr.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+        render_frame(&args, &scene, &settings, &exr, png.as_deref()).with_context(|| format!("frame {frame}"))?;
+    }
+    Ok(())
+}
+
+/// Renders one frame of `scene` and writes its EXR (and PNG).
+fn render_frame(
+    args: &RenderArgs,
+    scene: &pathfarm_common::scene::Scene,
+    settings: &RenderSettings,
+    out: &Path,
+    png: Option<&Path>,
+) -> anyhow::Result<()> {
     let t0 = Instant::now();
-    let renderer = Renderer::new(&scene, &settings)?;
+    let renderer = Renderer::new(scene, settings)?;
     let prep = t0.elapsed();
     let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
     bar.set_style(
@@ -214,12 +278,13 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
         image.denoised = Some(crate::denoise::denoise(&image)?);
         tracing::info!(denoise_s = t.elapsed().as_secs_f64(), "denoised (OIDN)");
     }
-    image.write_exr(&args.out)?;
-    if let Some(png) = &args.png {
+    image.write_exr(out)?;
+    if let Some(png) = png {
         image.write_png(png, args.exposure)?;
     }
     tracing::info!(
-        out = %args.out.display(),
+        out = %out.display(),
+        frame = settings.frame,
         prepare_s = prep.as_secs_f64(),
         render_s = secs,
         msamples_per_s = samples / secs / 1e6,

@@ -5,7 +5,8 @@ use glam::{Quat, Vec3};
 use serde_json::{Value, json};
 
 /// A minimal glTF 2.0 writer: triangle meshes (positions, normals, u32 indices), materials,
-/// nodes, one camera, punctual lights; one binary buffer.
+/// nodes, cameras, punctual lights, animations (node channels and KHR_animation_pointer), skins
+/// and morph targets; one binary buffer.
 #[derive(Default)]
 pub struct GltfBuilder {
     bin: Vec<u8>,
@@ -16,6 +17,8 @@ pub struct GltfBuilder {
     nodes: Vec<Value>,
     cameras: Vec<Value>,
     lights: Vec<Value>,
+    animations: Vec<Value>,
+    skins: Vec<Value>,
 }
 
 impl GltfBuilder {
@@ -45,6 +48,133 @@ impl GltfBuilder {
         }
         self.accessors.push(acc);
         self.accessors.len() - 1
+    }
+
+    /// Adds an accessor of f32 components (`type_`: SCALAR, VEC2..4, MAT4) and returns its index.
+    pub fn floats(&mut self, values: &[f32], type_: &str) -> usize {
+        let comps = match type_ {
+            "VEC2" => 2,
+            "VEC3" => 3,
+            "VEC4" => 4,
+            "MAT4" => 16,
+            _ => 1,
+        };
+        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let view = self.push_view(&bytes, 34962);
+        let mut acc = json!({"bufferView": view, "componentType": 5126, "count": values.len() / comps, "type": type_});
+        if type_ == "SCALAR" && !values.is_empty() {
+            // Animation inputs must carry min and max.
+            let lo = values.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = values.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            acc["min"] = json!([lo]);
+            acc["max"] = json!([hi]);
+        }
+        self.accessors.push(acc);
+        self.accessors.len() - 1
+    }
+
+    /// Adds an animation channel to the animation `name` (created on first use). `target` is a
+    /// glTF channel target (`{"node": 2, "path": "translation"}`, or `{"path": "pointer",
+    /// "extensions": {"KHR_animation_pointer": {"pointer": "/materials/0/emissiveFactor"}}}`);
+    /// `values` holds `type_` elements per key (three per key for CUBICSPLINE: in-tangent, value,
+    /// out-tangent).
+    pub fn animate(
+        &mut self,
+        name: &str,
+        target: Value,
+        interpolation: &str,
+        times: &[f32],
+        values: &[f32],
+        type_: &str,
+    ) {
+        let input = self.floats(times, "SCALAR");
+        let output = self.floats(values, type_);
+        let at = match self.animations.iter().position(|a| a["name"] == name) {
+            Some(i) => i,
+            None => {
+                self.animations.push(json!({"name": name, "channels": [], "samplers": []}));
+                self.animations.len() - 1
+            }
+        };
+        let a = &mut self.animations[at];
+        let sampler = a["samplers"].as_array().map_or(0, Vec::len);
+        if let Some(s) = a["samplers"].as_array_mut() {
+            s.push(json!({"input": input, "output": output, "interpolation": interpolation}));
+        }
+        if let Some(c) = a["channels"].as_array_mut() {
+            c.push(json!({"sampler": sampler, "target": target}));
+        }
+    }
+
+    /// Adds a node (glTF JSON object) and returns its index; every node is a root of the scene.
+    pub fn node(&mut self, n: Value) -> usize {
+        self.nodes.push(n);
+        self.nodes.len() - 1
+    }
+
+    /// The JSON of node `i` (to set a translation, a parent's children...).
+    pub fn node_mut(&mut self, i: usize) -> &mut Value {
+        &mut self.nodes[i]
+    }
+
+    /// Skins the mesh of `node` (from [`GltfBuilder::mesh`]) with `joints` (node indices) and
+    /// their inverse bind matrices; per vertex four joint indices (into `joints`) and weights.
+    pub fn skin(
+        &mut self,
+        node: usize,
+        joints: &[usize],
+        inverse_bind: &[glam::Mat4],
+        vertex_joints: &[[u16; 4]],
+        vertex_weights: &[[f32; 4]],
+    ) {
+        let ibm: Vec<f32> = inverse_bind.iter().flat_map(|m| m.to_cols_array()).collect();
+        let ibm = self.floats(&ibm, "MAT4");
+        let bytes: Vec<u8> = vertex_joints.iter().flatten().flat_map(|j| j.to_le_bytes()).collect();
+        let view = self.push_view(&bytes, 34962);
+        self.accessors
+            .push(json!({"bufferView": view, "componentType": 5123, "count": vertex_joints.len(), "type": "VEC4"}));
+        let joints_acc = self.accessors.len() - 1;
+        let weights: Vec<f32> = vertex_weights.iter().flatten().copied().collect();
+        let weights_acc = self.floats(&weights, "VEC4");
+        self.skins.push(json!({"joints": joints, "inverseBindMatrices": ibm}));
+        self.nodes[node]["skin"] = json!(self.skins.len() - 1);
+        if let Some(mesh) = self.nodes[node]["mesh"].as_u64() {
+            let attrs = &mut self.meshes[mesh as usize]["primitives"][0]["attributes"];
+            attrs["JOINTS_0"] = json!(joints_acc);
+            attrs["WEIGHTS_0"] = json!(weights_acc);
+        }
+    }
+
+    /// Gives the mesh of `node` TANGENT data (xyz, handedness w), one per position.
+    pub fn tangents(&mut self, node: usize, tangents: &[glam::Vec4]) {
+        let v: Vec<f32> = tangents.iter().flat_map(|t| t.to_array()).collect();
+        let acc = self.floats(&v, "VEC4");
+        if let Some(mesh) = self.nodes.get(node).and_then(|n| n["mesh"].as_u64()) {
+            self.meshes[mesh as usize]["primitives"][0]["attributes"]["TANGENT"] = json!(acc);
+        }
+    }
+
+    /// Adds a morph target (position and normal displacements) to the mesh of `node`, with the
+    /// mesh's default weight `weight`.
+    pub fn morph_target(&mut self, node: usize, positions: &[Vec3], normals: &[Vec3], weight: f32) {
+        let p = self.push_vec3(positions, true);
+        let n = self.push_vec3(normals, false);
+        if let Some(mesh) = self.nodes[node]["mesh"].as_u64() {
+            let m = &mut self.meshes[mesh as usize];
+            let prim = &mut m["primitives"][0];
+            if prim["targets"].is_null() {
+                prim["targets"] = json!([]);
+            }
+            if let Some(t) = prim["targets"].as_array_mut() {
+                t.push(json!({"POSITION": p, "NORMAL": n}));
+            }
+            if m["weights"].is_null() {
+                m["weights"] = json!([]);
+            }
+            if let Some(w) = m["weights"].as_array_mut() {
+                w.push(json!(weight));
+            }
+        }
     }
 
     /// Adds a material (glTF JSON object) and returns its index.
@@ -84,13 +214,24 @@ impl GltfBuilder {
         }
     }
 
-    /// Adds a perspective camera at `eye` looking at `target` (vertical field of view in radians).
-    pub fn camera(&mut self, eye: Vec3, target: Vec3, up: Vec3, yfov: f32, aspect: f32) {
+    /// Adds a perspective camera at `eye` looking at `target` (vertical field of view in radians);
+    /// returns its node.
+    pub fn camera(&mut self, eye: Vec3, target: Vec3, up: Vec3, yfov: f32, aspect: f32) -> usize {
         self.cameras.push(json!({"type": "perspective", "perspective": {
             "yfov": yfov, "aspectRatio": aspect, "znear": 0.001, "zfar": 1000.0}}));
         let rot = look_rotation(eye, target, up);
         self.nodes.push(json!({"name": "camera", "camera": self.cameras.len() - 1,
             "translation": eye.to_array(), "rotation": rot.to_array()}));
+        self.nodes.len() - 1
+    }
+
+    /// Adds an orthographic camera at `eye` looking down -Z (half extents `xmag`, `ymag`);
+    /// returns its node.
+    pub fn ortho_camera(&mut self, eye: Vec3, xmag: f32, ymag: f32) -> usize {
+        self.cameras.push(json!({"type": "orthographic", "orthographic": {
+            "xmag": xmag, "ymag": ymag, "znear": 0.001, "zfar": 1000.0}}));
+        self.nodes.push(json!({"name": "camera", "camera": self.cameras.len() - 1, "translation": eye.to_array()}));
+        self.nodes.len() - 1
     }
 
     /// Adds a KHR_lights_punctual point light of radiant intensity `intensity` (W/sr), written in
@@ -127,6 +268,13 @@ impl GltfBuilder {
         if !self.lights.is_empty() {
             root["extensions"] = json!({"KHR_lights_punctual": {"lights": self.lights}});
             extensions_used.push("KHR_lights_punctual");
+        }
+        if !self.animations.is_empty() {
+            root["animations"] = json!(self.animations);
+            extensions_used.push("KHR_animation_pointer");
+        }
+        if !self.skins.is_empty() {
+            root["skins"] = json!(self.skins);
         }
         root["extensionsUsed"] = json!(extensions_used);
         root
@@ -194,8 +342,8 @@ fn quad(b: &mut GltfBuilder, name: &str, v: [Vec3; 4], material: usize) {
     b.mesh(name, &v, &[n; 4], &[0, 1, 2, 0, 2, 3], material);
 }
 
-/// An axis-aligned box turned about +Y by `angle` (radians), resting on y = `y0`, outward normals.
-fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: f32, material: usize) {
+/// An axis-aligned box turned about +Y by `angle` (radians), outward normals; returns its node.
+pub fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: f32, material: usize) -> usize {
     let rot = Quat::from_rotation_y(angle);
     let h = size * 0.5;
     let c = |x: f32, y: f32, z: f32| center + rot * Vec3::new(x * h.x, y * h.y, z * h.z);
@@ -217,7 +365,7 @@ fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: 
         nrm.extend_from_slice(&[n; 4]);
         idx.extend_from_slice(&[base, base + 1, base + 2, base, base + 2, base + 3]);
     }
-    b.mesh(name, &pos, &nrm, &idx, material);
+    b.mesh(name, &pos, &nrm, &idx, material)
 }
 
 /// The materials of Mitsuba's `cornell_box()`, added in this order: white, red, green (Lambertian

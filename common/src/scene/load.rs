@@ -24,6 +24,7 @@
 //! traversal order (depth first, children in file order, root nodes in the scene's order), so
 //! `cameras[0]` is the first camera met in that traversal.
 
+use super::anim::{self, Animation};
 use super::{
     Camera, Material, MaterialModel, Mesh, Projection, PunctualKind, PunctualLight, Scene, SceneError, Texture,
     TextureRef, TextureTransform, WrapMode,
@@ -66,10 +67,13 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_specular",
     // The accessor reader converts every component type, which is all this extension asks.
     "KHR_mesh_quantization",
+    // Camera, light and material properties (see `anim`); unknown pointers are skipped with a
+    // warning.
+    "KHR_animation_pointer",
 ];
 
 /// Extensions we ignore with a warning even when required: the still image stays meaningful
-/// without them (material refinements, variants, animation).
+/// without them (material refinements, variants).
 const IGNORABLE_EXTENSIONS: &[&str] = &[
     "KHR_materials_volume",
     "KHR_materials_sheen",
@@ -78,7 +82,6 @@ const IGNORABLE_EXTENSIONS: &[&str] = &[
     "KHR_materials_anisotropy",
     "KHR_materials_dispersion",
     "KHR_materials_variants",
-    "KHR_animation_pointer",
 ];
 
 /// Deepest node hierarchy we follow; deeper means a cycle or a hostile file.
@@ -122,36 +125,80 @@ pub fn load_scene_from_slice(
     } else {
         (bytes, None)
     };
-    // Animations are dropped before typed parsing: still renders ignore them, and gltf-json
-    // cannot parse KHR_animation_pointer channels (they have no `node`).
+    // Animations are parsed by `anim` (gltf-json cannot parse KHR_animation_pointer channels:
+    // they have no `node`), the rest of the document by gltf-json.
     let mut value: serde_json::Value =
         serde_json::from_slice(json_bytes).map_err(|e| invalid(format!("invalid JSON: {e}")))?;
-    if let Some(obj) = value.as_object_mut() {
-        obj.remove("animations");
-    }
-    let root: json::Root = serde_json::from_value(value).map_err(|e| invalid(format!("invalid glTF: {e}")))?;
-    let mut loader = Loader {
-        file,
-        root: &root,
-        base_dir,
-        opts,
-        buffers: Vec::new(),
-        images: HashMap::new(),
-        textures: HashMap::new(),
-        texels: HashMap::new(),
-        texture_bytes: 0,
-        scene: Scene::default(),
-        triangles: 0,
-        default_material: None,
-    };
+    let animations = value.as_object_mut().and_then(|obj| obj.remove("animations"));
+    let root: json::Root = serde_json::from_value(value.clone()).map_err(|e| invalid(format!("invalid glTF: {e}")))?;
+    let mut loader = Loader::new(file.clone(), &root, base_dir, opts);
     loader.check_extensions()?;
     loader.load_buffers(bin)?;
     loader.check_textures();
     loader.load_materials()?;
     loader.traverse()?;
-    if !loader.scene.has_emitters() {
-        loader.warn(super::NO_LIGHT_WARNING.to_string());
+    let Some(animations) = animations.filter(|a| a.as_array().is_some_and(|a| !a.is_empty())) else {
+        if !loader.scene.has_emitters() {
+            loader.warn(super::NO_LIGHT_WARNING.to_string());
+        }
+        return Ok(loader.scene);
+    };
+    let mut warnings = Vec::new();
+    // Key data is budgeted from the accessors' declared sizes, before reading them.
+    let mut floats = 0usize;
+    let clips = anim::parse_clips(
+        &animations,
+        &value,
+        |a| {
+            floats = floats.saturating_add(loader.accessor_floats(a));
+            if floats > MAX_ANIMATION_FLOATS {
+                return Err(format!(
+                    "accessor {a}: animation keys hold more than {MAX_ANIMATION_FLOATS} numbers in all"
+                ));
+            }
+            loader.read_accessor(a, false).map(|e| (e.comps, e.values))
+        },
+        |w| warnings.push(w),
+    )
+    .map_err(invalid)?;
+    for w in warnings {
+        loader.warn(w);
     }
+    let animation = Arc::new(Animation {
+        file,
+        document: value,
+        buffers: loader.buffers.clone(),
+        texels: std::mem::take(&mut loader.texels),
+        clips,
+        max_triangles: opts.max_triangles,
+    });
+    let mut scene = loader.scene;
+    scene.animation = Some(animation);
+    // A still render of an animated scene shows time 0 (frame 0), with every animation playing.
+    let mut posed = scene.posed(0.0, None)?;
+    if !posed.has_emitters() && !posed.warnings.iter().any(|w| w == super::NO_LIGHT_WARNING) {
+        tracing::warn!(file = %name, "{}", super::NO_LIGHT_WARNING);
+        posed.warnings.push(super::NO_LIGHT_WARNING.to_string());
+    }
+    Ok(posed)
+}
+
+/// Most numbers (key times and values) that one file's animations may hold: 64 MiB of f32.
+const MAX_ANIMATION_FLOATS: usize = 1 << 24;
+
+/// Loads the animated scene's document posed at time `t` (see [`Scene::posed`]).
+pub(super) fn load_posed(anim: &Arc<Animation>, t: f32, names: Option<&[String]>) -> Result<Scene, SceneError> {
+    let invalid = |message: String| SceneError::Invalid { file: anim.file.clone(), message };
+    let doc = anim.posed_document(t, names).map_err(invalid)?;
+    let root: json::Root =
+        serde_json::from_value(doc).map_err(|e| invalid(format!("posed at t = {t}: invalid glTF: {e}")))?;
+    let opts = LoadOptions { max_triangles: anim.max_triangles, ..LoadOptions::default() };
+    let mut loader = Loader::new(anim.file.clone(), &root, None, &opts);
+    loader.buffers = anim.buffers.clone();
+    loader.texels = anim.texels.clone();
+    loader.load_materials()?;
+    loader.traverse()?;
+    loader.scene.animation = Some(anim.clone());
     Ok(loader.scene)
 }
 
@@ -273,18 +320,21 @@ struct Loader<'a> {
     root: &'a json::Root,
     base_dir: Option<&'a Path>,
     opts: &'a LoadOptions,
-    /// Buffer data, each cut to its `byteLength`.
-    buffers: Vec<Vec<u8>>,
+    /// Buffer data, each cut to its `byteLength` (shared with [`Animation`] for posing).
+    buffers: Arc<Vec<Vec<u8>>>,
     images: HashMap<usize, Decoded>,
     /// (image, sRGB, wrap_s, wrap_t) -> index into `scene.textures`.
     textures: HashMap<(usize, bool, WrapMode, WrapMode), usize>,
-    /// (image, sRGB) -> linear texels, shared by textures that differ only in wrap modes.
-    texels: HashMap<(usize, bool), Arc<Vec<Vec4>>>,
+    /// (image, sRGB) -> width, height and linear texels, shared by textures that differ only in
+    /// wrap modes (and by every pose of an animated scene).
+    texels: anim::TexelCache,
     /// Bytes of image memory charged against `max_texture_bytes` so far.
     texture_bytes: u64,
     scene: Scene,
     triangles: usize,
     default_material: Option<usize>,
+    /// World matrix of every node (through its first parent), for skins' joints.
+    node_world: Vec<Option<Mat4>>,
 }
 
 /// Raw f32 components of an accessor, `comps` per element.
@@ -293,7 +343,25 @@ struct Elements {
     values: Vec<f32>,
 }
 
-impl Loader<'_> {
+impl<'a> Loader<'a> {
+    fn new(file: String, root: &'a json::Root, base_dir: Option<&'a Path>, opts: &'a LoadOptions) -> Self {
+        Loader {
+            file,
+            root,
+            base_dir,
+            opts,
+            buffers: Arc::default(),
+            images: HashMap::new(),
+            textures: HashMap::new(),
+            texels: HashMap::new(),
+            texture_bytes: 0,
+            scene: Scene::default(),
+            triangles: 0,
+            default_material: None,
+            node_world: Vec::new(),
+        }
+    }
+
     fn invalid(&self, element: impl Display, message: impl Display) -> SceneError {
         SceneError::Invalid { file: self.file.clone(), message: format!("{element}: {message}") }
     }
@@ -339,6 +407,7 @@ impl Loader<'_> {
     }
 
     fn load_buffers(&mut self, bin: Option<&[u8]>) -> Result<(), SceneError> {
+        let mut buffers = Vec::with_capacity(self.root.buffers.len());
         for (i, b) in self.root.buffers.iter().enumerate() {
             let element = format!("buffer {i}");
             let mut data = match b.uri.as_deref() {
@@ -356,8 +425,9 @@ impl Loader<'_> {
                 );
             }
             data.truncate(len);
-            self.buffers.push(data);
+            buffers.push(data);
         }
+        self.buffers = Arc::new(buffers);
         Ok(())
     }
 
@@ -378,6 +448,20 @@ impl Loader<'_> {
         Ok((bytes, view.byte_stride.map(|s| s.0).filter(|&s| s > 0)))
     }
 
+    /// The number of f32 components accessor `index` declares (0 when it does not exist).
+    fn accessor_floats(&self, index: usize) -> usize {
+        use json::accessor::Type;
+        let Some(acc) = self.root.accessors.get(index) else { return 0 };
+        let comps = match acc.type_ {
+            Checked::Valid(Type::Vec2) => 2,
+            Checked::Valid(Type::Vec3) => 3,
+            Checked::Valid(Type::Vec4) => 4,
+            Checked::Valid(Type::Mat4) => 16,
+            _ => 1,
+        };
+        usize::try_from(acc.count.0).unwrap_or(usize::MAX).saturating_mul(comps)
+    }
+
     /// Reads accessor `index` as f32 components (integers normalized when the accessor says so).
     /// `integer` asks for unsigned integer components only (indices).
     fn read_accessor(&self, index: usize, integer: bool) -> Result<Elements, String> {
@@ -392,7 +476,9 @@ impl Loader<'_> {
             Checked::Valid(Type::Vec2) => 2,
             Checked::Valid(Type::Vec3) => 3,
             Checked::Valid(Type::Vec4) => 4,
-            _ => return Err(here("unsupported or invalid type (expected SCALAR or VECn)".into())),
+            // Float matrices only: byte and short matrices have column padding.
+            Checked::Valid(Type::Mat4) if ctype == C::F32 => 16,
+            _ => return Err(here("unsupported or invalid type (expected SCALAR, VECn or float MAT4)".into())),
         };
         if integer && !matches!(ctype, C::U8 | C::U16 | C::U32) {
             return Err(here("indices must be unsigned integers".into()));
@@ -587,8 +673,8 @@ impl Loader<'_> {
         if let Some(&i) = self.textures.get(&key) {
             return Ok(Some(i));
         }
-        if let Some(texels) = self.texels.get(&(image, srgb)) {
-            let (width, height) = self.images.get(&image).map_or((0, 0), |d| (d.width, d.height));
+        if let Some((width, height, texels)) = self.texels.get(&(image, srgb)) {
+            let (width, height) = (*width, *height);
             let name = self.texture_name(image, srgb);
             let texels = texels.clone();
             self.scene.textures.push(Texture { name, width, height, texels, wrap_s, wrap_t });
@@ -626,7 +712,7 @@ impl Loader<'_> {
         };
         let (width, height) = (d.width, d.height);
         let texels = Arc::new(texels);
-        self.texels.insert((image, srgb), texels.clone());
+        self.texels.insert((image, srgb), (width, height, texels.clone()));
         let name = self.texture_name(image, srgb);
         self.scene.textures.push(Texture { name, width, height, texels, wrap_s, wrap_t });
         let i = self.scene.textures.len() - 1;
@@ -822,12 +908,53 @@ impl Loader<'_> {
                 (0..root.nodes.len()).filter(|&i| !child.get(i).copied().unwrap_or(true)).collect()
             }
         };
+        if !root.skins.is_empty() {
+            self.node_world = self.node_worlds()?;
+        }
         let mut path = Vec::new();
         let mut visits = 0usize;
         for n in roots {
             self.visit(n, Mat4::IDENTITY, &mut path, &mut visits)?;
         }
         Ok(())
+    }
+
+    /// World matrices of all nodes through their first parent (joints need not be in the scene's
+    /// tree); each node's chain is walked once, at most [`MAX_NODE_DEPTH`] deep.
+    fn node_worlds(&self) -> Result<Vec<Option<Mat4>>, SceneError> {
+        let nodes = &self.root.nodes;
+        let mut parent: Vec<Option<usize>> = vec![None; nodes.len()];
+        for (i, n) in nodes.iter().enumerate() {
+            for c in n.children.iter().flatten() {
+                if let Some(p @ None) = parent.get_mut(c.value()) {
+                    *p = Some(i);
+                }
+            }
+        }
+        let mut world: Vec<Option<Mat4>> = vec![None; nodes.len()];
+        let mut chain = Vec::new();
+        for i in 0..nodes.len() {
+            chain.clear();
+            let mut cur = Some(i);
+            while let Some(c) = cur.filter(|&c| world.get(c).is_some_and(Option::is_none)) {
+                chain.push(c);
+                if chain.len() > MAX_NODE_DEPTH {
+                    return Err(self.invalid(
+                        format!("node {i}"),
+                        format!("node hierarchy deeper than {MAX_NODE_DEPTH} or cyclic"),
+                    ));
+                }
+                cur = parent.get(c).copied().flatten();
+            }
+            let mut m = cur.and_then(|c| world.get(c).copied().flatten()).unwrap_or(Mat4::IDENTITY);
+            for &c in chain.iter().rev() {
+                m *= nodes.get(c).map_or(Mat4::IDENTITY, local_matrix);
+                if let Some(w) = world.get_mut(c) {
+                    *w = Some(m);
+                }
+            }
+        }
+        Ok(world)
     }
 
     fn visit(
@@ -850,17 +977,7 @@ impl Loader<'_> {
         if *visits > MAX_NODE_VISITS {
             return Err(self.invalid(element, format!("more than {MAX_NODE_VISITS} node instances")));
         }
-        let local = match node.matrix {
-            Some(m) => Mat4::from_cols_array(&m),
-            None => {
-                let t = Vec3::from(node.translation.unwrap_or([0.0; 3]));
-                let r = node.rotation.map_or(Quat::IDENTITY, |q| Quat::from_array(q.0));
-                let r = if r.length_squared() > 0.0 { r.normalize() } else { Quat::IDENTITY };
-                let s = Vec3::from(node.scale.unwrap_or([1.0; 3]));
-                Mat4::from_scale_rotation_translation(s, r, t)
-            }
-        };
-        let world = parent * local;
+        let world = parent * local_matrix(node);
         if !world.is_finite() {
             return Err(self.invalid(element, "non-finite transform"));
         }
@@ -868,8 +985,10 @@ impl Loader<'_> {
             let mi = m.value();
             let mesh =
                 root.meshes.get(mi).ok_or_else(|| self.invalid(&element, format!("mesh {mi} does not exist")))?;
+            let skin = node.skin.map(|s| s.value());
+            let weights = node.weights.as_deref().or(mesh.weights.as_deref());
             for (pi, prim) in mesh.primitives.iter().enumerate() {
-                self.primitive(mi, pi, prim, &element, world)?;
+                self.primitive(mi, pi, prim, &element, world, Deform { skin, weights })?;
             }
         }
         if let Some(c) = node.camera {
@@ -951,6 +1070,133 @@ impl Loader<'_> {
         Ok(())
     }
 
+    /// Adds the weighted morph-target displacements of `prim` (positions, normals, tangents'
+    /// xyz). Weights missing for a target are 0; targets with weight 0 are not read.
+    #[allow(clippy::too_many_arguments)]
+    fn morph(
+        &self,
+        prim: &json::mesh::Primitive,
+        weights: Option<&[f32]>,
+        n: usize,
+        element: &str,
+        pos: &mut [f32],
+        normals: Option<&mut Vec<f32>>,
+        tangents: Option<&mut Vec<f32>>,
+    ) -> Result<(), SceneError> {
+        let (Some(targets), Some(weights)) = (prim.targets.as_ref(), weights) else { return Ok(()) };
+        let (mut normals, mut tangents) = (normals, tangents);
+        for (k, target) in targets.iter().enumerate() {
+            let w = weights.get(k).copied().unwrap_or(0.0);
+            if w == 0.0 || !w.is_finite() {
+                continue;
+            }
+            let read = |acc: Option<json::Index<json::Accessor>>, what: &str| -> Result<Option<Vec<f32>>, SceneError> {
+                let Some(acc) = acc else { return Ok(None) };
+                let here = format!("{element} target {k} {what}");
+                let e = self.read_accessor(acc.value(), false).map_err(|m| self.invalid(&here, m))?;
+                if e.comps != 3 || e.values.len() != n * 3 {
+                    return Err(self.invalid(here, format!("accessor {}: must be VEC3 with {n} elements", acc.value())));
+                }
+                if !e.values.iter().all(|v| v.is_finite()) {
+                    return Err(self.invalid(here, format!("accessor {}: non-finite values", acc.value())));
+                }
+                Ok(Some(e.values))
+            };
+            if let Some(d) = read(target.positions, "POSITION")? {
+                pos.iter_mut().zip(&d).for_each(|(p, d)| *p += w * d);
+            }
+            if let (Some(nrm), Some(d)) = (normals.as_deref_mut(), read(target.normals, "NORMAL")?) {
+                nrm.iter_mut().zip(&d).for_each(|(p, d)| *p += w * d);
+            }
+            if let (Some(tan), Some(d)) = (tangents.as_deref_mut(), read(target.tangents, "TANGENT")?) {
+                for (t, d) in tan.chunks_exact_mut(4).zip(d.chunks_exact(3)) {
+                    t.iter_mut().zip(d).for_each(|(p, d)| *p += w * d);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Per-vertex skinning matrices of `prim` under skin `si`: sum over JOINTS_n / WEIGHTS_n of
+    /// weight x joint world x inverse bind matrix. `None` when the primitive has no JOINTS_0
+    /// (it is then placed by its node). A vertex whose weights are all 0 gets the identity.
+    fn skin_matrices(
+        &self,
+        prim: &json::mesh::Primitive,
+        si: usize,
+        n: usize,
+        element: &str,
+    ) -> Result<Option<Vec<Mat4>>, SceneError> {
+        use json::mesh::Semantic;
+        if !prim.attributes.contains_key(&Checked::Valid(Semantic::Joints(0))) {
+            return Ok(None);
+        }
+        let here = format!("{element} skin {si}");
+        let skin = self.root.skins.get(si).ok_or_else(|| self.invalid(&here, "does not exist"))?;
+        let ibm = match skin.inverse_bind_matrices {
+            Some(a) => {
+                let e = self.read_accessor(a.value(), false).map_err(|m| self.invalid(&here, m))?;
+                if e.comps != 16 || e.values.len() < skin.joints.len() * 16 || !e.values.iter().all(|v| v.is_finite()) {
+                    return Err(self.invalid(
+                        &here,
+                        format!(
+                            "inverseBindMatrices accessor {} must hold {} finite MAT4",
+                            a.value(),
+                            skin.joints.len()
+                        ),
+                    ));
+                }
+                e.values.chunks_exact(16).map(Mat4::from_cols_slice).collect()
+            }
+            None => vec![Mat4::IDENTITY; skin.joints.len()],
+        };
+        let joints: Vec<Mat4> = skin
+            .joints
+            .iter()
+            .zip(&ibm)
+            .map(|(j, ibm)| {
+                let w = self.node_world.get(j.value()).copied().flatten();
+                w.map(|w| w * *ibm)
+                    .ok_or_else(|| self.invalid(&here, format!("joint node {} does not exist", j.value())))
+            })
+            .collect::<Result<_, _>>()?;
+        let mut mats = vec![Mat4::ZERO; n];
+        let mut set = 0u32;
+        while let (Some(ja), Some(wa)) = (
+            prim.attributes.get(&Checked::Valid(Semantic::Joints(set))),
+            prim.attributes.get(&Checked::Valid(Semantic::Weights(set))),
+        ) {
+            let read = |a: usize| self.read_accessor(a, false).map_err(|m| self.invalid(&here, m));
+            let (j, w) = (read(ja.value())?, read(wa.value())?);
+            if j.comps != 4 || w.comps != 4 || j.values.len() != n * 4 || w.values.len() != n * 4 {
+                return Err(
+                    self.invalid(&here, format!("JOINTS_{set} and WEIGHTS_{set} must be VEC4 with {n} elements"))
+                );
+            }
+            for (m, (jv, wv)) in mats.iter_mut().zip(j.values.chunks_exact(4).zip(w.values.chunks_exact(4))) {
+                for (&ji, &wi) in jv.iter().zip(wv) {
+                    if wi == 0.0 {
+                        continue;
+                    }
+                    let joint = joints.get(ji as usize).filter(|_| wi.is_finite()).ok_or_else(|| {
+                        self.invalid(
+                            &here,
+                            format!("JOINTS_{set}: joint {ji} does not exist ({} joints)", joints.len()),
+                        )
+                    })?;
+                    *m += *joint * wi;
+                }
+            }
+            set += 1;
+        }
+        for m in &mut mats {
+            if *m == Mat4::ZERO {
+                *m = Mat4::IDENTITY;
+            }
+        }
+        Ok(Some(mats))
+    }
+
     /// Reads a vertex attribute with `comps` components per vertex, `n` vertices (when known).
     fn attribute(
         &self,
@@ -1014,6 +1260,7 @@ impl Loader<'_> {
         prim: &json::mesh::Primitive,
         node: &str,
         world: Mat4,
+        deform: Deform<'_>,
     ) -> Result<(), SceneError> {
         use json::mesh::{Mode, Semantic};
         let element = format!("mesh {mi} primitive {pi}");
@@ -1028,13 +1275,18 @@ impl Loader<'_> {
                 return Ok(());
             }
         };
-        let Some(pos) = self.attribute(prim, Semantic::Positions, 3, None, &element)? else {
+        let Some(mut pos) = self.attribute(prim, Semantic::Positions, 3, None, &element)? else {
             self.warn(format!("{element}: no POSITION; skipped"));
             return Ok(());
         };
         let n = pos.len() / 3;
-        let normals = self.attribute(prim, Semantic::Normals, 3, Some(n), &element)?;
-        let tangents = self.attribute(prim, Semantic::Tangents, 4, Some(n), &element)?;
+        let mut normals = self.attribute(prim, Semantic::Normals, 3, Some(n), &element)?;
+        let mut tangents = self.attribute(prim, Semantic::Tangents, 4, Some(n), &element)?;
+        self.morph(prim, deform.weights, n, &element, &mut pos, normals.as_mut(), tangents.as_mut())?;
+        let skin = match deform.skin {
+            Some(s) => self.skin_matrices(prim, s, n, &element)?,
+            None => None,
+        };
         let uv0 = self.attribute(prim, Semantic::TexCoords(0), 2, Some(n), &element)?;
         let uv1 = self.attribute(prim, Semantic::TexCoords(1), 2, Some(n), &element)?;
         let colors = self.vertex_colors(prim, n, &element)?;
@@ -1078,11 +1330,15 @@ impl Loader<'_> {
             None => self.default_material(),
         };
 
-        // Bake to world space.
+        // Bake to world space: the node's transform, or per vertex the skin's blend of joints
+        // (the node's own transform is then ignored, as glTF says).
         let normal_matrix = Mat3::from_mat4(world).inverse().transpose();
         let linear = Mat3::from_mat4(world);
-        let flip = linear.determinant() < 0.0;
-        let positions: Vec<Vec3> = pos.chunks_exact(3).map(|p| world.transform_point3(Vec3::from_slice(p))).collect();
+        let flip = skin.is_none() && linear.determinant() < 0.0;
+        let positions: Vec<Vec3> = match &skin {
+            None => pos.chunks_exact(3).map(|p| world.transform_point3(Vec3::from_slice(p))).collect(),
+            Some(m) => pos.chunks_exact(3).zip(m).map(|(p, m)| m.transform_point3(Vec3::from_slice(p))).collect(),
+        };
         let sane = |p: &Vec3| p.is_finite() && p.abs().max_element() <= MAX_COORDINATE;
         if let Some(&v) = tris.iter().flatten().find(|&&v| !positions.get(v as usize).is_some_and(sane)) {
             let p = positions.get(v as usize).copied().unwrap_or(Vec3::NAN);
@@ -1094,15 +1350,21 @@ impl Loader<'_> {
                 ),
             ));
         }
-        let normals = normals.map(|v| {
-            v.chunks_exact(3).map(|p| (normal_matrix * Vec3::from_slice(p)).normalize_or(Vec3::Z)).collect::<Vec<_>>()
+        let normals = normals.map(|v| match &skin {
+            None => v
+                .chunks_exact(3)
+                .map(|p| (normal_matrix * Vec3::from_slice(p)).normalize_or(Vec3::Z))
+                .collect::<Vec<_>>(),
+            Some(m) => v.chunks_exact(3).zip(m).map(|(p, m)| skin_normal(m, Vec3::from_slice(p))).collect(),
         });
         let mut tangents = tangents.map(|v| {
             v.chunks_exact(4)
-                .map(|p| {
+                .enumerate()
+                .map(|(i, p)| {
                     let t = Vec4::from_slice(p);
                     let w = if flip { -t.w } else { t.w };
-                    (linear * t.truncate()).normalize_or(Vec3::X).extend(if w < 0.0 { -1.0 } else { 1.0 })
+                    let l = skin.as_ref().and_then(|m| m.get(i)).map_or(linear, |m| Mat3::from_mat4(*m));
+                    (l * t.truncate()).normalize_or(Vec3::X).extend(if w < 0.0 { -1.0 } else { 1.0 })
                 })
                 .collect::<Vec<_>>()
         });
@@ -1139,6 +1401,35 @@ impl Loader<'_> {
         self.scene.meshes.push(Mesh { name, positions, normals, tangents, uv0, uv1, colors, indices: tris, material });
         Ok(())
     }
+}
+
+/// A node's local transform: its matrix, or translation x rotation x scale.
+fn local_matrix(node: &json::Node) -> Mat4 {
+    match node.matrix {
+        Some(m) => Mat4::from_cols_array(&m),
+        None => {
+            let t = Vec3::from(node.translation.unwrap_or([0.0; 3]));
+            let r = node.rotation.map_or(Quat::IDENTITY, |q| Quat::from_array(q.0));
+            let r = if r.length_squared() > 0.0 { r.normalize() } else { Quat::IDENTITY };
+            let s = Vec3::from(node.scale.unwrap_or([1.0; 3]));
+            Mat4::from_scale_rotation_translation(s, r, t)
+        }
+    }
+}
+
+/// How a mesh instance deforms: its node's skin and morph-target weights.
+#[derive(Clone, Copy)]
+struct Deform<'a> {
+    skin: Option<usize>,
+    weights: Option<&'a [f32]>,
+}
+
+/// A normal under a skinning matrix: the inverse transpose of its linear part (the matrix itself
+/// when singular).
+fn skin_normal(m: &Mat4, n: Vec3) -> Vec3 {
+    let l = Mat3::from_mat4(*m);
+    let nm = if l.determinant().abs() > 1e-12 { l.inverse().transpose() } else { l };
+    (nm * n).normalize_or(Vec3::Z)
 }
 
 fn idx_of(t: &[u32], i: usize) -> u32 {

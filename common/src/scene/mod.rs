@@ -2,9 +2,12 @@
 //!
 //! `load` turns a glTF 2.0 file (`.glb`, `.gltf` with files beside it, or data URIs) into a
 //! [`Scene`]. Every mesh instance is baked to world space (one [`Mesh`] per primitive per node
-//! instance); materials, textures, cameras and punctual lights keep glTF's meaning, with units
-//! documented in README.md ("Units").
+//! instance, morph targets and skins applied); materials, textures, cameras and punctual lights
+//! keep glTF's meaning, with units documented in README.md ("Units"). A file with animations is
+//! loaded posed at t = 0 and keeps what [`Scene::posed`] needs to pose it at any other time
+//! (`anim`; README.md "Animation").
 
+pub mod anim;
 pub mod bundle;
 pub mod demo;
 mod error;
@@ -17,6 +20,7 @@ pub use texture::{Texture, TextureTransform, WrapMode};
 
 use glam::{Mat4, Vec2, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// A loaded scene, flattened to world space.
 #[derive(Clone, Debug, Default)]
@@ -31,6 +35,9 @@ pub struct Scene {
     pub lights: Vec<PunctualLight>,
     /// Non-fatal problems (skipped primitives, dangling textures...), each naming the element.
     pub warnings: Vec<String>,
+    /// The file's animations and what posing needs (`None` for a still scene); see
+    /// [`Scene::posed`].
+    pub animation: Option<Arc<anim::Animation>>,
 }
 
 /// One triangle mesh in world space (one glTF primitive of one node instance).
@@ -197,6 +204,35 @@ pub struct PunctualLight {
 pub const NO_LIGHT_WARNING: &str = "the scene has no lights or emissive materials: it renders black";
 
 impl Scene {
+    /// The scene at animation time `t` seconds with the animations named in `names` playing
+    /// (all of them for `None`, none for an empty list): node transforms, morph weights, skins,
+    /// and the camera, light and material properties of `KHR_animation_pointer`. A still scene
+    /// is returned as it is; naming an animation the scene lacks is an error that lists the
+    /// available ones.
+    pub fn posed(&self, t: f32, names: Option<&[String]>) -> Result<Scene, SceneError> {
+        let Some(anim) = &self.animation else {
+            if let Some(name) = names.and_then(|n| n.first()) {
+                let message = anim::unknown_animation(name, &[]);
+                return Err(SceneError::Invalid { file: "scene".into(), message });
+            }
+            return Ok(self.clone());
+        };
+        let mut posed = load::load_posed(anim, t, names)?;
+        let mut warnings = self.warnings.clone();
+        for w in posed.warnings.drain(..) {
+            if !warnings.contains(&w) {
+                warnings.push(w);
+            }
+        }
+        posed.warnings = warnings;
+        Ok(posed)
+    }
+
+    /// Names of the scene's animations, in file order (unnamed ones are `animation N`).
+    pub fn animation_names(&self) -> Vec<&str> {
+        self.animation.as_ref().map_or_else(Vec::new, |a| a.clips().iter().map(|c| c.name.as_str()).collect())
+    }
+
     /// Whether anything emits light: a punctual light with nonzero intensity, or a mesh whose
     /// material has a nonzero emissive factor or is unlit (it emits its base colour).
     pub fn has_emitters(&self) -> bool {

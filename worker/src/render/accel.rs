@@ -27,6 +27,16 @@ pub struct Accel {
     tris: Vec<[Vec3A; 3]>,
     /// Original triangle index of each BVH primitive slot.
     prim_ids: Vec<u32>,
+    /// Motion blur: each slot's vertices at shutter close (`tris` holds them at shutter open);
+    /// a ray at time `u` in [0, 1] meets the triangle lerped between the two. The BVH is built
+    /// over the swept boxes (both poses), so it bounds the triangle at every time.
+    tris_close: Option<Vec<[Vec3A; 3]>>,
+}
+
+/// The triangle `v0` moving to `v1`, at time `u` in [0, 1] of the shutter.
+#[inline(always)]
+pub fn lerp_triangle(v0: &[Vec3A; 3], v1: &[Vec3A; 3], u: f32) -> [Vec3A; 3] {
+    [v0[0].lerp(v1[0], u), v0[1].lerp(v1[1], u), v0[2].lerp(v1[2], u)]
 }
 
 /// Per-ray constants of the watertight test: the shear for the axis permutation `(KX, KY, KZ)`
@@ -121,19 +131,44 @@ impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
     }
 }
 
+/// The direction given to obvhs: negative zeros made positive (`-0.0 + 0.0 = +0.0`, every other
+/// value unchanged). obvhs orders a node's slabs by `d < 0.0` (false for -0.0) but inverts -0.0
+/// to a large negative number, so a ray with a -0.0 component (an orthographic camera's
+/// axis-aligned rays) had swapped slabs and missed everything.
+#[inline(always)]
+fn bvh_direction(d: Vec3A) -> Vec3A {
+    d + Vec3A::ZERO
+}
+
 impl Accel {
     /// Builds the BVH over `tris` (world space).
     pub fn new(tris: &[[Vec3A; 3]]) -> Self {
+        Self::build(tris, None)
+    }
+
+    /// Builds the BVH over triangles moving linearly from `open` to `close` during the shutter
+    /// (same count and order; `close` falls back to `open` where it is shorter).
+    pub fn new_moving(open: &[[Vec3A; 3]], close: &[[Vec3A; 3]]) -> Self {
+        Self::build(open, Some(close))
+    }
+
+    fn build(tris: &[[Vec3A; 3]], close: Option<&[[Vec3A; 3]]>) -> Self {
         if tris.is_empty() {
-            return Self { bvh: None, tris: Vec::new(), prim_ids: Vec::new() };
+            return Self { bvh: None, tris: Vec::new(), prim_ids: Vec::new(), tris_close: None };
         }
         // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
         // box's edge (a mesh edge on the box boundary) can otherwise miss a node whose triangle
         // the watertight test would hit.
+        let close_of = |i: usize| close.and_then(|c| c.get(i)).copied();
         let boxes: Vec<Aabb> = tris
             .iter()
-            .map(|t| {
-                let b = Aabb::from_points(t);
+            .enumerate()
+            .map(|(i, t)| {
+                let mut b = Aabb::from_points(t);
+                if let Some(c) = close_of(i) {
+                    let bc = Aabb::from_points(&c);
+                    b = Aabb { min: b.min.min(bc.min), max: b.max.max(bc.max) };
+                }
                 let pad = Vec3A::splat(b.min.abs().max(b.max.abs()).max_element() * 1e-5 + 1e-20);
                 Aabb { min: b.min - pad, max: b.max + pad }
             })
@@ -141,19 +176,42 @@ impl Accel {
         let bvh = build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut Duration::default());
         let prim_ids = bvh.primitive_indices.clone();
         let ordered = prim_ids.iter().map(|&i| tris[i as usize]).collect();
-        Self { bvh: Some(bvh), tris: ordered, prim_ids }
+        let tris_close =
+            close.map(|_| prim_ids.iter().map(|&i| close_of(i as usize).unwrap_or(tris[i as usize])).collect());
+        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close }
     }
 
     pub fn triangle_count(&self) -> usize {
         self.tris.len()
     }
 
-    /// Closest hit along `o + t d` with `0 < t < t_max`.
+    /// Closest hit along `o + t d` with `0 < t < t_max` (at shutter open).
     pub fn intersect(&self, o: Vec3A, d: Vec3A, t_max: f32) -> Option<Hit> {
+        self.intersect_at(o, d, t_max, 0.0)
+    }
+
+    /// Closest hit at time `time` in [0, 1] of the shutter (moving triangles lerped).
+    pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<Hit> {
         match dominant_axis(d) {
-            0 => self.intersect_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max),
-            1 => self.intersect_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max),
-            _ => self.intersect_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max),
+            0 => self.intersect_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max, time),
+            1 => self.intersect_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max, time),
+            _ => self.intersect_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max, time),
+        }
+    }
+
+    /// The watertight test against the triangle in BVH slot `slot` at `time` (static triangles
+    /// are tested in place, as without motion blur).
+    #[inline(always)]
+    fn test_slot<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        shear: &RayShear<KX, KY, KZ>,
+        slot: usize,
+        t_max: f32,
+        time: f32,
+    ) -> Option<(f32, f32, f32)> {
+        match &self.tris_close {
+            None => shear.intersect(&self.tris[slot], t_max),
+            Some(close) => shear.intersect(&lerp_triangle(&self.tris[slot], &close[slot], time), t_max),
         }
     }
 
@@ -164,14 +222,15 @@ impl Accel {
         o: Vec3A,
         d: Vec3A,
         t_max: f32,
+        time: f32,
     ) -> Option<Hit> {
         let bvh = self.bvh.as_ref()?;
-        let ray = obvhs::ray::Ray::new(o, d, 0.0, t_max);
+        let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
         let mut hit = RayHit::none();
         let mut best = (0.0f32, 0.0f32);
         let found = bvh.ray_traverse(ray, &mut hit, |r, slot| {
             // `slot` indexes primitive_indices; tris is stored in that order.
-            match shear.intersect(&self.tris[slot], r.tmax) {
+            match self.test_slot(&shear, slot, r.tmax, time) {
                 Some((t, b1, b2)) => {
                     best = (b1, b2);
                     t
@@ -183,12 +242,17 @@ impl Accel {
         found.then(|| Hit { t: hit.t, prim: self.prim_ids[hit.primitive_id as usize], b1: best.0, b2: best.1 })
     }
 
-    /// Whether anything blocks `o + t d` for `0 < t < t_max`.
+    /// Whether anything blocks `o + t d` for `0 < t < t_max` (at shutter open).
     pub fn occluded(&self, o: Vec3A, d: Vec3A, t_max: f32) -> bool {
+        self.occluded_at(o, d, t_max, 0.0)
+    }
+
+    /// Whether anything blocks the segment at time `time` in [0, 1] of the shutter.
+    pub fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
         match dominant_axis(d) {
-            0 => self.occluded_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max),
-            1 => self.occluded_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max),
-            _ => self.occluded_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max),
+            0 => self.occluded_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max, time),
+            1 => self.occluded_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max, time),
+            _ => self.occluded_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max, time),
         }
     }
 
@@ -199,10 +263,11 @@ impl Accel {
         o: Vec3A,
         d: Vec3A,
         t_max: f32,
+        time: f32,
     ) -> bool {
         let Some(bvh) = self.bvh.as_ref() else { return false };
-        let ray = obvhs::ray::Ray::new(o, d, 0.0, t_max);
-        !bvh.ray_traverse_miss(ray, |r, slot| match shear.intersect(&self.tris[slot], r.tmax) {
+        let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
+        !bvh.ray_traverse_miss(ray, |r, slot| match self.test_slot(&shear, slot, r.tmax, time) {
             Some((t, _, _)) => t,
             None => f32::INFINITY,
         })
@@ -285,5 +350,40 @@ mod tests {
         assert!(accel.occluded(o, d, 1.5));
         assert!(!accel.occluded(o, d, 0.5));
         assert!(!Accel::new(&[]).occluded(o, d, 10.0));
+    }
+
+    /// Axis-aligned rays whose other components are -0.0 (what an orthographic camera looking
+    /// down -Z makes) hit, like those with +0.0: they used to miss everything.
+    #[test]
+    fn axis_aligned_rays_with_negative_zeros_hit() {
+        let accel = Accel::new(&cube());
+        for d in [Vec3A::new(-0.0, -0.0, -1.0), Vec3A::new(0.0, 0.0, -1.0), Vec3A::new(-1.0, -0.0, 0.0)] {
+            // From 5 units back through (0.3, 0.2, 0.1) to the face of [-1, 1]^3 it meets.
+            let p = Vec3A::new(0.3, 0.2, 0.1);
+            let o = p - d * 5.0;
+            let expected = 5.0 - (1.0 + p.dot(d));
+            let hit = accel.intersect(o, d, f32::INFINITY).map(|h| h.t);
+            assert!(hit.is_some_and(|t| (t - expected).abs() < 1e-5), "{d}: {hit:?}, expected {expected}");
+            assert!(accel.occluded(o, d, 10.0), "{d}");
+        }
+    }
+
+    /// A triangle sweeping from x in [-1, 0] to x in [2, 3] during the shutter: rays at its
+    /// place at time u hit, at its place at other times miss (the swept BVH box is not a hit).
+    #[test]
+    fn moving_triangles_are_hit_where_they_are_at_the_ray_time() {
+        let v = |x: f32, y: f32| Vec3A::new(x, y, 0.0);
+        let open = [[v(-1.0, 0.0), v(0.0, 0.0), v(-1.0, 1.0)]];
+        let close = [[v(2.0, 0.0), v(3.0, 0.0), v(2.0, 1.0)]];
+        let accel = Accel::new_moving(&open, &close);
+        let d = Vec3A::new(0.0, 0.0, -1.0);
+        for u in [0.0f32, 0.25, 0.5, 1.0] {
+            let x = -0.75 + 3.0 * u;
+            let o = Vec3A::new(x, 0.2, 5.0);
+            assert!(accel.intersect_at(o, d, f32::INFINITY, u).is_some_and(|h| (h.t - 5.0).abs() < 1e-5), "u {u}");
+            assert!(accel.occluded_at(o, d, 10.0, u), "u {u}");
+            let other = if u < 0.5 { u + 0.5 } else { u - 0.5 };
+            assert!(accel.intersect_at(o, d, f32::INFINITY, other).is_none(), "u {u} at time {other}");
+        }
     }
 }

@@ -41,6 +41,26 @@ impl Camera {
         Self::from_parts(cam.world_from_camera, kind, width, height)
     }
 
+    /// The camera at shutter time `u` in [0, 1] between `open` and `close` (motion blur):
+    /// position lerped, orientation slerped, field of view or extents lerped.
+    pub fn interpolate(open: &scene::Camera, close: &scene::Camera, u: f32, width: u32, height: u32) -> Self {
+        let (_, r0, t0) = open.world_from_camera.to_scale_rotation_translation();
+        let (_, r1, t1) = close.world_from_camera.to_scale_rotation_translation();
+        let r = pathfarm_common::scene::anim::slerp(&r0.to_array(), &r1.to_array(), u);
+        let world_from_camera = Mat4::from_rotation_translation(glam::Quat::from_array(r), t0.lerp(t1, u));
+        let lerp = |a: f32, b: f32| a + (b - a) * u;
+        let projection = match (open.projection, close.projection) {
+            (Projection::Perspective { yfov: a, aspect }, Projection::Perspective { yfov: b, .. }) => {
+                Projection::Perspective { yfov: lerp(a, b), aspect }
+            }
+            (Projection::Orthographic { xmag: x0, ymag: y0 }, Projection::Orthographic { xmag: x1, ymag: y1 }) => {
+                Projection::Orthographic { xmag: lerp(x0, x1), ymag: lerp(y0, y1) }
+            }
+            (p, _) => p,
+        };
+        Self::new(&scene::Camera { name: String::new(), world_from_camera, projection }, width, height)
+    }
+
     fn from_parts(world_from_camera: Mat4, kind: Kind, width: u32, height: u32) -> Self {
         // Remove scale and shear: cameras are rigid.
         let (_, rot, trans) = world_from_camera.to_scale_rotation_translation();

@@ -239,7 +239,8 @@ fn reflected(
             mis: MisHeuristic::Light,
             light_sampling: LightSampling::SolidAngle,
         };
-        l += sample_ld(scene, p, sh, wo, sampler, &direct);
+        // IGI refuses motion blur (see `Renderer::new`): the scene is at time 0.
+        l += sample_ld(scene, p, sh, wo, sampler, &direct, 0.0);
     }
     for vpl in set {
         if !within(segments + 1 + vpl.segments) {

@@ -39,7 +39,8 @@ fn mis_weight(mis: MisHeuristic, pdf_this: f32, pdf_other: f32) -> f32 {
 }
 
 /// Next-event estimation at a non-delta vertex: one light sample, weighted against BSDF
-/// sampling. Returns the contribution without the path throughput.
+/// sampling, at the path's shutter time `time`. Returns the contribution without the path
+/// throughput.
 pub fn sample_ld(
     scene: &RenderScene,
     p: Vec3A,
@@ -47,12 +48,13 @@ pub fn sample_ld(
     wo: Vec3A,
     sampler: &mut impl Sampler,
     params: &PathParams,
+    time: f32,
 ) -> Vec3A {
     let u_select = sampler.get_1d();
     let u = sampler.get_2d();
     let Some(bsdf) = &sh.bsdf else { return Vec3A::ZERO };
     let ctx = LightSampleContext { p, n: sh.ng };
-    let Some((index, ls, pmf)) = scene.sample_light(&ctx, u_select, u, params.light_sampling) else {
+    let Some((index, ls, pmf)) = scene.sample_light_at(&ctx, u_select, u, params.light_sampling, time) else {
         return Vec3A::ZERO;
     };
     let light = &scene.lights[index];
@@ -68,7 +70,7 @@ pub fn sample_ld(
         return Vec3A::ZERO;
     }
     let f = bsdf.f(wo, ls.wi) * ls.wi.dot(bsdf.frame.z).abs();
-    if f == Vec3A::ZERO || !scene.unoccluded(p, sh.ng, &ls) {
+    if f == Vec3A::ZERO || !scene.unoccluded_at(p, sh.ng, &ls, time) {
         return Vec3A::ZERO;
     }
     let light_pdf = pmf * ls.pdf;
@@ -97,13 +99,16 @@ pub fn sample_scatter(bsdf: &Bsdf, ng: Vec3A, wo: Vec3A, sampler: &mut impl Samp
     Some((bs, weight))
 }
 
-/// Traces one camera sample through `pixel` and returns its radiance and AOVs.
+/// Traces one camera sample through `pixel` at shutter time `time` in [0, 1] (every ray of
+/// the path sees the scene at that time; 0 without motion blur) and returns its radiance and
+/// AOVs.
 pub fn li_path(
     scene: &RenderScene,
     camera: &Camera,
     pixel: UVec2,
     sampler: &mut impl Sampler,
     params: &PathParams,
+    time: f32,
 ) -> SampleValue {
     let mut out = SampleValue::default();
     let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
@@ -115,12 +120,12 @@ pub fn li_path(
     let mut prev_bsdf_pdf = 0.0f32;
     let mut prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
     let mut depth = 0u32;
-    while let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) {
+    while let Some(si) = scene.intersect_at(ray.o, ray.d, f32::INFINITY, time) {
         let wo = -ray.d;
         if depth == 0 {
             out.depth = Some(si.t);
         }
-        let le = scene.emitted(&si, wo);
+        let le = scene.emitted_at(&si, wo, time);
         if le != Vec3A::ZERO {
             let w = if specular_bounce {
                 1.0
@@ -130,7 +135,7 @@ pub fn li_path(
                     MisHeuristic::Light => 0.0,
                     mis => {
                         let light_pdf = scene.light_of_prim(si.prim).map_or(0.0, |i| {
-                            scene.light_pmf(i) * scene.lights[i].pdf_li(&prev_ctx, si.p, params.light_sampling)
+                            scene.light_pmf(i) * scene.light_at(i, time).pdf_li(&prev_ctx, si.p, params.light_sampling)
                         });
                         mis_weight(mis, prev_bsdf_pdf, light_pdf)
                     }
@@ -154,7 +159,7 @@ pub fn li_path(
         }
         let Some(bsdf) = &sh.bsdf else { break };
         if !bsdf.is_delta() {
-            l += beta * sample_ld(scene, si.p, &sh, wo, sampler, params);
+            l += beta * sample_ld(scene, si.p, &sh, wo, sampler, params, time);
         }
         let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, sampler) else { break };
         beta *= weight;

@@ -24,7 +24,7 @@ use igi::{IgiParams, VplCache, li_igi};
 use integrator::{PathParams, li_path};
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
-use pathfarm_common::scene::Scene;
+use pathfarm_common::scene::{self as scene_model, Scene};
 use rayon::prelude::*;
 use sampler::{AnySampler, Sampler};
 use scene::RenderScene;
@@ -60,6 +60,10 @@ pub struct Renderer {
     settings: RenderSettings,
     scene: RenderScene,
     camera: Camera,
+    /// Motion blur: the scene cameras at shutter open and close; each camera sample draws a
+    /// time in [0, 1] of the shutter and sees the camera and the geometry at that time.
+    /// `None` without blur (no shutter, or a still scene: nothing can move).
+    shutter_cameras: Option<(scene_model::Camera, scene_model::Camera)>,
     integrator: Integrator,
     /// IGI: the virtual point lights of each sample index, built on first use.
     vpls: VplCache,
@@ -70,13 +74,40 @@ type Splat = (Vec2, Vec3A);
 
 impl Renderer {
     /// Prepares `scene` for rendering with `settings` (builds the BVH: do it once per job).
+    ///
+    /// An animated scene is posed at the settings' frame time (`frame / fps`) with the named
+    /// animations playing (all by default); a still scene is used as it is.
     pub fn new(scene: &Scene, settings: &RenderSettings) -> Result<Self, RenderError> {
         settings
             .validate(&pathfarm_common::job::Limits::default())
             .map_err(|e| RenderError::Settings(e.to_string()))?;
+        let names = settings.animations.as_deref();
+        if let Some(unknown) = names.and_then(|n| n.iter().find(|n| !scene.animation_names().contains(&n.as_str()))) {
+            let clips = scene.animation.as_ref().map_or(&[][..], |a| a.clips());
+            return Err(RenderError::Settings(pathfarm_common::scene::anim::unknown_animation(unknown, clips)));
+        }
+        // Motion blur needs something that can move: an animated scene.
+        let blur = settings.shutter > 0.0 && scene.animation.is_some();
+        if blur && !matches!(settings.integrator, IntegratorSettings::Direct { .. } | IntegratorSettings::Path { .. }) {
+            return Err(RenderError::Settings(
+                "motion blur (shutter > 0) on an animated scene is implemented for the direct and path \
+                 integrators only; bdpt and igi need shutter 0"
+                    .into(),
+            ));
+        }
+        let pose = |t: f32| scene.posed(t, names).map_err(|e| RenderError::Scene(e.to_string()));
+        let posed;
+        let close = if blur { Some(pose(settings.shutter_close_time())?) } else { None };
+        let scene = match &scene.animation {
+            Some(_) => {
+                posed = pose(settings.frame_time())?;
+                &posed
+            }
+            None => scene,
+        };
         // The loader refuses such scenes; a Scene built another way must not reach the BVH.
         let limit = pathfarm_common::scene::MAX_COORDINATE;
-        for m in &scene.meshes {
+        for m in scene.meshes.iter().chain(close.iter().flat_map(|c| &c.meshes)) {
             if let Some(p) = m.positions.iter().find(|p| !(p.is_finite() && p.abs().max_element() <= limit)) {
                 return Err(RenderError::Scene(format!(
                     "mesh {:?}: vertex at {p}: coordinates must be finite and within +-{limit:e}",
@@ -84,17 +115,20 @@ impl Renderer {
                 )));
             }
         }
-        let camera = match settings.camera {
-            Some(i) => {
-                let cam = scene.cameras.get(i).ok_or_else(|| {
-                    RenderError::Settings(format!("camera {i} does not exist (the scene has {})", scene.cameras.len()))
-                })?;
-                Camera::new(cam, settings.width, settings.height)
-            }
-            None => match scene.cameras.first() {
-                Some(cam) => Camera::new(cam, settings.width, settings.height),
-                None => Camera::framing(scene.bounds(), settings.width, settings.height),
-            },
+        let aspect = settings.width as f32 / settings.height.max(1) as f32;
+        let scene_camera = |s: &Scene| match settings.camera {
+            Some(i) => s.cameras.get(i).cloned().ok_or_else(|| {
+                RenderError::Settings(format!("camera {i} does not exist (the scene has {})", s.cameras.len()))
+            }),
+            None => Ok(s.cameras.first().cloned().unwrap_or_else(|| scene_model::default_camera(s, aspect))),
+        };
+        let open_camera = scene_camera(scene)?;
+        let camera = Camera::new(&open_camera, settings.width, settings.height);
+        let shutter_cameras = match &close {
+            // Without scene cameras the framing camera stays where the open pose puts it.
+            Some(c) if !c.cameras.is_empty() => Some((open_camera, scene_camera(c)?)),
+            Some(_) => Some((open_camera.clone(), open_camera)),
+            None => None,
         };
         let integrator = match settings.integrator {
             IntegratorSettings::Direct { mis, light_sampling } => {
@@ -131,10 +165,15 @@ impl Renderer {
                 Integrator::Igi(IgiParams { vpls, vpl_sets, g_limit, bias_compensation, max_depth })
             }
         };
+        let render_scene = match &close {
+            Some(c) => RenderScene::new_moving(scene, c).map_err(RenderError::Scene)?,
+            None => RenderScene::new(scene),
+        };
         Ok(Self {
             settings: settings.clone(),
-            scene: RenderScene::new(scene),
+            scene: render_scene,
             camera,
+            shutter_cameras,
             integrator,
             vpls: VplCache::default(),
         })
@@ -195,7 +234,17 @@ impl Renderer {
                         let v = match &self.integrator {
                             Integrator::Path(params) => {
                                 sampler.start_pixel_sample(pixel, s, 0);
-                                li_path(&self.scene, &self.camera, pixel, &mut sampler, params)
+                                match &self.shutter_cameras {
+                                    // The time is the sample's first dimension, so stills keep
+                                    // their layout.
+                                    Some((open, close)) => {
+                                        let time = sampler.get_1d();
+                                        let (w, h) = (self.settings.width, self.settings.height);
+                                        let camera = Camera::interpolate(open, close, time, w, h);
+                                        li_path(&self.scene, &camera, pixel, &mut sampler, params, time)
+                                    }
+                                    None => li_path(&self.scene, &self.camera, pixel, &mut sampler, params, 0.0),
+                                }
                             }
                             Integrator::Bdpt(params) => li_bdpt(
                                 &self.scene,

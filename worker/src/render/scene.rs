@@ -1,13 +1,14 @@
 //! The scene as the renderer sees it: world-space triangles in a BVH, the surface data to shade
 //! a hit, the lights and the light-selection distribution.
 
-use super::accel::Accel;
+use super::accel::{Accel, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
 use super::light::{Light, LightLeSample, LightLiSample, LightSampleContext};
 use super::sampling::Distribution1D;
-use glam::{Vec2, Vec3A, Vec4};
+use glam::{Vec2, Vec3, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
 use pathfarm_common::scene::{Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
+use std::borrow::Cow;
 
 /// Marks a triangle that is not a light.
 const NO_LIGHT: u32 = u32::MAX;
@@ -53,6 +54,17 @@ pub struct RenderScene {
     tri_light: Vec<u32>,
     pub center: Vec3A,
     pub radius: f32,
+    /// Motion blur: where things are at shutter close (`None`: nothing moves).
+    motion: Option<Motion>,
+}
+
+/// The scene at shutter close; geometry moves linearly from `meshes` to `close` over the shutter
+/// interval, whose times are in [0, 1].
+struct Motion {
+    /// Same meshes, triangles and vertex counts as `RenderScene::meshes`.
+    close: Vec<Mesh>,
+    /// Each light's triangle at shutter close (area lights; `None` for the others).
+    light_close: Vec<Option<[Vec3A; 3]>>,
 }
 
 /// Looks up a texture reference at a hit.
@@ -63,6 +75,34 @@ pub fn sample_texture(textures: &[Texture], r: &TextureRef, uv: &[Vec2; 2]) -> V
 
 impl RenderScene {
     pub fn new(scene: &Scene) -> Self {
+        Self::build(scene, None)
+    }
+
+    /// A scene whose geometry moves from `open` (shutter open, time 0) to `close` (time 1): both
+    /// must come from posing one file (same meshes, triangles and vertex counts). Lights,
+    /// materials and textures are those of `open`. When nothing moves this is [`Self::new`].
+    pub fn new_moving(open: &Scene, close: &Scene) -> Result<Self, String> {
+        if open.meshes.len() != close.meshes.len() {
+            return Err(format!(
+                "the scene has {} meshes at shutter open and {} at shutter close",
+                open.meshes.len(),
+                close.meshes.len()
+            ));
+        }
+        for (a, b) in open.meshes.iter().zip(&close.meshes) {
+            if a.indices != b.indices || a.positions.len() != b.positions.len() {
+                return Err(format!("mesh {:?} changes its triangles during the shutter", a.name));
+            }
+        }
+        let moves = open
+            .meshes
+            .iter()
+            .zip(&close.meshes)
+            .any(|(a, b)| a.positions != b.positions || a.normals != b.normals || a.tangents != b.tangents);
+        Ok(Self::build(open, moves.then_some(close)))
+    }
+
+    fn build(scene: &Scene, close: Option<&Scene>) -> Self {
         let mut world_tris = Vec::with_capacity(scene.triangle_count());
         let mut tris = Vec::with_capacity(scene.triangle_count());
         for (mi, mesh) in scene.meshes.iter().enumerate() {
@@ -72,6 +112,20 @@ impl RenderScene {
                 tris.push(TriRef { mesh: mi as u32, tri: ti as u32 });
             }
         }
+        let close_tris: Option<Vec<[Vec3A; 3]>> = close.map(|c| {
+            tris.iter()
+                .zip(&world_tris)
+                .map(|(tr, open)| {
+                    let mesh = &c.meshes[tr.mesh as usize];
+                    let idx = mesh.indices.get(tr.tri as usize).copied().unwrap_or_default();
+                    let at = |k: usize| mesh.positions.get(idx[k] as usize).copied().map(Vec3A::from);
+                    match (at(0), at(1), at(2)) {
+                        (Some(a), Some(b), Some(c)) => [a, b, c],
+                        _ => *open,
+                    }
+                })
+                .collect()
+        });
         let (lo, hi) = scene.bounds().unwrap_or_default();
         let center = Vec3A::from((lo + hi) * 0.5);
         let radius = (Vec3A::from(hi - lo).length() * 0.5).max(1e-3);
@@ -117,8 +171,22 @@ impl RenderScene {
             });
         }
         let weights: Vec<f32> = lights.iter().map(|l| luminance(l.power())).collect();
+        let motion = close.zip(close_tris.as_ref()).map(|(c, ct)| Motion {
+            close: c.meshes.clone(),
+            light_close: lights
+                .iter()
+                .map(|l| match l {
+                    Light::Triangle { prim, .. } => ct.get(*prim as usize).copied(),
+                    _ => None,
+                })
+                .collect(),
+        });
+        let accel = match &close_tris {
+            Some(ct) => Accel::new_moving(&world_tris, ct),
+            None => Accel::new(&world_tris),
+        };
         Self {
-            accel: Accel::new(&world_tris),
+            accel,
             tris,
             meshes: scene.meshes.clone(),
             materials: scene.materials.clone(),
@@ -128,6 +196,34 @@ impl RenderScene {
             tri_light,
             center,
             radius,
+            motion,
+        }
+    }
+
+    /// Whether geometry moves during the shutter.
+    pub fn has_motion(&self) -> bool {
+        self.motion.is_some()
+    }
+
+    /// Light `index` at shutter time `time` in [0, 1]: a moving area light's triangle, normal
+    /// and area at that time; every other light as it is.
+    pub fn light_at(&self, index: usize, time: f32) -> Cow<'_, Light> {
+        let light = &self.lights[index];
+        let close = self.motion.as_ref().and_then(|m| m.light_close.get(index).copied().flatten());
+        match (light, close) {
+            (Light::Triangle { prim, v, le, two_sided, .. }, Some(vc)) => {
+                let v = lerp_triangle(v, &vc, time);
+                let cross = (v[1] - v[0]).cross(v[2] - v[0]);
+                Cow::Owned(Light::Triangle {
+                    prim: *prim,
+                    v,
+                    n: cross.normalize_or(Vec3A::Z),
+                    area: (0.5 * cross.length()).max(f32::MIN_POSITIVE),
+                    le: *le,
+                    two_sided: *two_sided,
+                })
+            }
+            _ => Cow::Borrowed(light),
         }
     }
 
@@ -135,15 +231,33 @@ impl RenderScene {
         self.tris.len()
     }
 
-    /// Closest hit along a ray.
+    /// Closest hit along a ray (at shutter open).
     pub fn intersect(&self, o: Vec3A, d: Vec3A, t_max: f32) -> Option<SurfaceInteraction> {
-        let hit = self.accel.intersect(o, d, t_max)?;
+        self.intersect_at(o, d, t_max, 0.0)
+    }
+
+    /// Closest hit along a ray at shutter time `time` in [0, 1]: moving geometry (positions,
+    /// normals, tangents) is lerped between shutter open and close.
+    pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<SurfaceInteraction> {
+        let hit = self.accel.intersect_at(o, d, t_max, time)?;
         let tr = self.tris[hit.prim as usize];
         let mesh = &self.meshes[tr.mesh as usize];
+        let close = self.motion.as_ref().and_then(|m| m.close.get(tr.mesh as usize));
         let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
         let (b1, b2) = (hit.b1, hit.b2);
         let b0 = 1.0 - b1 - b2;
-        let pos = |i: usize| Vec3A::from(mesh.positions.get(idx[i]).copied().unwrap_or_default());
+        // A vertex attribute at the ray's time (the open pose when nothing moves).
+        let at_time = |open: Option<Vec3>, close: Option<Vec3>| -> Option<Vec3A> {
+            let a = Vec3A::from(open?);
+            Some(match close {
+                Some(c) => a.lerp(Vec3A::from(c), time),
+                None => a,
+            })
+        };
+        let pos = |i: usize| {
+            let c = close.and_then(|c| c.positions.get(idx[i]).copied());
+            at_time(mesh.positions.get(idx[i]).copied(), c).unwrap_or_default()
+        };
         let (p0, p1, p2) = (pos(0), pos(1), pos(2));
         let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
         // Interpolate the hit point from the vertices: more accurate than o + t d.
@@ -152,7 +266,8 @@ impl RenderScene {
             .normals
             .as_ref()
             .and_then(|n| {
-                let get = |i: usize| n.get(idx[i]).copied().map(Vec3A::from);
+                let cn = close.and_then(|c| c.normals.as_ref());
+                let get = |i: usize| at_time(n.get(idx[i]).copied(), cn.and_then(|cn| cn.get(idx[i]).copied()));
                 Some((get(0)? * b0 + get(1)? * b1 + get(2)? * b2).normalize_or_zero())
             })
             .filter(|n| *n != Vec3A::ZERO)
@@ -165,6 +280,11 @@ impl RenderScene {
         let tangent = mesh.tangents.as_ref().and_then(|t| {
             let (a, b, c) = (t.get(idx[0])?, t.get(idx[1])?, t.get(idx[2])?);
             let xyz = a.truncate() * b0 + b.truncate() * b1 + c.truncate() * b2;
+            let ct = close.and_then(|c| c.tangents.as_ref());
+            let xyz = match ct.and_then(|t| Some((t.get(idx[0])?, t.get(idx[1])?, t.get(idx[2])?))) {
+                Some((ca, cb, cc)) => xyz.lerp(ca.truncate() * b0 + cb.truncate() * b1 + cc.truncate() * b2, time),
+                None => xyz,
+            };
             Some(xyz.extend(if a.w < 0.0 { -1.0 } else { 1.0 }))
         });
         Some(SurfaceInteraction {
@@ -188,12 +308,17 @@ impl RenderScene {
 
     /// Whether the segment between two surface points (or a point and a light) is blocked.
     pub fn unoccluded(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample) -> bool {
+        self.unoccluded_at(p0, n0, s, 0.0)
+    }
+
+    /// [`Self::unoccluded`] at shutter time `time`.
+    pub fn unoccluded_at(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample, time: f32) -> bool {
         if s.infinite {
             let o = offset_ray_origin(p0, n0, s.wi);
-            return !self.accel.occluded(o, s.wi, f32::INFINITY);
+            return !self.accel.occluded_at(o, s.wi, f32::INFINITY, time);
         }
         let (o, d, t_max) = shadow_segment(p0, n0, s.p_light, s.n_light);
-        !self.accel.occluded(o, d, t_max)
+        !self.accel.occluded_at(o, d, t_max, time)
     }
 
     /// Whether `p1` (normal `n1`) is visible from `p0` (normal `n0`).
@@ -226,6 +351,18 @@ impl RenderScene {
         u: Vec2,
         mode: LightSampling,
     ) -> Option<(usize, LightLiSample, f32)> {
+        self.sample_light_at(ctx, u_select, u, mode, 0.0)
+    }
+
+    /// [`Self::sample_light`] at shutter time `time` (moving area lights where they are then).
+    pub fn sample_light_at(
+        &self,
+        ctx: &LightSampleContext,
+        u_select: f32,
+        u: Vec2,
+        mode: LightSampling,
+        time: f32,
+    ) -> Option<(usize, LightLiSample, f32)> {
         if self.lights.is_empty() {
             return None;
         }
@@ -233,7 +370,7 @@ impl RenderScene {
         if !(pmf > 0.0) {
             return None;
         }
-        let light = &self.lights[index];
+        let light = self.light_at(index, time);
         let mut s = light.sample_li(ctx, u, mode)?;
         if let Light::Triangle { prim, .. } = *light {
             s.l *= self.emission_texture(prim, s.b);
@@ -272,9 +409,14 @@ impl RenderScene {
 
     /// Radiance emitted by the surface at `si` toward `w` (away from the surface).
     pub fn emitted(&self, si: &SurfaceInteraction, w: Vec3A) -> Vec3A {
+        self.emitted_at(si, w, 0.0)
+    }
+
+    /// [`Self::emitted`] for a hit at shutter time `time`.
+    pub fn emitted_at(&self, si: &SurfaceInteraction, w: Vec3A, time: f32) -> Vec3A {
         match self.light_of_prim(si.prim) {
             Some(l) => {
-                let le = self.lights[l].l(w);
+                let le = self.light_at(l, time).l(w);
                 if le == Vec3A::ZERO {
                     le
                 } else {
