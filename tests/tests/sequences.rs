@@ -1,14 +1,13 @@
 //! Sequences end to end: a job of several frames on real coordinator and worker processes.
-//! Every frame is bit-identical to a local render of the job's settings with `frame` set to it
-//! (a still scene looks the same at every frame; the animated-scene test comes with the scene
-//! side), whatever the workers do.
+//! Every frame is bit-identical to a local render of the job's settings with `frame` set to it,
+//! whatever the workers do: an animated scene with motion blur, and still scenes.
 
 mod support;
 
 use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings};
 use pathfarm_common::protocol::{API, FrameInfo, FrameOrder, FrameState, JobId, JobInfo, JobRequest, JobState};
-use pathfarm_common::scene::demo::cornell_demo_glb;
+use pathfarm_common::scene::demo::{cornell_animated_glb, cornell_demo_glb};
 use pathfarm_coordinator::client::Client;
 use pathfarm_tests::procs::expect_error;
 use std::time::Duration;
@@ -58,8 +57,10 @@ fn at_frame(s: &RenderSettings, frame: i32) -> RenderSettings {
     s
 }
 
-/// Frames 1-3 with two workers, submitted and fetched with the `pathfarm` CLI: each frame's EXR
-/// (served, on disk, and written by `--out 'shot.####.exr'`) is the local render at that frame.
+/// Frames 1-3 of an animated scene (a sliding and a turning box, motion blur over half a frame)
+/// with two workers, submitted and fetched with the `pathfarm` CLI: each frame's EXR (served, on
+/// disk, and written by `--out 'shot.####.exr'`) is the local render at that frame, and the
+/// frames differ from each other.
 #[test]
 fn frames_of_a_sequence_are_bit_identical_to_local_renders() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -67,7 +68,7 @@ fn frames_of_a_sequence_are_bit_identical_to_local_renders() {
     let _workers: Vec<Proc> =
         (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
     let client = Client::new(&coord.url, None).expect("client");
-    let scene = cornell_demo_glb();
+    let scene = cornell_animated_glb();
     let scene_path = dir.path().join("cornell.glb");
     std::fs::write(&scene_path, &scene).expect("scene file");
     let out = dir.path().join("out");
@@ -76,7 +77,7 @@ fn frames_of_a_sequence_are_bit_identical_to_local_renders() {
         .args(["--server", &coord.url, "submit"])
         .arg(&scene_path)
         .args(["--width", "40", "--height", "32", "--spp", "8", "--tile-size", "16", "--seed", "5"])
-        .args(["--frames", "1-3", "--fps", "24", "--wait", "--out"])
+        .args(["--frames", "1-3", "--fps", "24", "--shutter", "0.5", "--wait", "--out"])
         .arg(&pattern)
         .output()
         .expect("pathfarm submit");
@@ -93,8 +94,12 @@ fn frames_of_a_sequence_are_bit_identical_to_local_renders() {
         .output()
         .expect("pathfarm fetch");
     assert!(fetch.status.success(), "{}", String::from_utf8_lossy(&fetch.stderr));
+    assert_eq!(info.settings.shutter, 0.5);
+    let mut frames_seen: Vec<Vec<u8>> = Vec::new();
     for f in 1..=3 {
         let local = local_exr(&scene, &at_frame(&info.settings, f));
+        assert!(!frames_seen.contains(&local), "frame {f} looks like an earlier frame: the scene did not move");
+        frames_seen.push(local.clone());
         let served = client.frame_exr(id, f).expect("frame exr");
         assert!(served == local, "frame {f}: the farm's EXR differs from the local render");
         let on_disk = std::fs::read(coord.data_dir.join(format!("jobs/{id}/frames/{f:04}/image.exr"))).expect("disk");

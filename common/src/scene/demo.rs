@@ -410,6 +410,29 @@ pub fn cornell_demo_glb() -> Vec<u8> {
     b.to_glb()
 }
 
+/// The demo Cornell box, animated over one second: the short box slides 0.3 to the left
+/// (LINEAR translation) and the tall box turns a quarter turn about +Y (LINEAR rotation, slerped).
+/// At 24 fps frame f is at f / 24 s, so every frame of 0-24 differs. The sequence tests render it.
+pub fn cornell_animated_glb() -> Vec<u8> {
+    let mut b = GltfBuilder::new();
+    let [white, red, green, light] = mitsuba_cornell_materials(&mut b);
+    let mut blinn = lambert("blinn-gold", Vec3::new(0.95, 0.75, 0.35));
+    blinn["extras"] = json!({"pathfarm": {"model": "blinn", "exponent": 60.0}});
+    let blinn = b.material(blinn);
+    cornell_walls(&mut b, white, red, green, light);
+    // Boxes built at the origin, placed by their nodes' animated transforms.
+    let tall = turned_box(&mut b, "tall-box", Vec3::new(0.0, -0.4, 0.0), Vec3::new(0.6, 1.2, 0.6), 0.0, blinn);
+    let short = turned_box(&mut b, "short-box", Vec3::new(0.0, -0.7, 0.0), Vec3::splat(0.6), 0.0, white);
+    b.node_mut(tall)["translation"] = json!([-0.33, 0.0, -0.28]);
+    let q0 = Quat::from_rotation_y(0.3185);
+    let q1 = Quat::from_rotation_y(0.3185 + std::f32::consts::FRAC_PI_2);
+    let rot: Vec<f32> = [q0, q1].iter().flat_map(|q| q.to_array()).collect();
+    b.animate("shot", json!({"node": tall, "path": "rotation"}), "LINEAR", &[0.0, 1.0], &rot, "VEC4");
+    let path = [0.335, 0.0, 0.38, 0.035, 0.0, 0.38];
+    b.animate("shot", json!({"node": short, "path": "translation"}), "LINEAR", &[0.0, 1.0], &path, "VEC3");
+    b.to_glb()
+}
+
 /// Mitsuba 3's built-in Cornell box (`mitsuba.cornell_box()`), every number as in its scene
 /// dictionary: Lambertian walls and boxes (one-sided), the one-sided light quad (radiance
 /// 18.387, 13.9873, 6.75357, also white-reflecting), a pinhole camera at (0, 0, 3.9). The
