@@ -3,7 +3,7 @@
 Preferences: the coordinator's URL, the client token, a CA file for https. The "pathfarm" panel
 (Render Properties) holds the job's settings, taken from the scene when the panel first shows
 (resolution, frame range) and editable. Submit exports the scene with Blender's glTF exporter
-(.glb), uploads it, submits one job per frame, follows progress in the status bar (HTTP in a
+(.glb), uploads it, submits one job (a sequence for a frame range), follows progress in the status bar (HTTP in a
 thread, a timer in Blender's main thread) and loads the finished EXRs as images (an image
 sequence for a range). Errors from the coordinator are reported in words.
 """

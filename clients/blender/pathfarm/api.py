@@ -105,6 +105,20 @@ class Client:
     def cancel(self, job_id):
         return self._json("POST", f"{API}/jobs/{int(job_id)}/cancel")
 
+    def frames(self, job_id):
+        """`GET /jobs/{id}/frames`, every page: `[{"index", "frame", "state", "passes_done"}]`."""
+        out, after = [], None
+        while True:
+            query = "?limit=1000" + (f"&after={after}" if after is not None else "")
+            page = self._json("GET", f"{API}/jobs/{int(job_id)}/frames{query}")
+            out.extend(page)
+            if len(page) < 1000:
+                return out
+            after = page[-1]["index"]
+
+    def frame_exr(self, job_id, frame):
+        return self._request("GET", f"{API}/jobs/{int(job_id)}/frames/{int(frame)}/image.exr", accept="image/x-exr")
+
     def image_exr(self, job_id):
         return self._request("GET", f"{API}/jobs/{int(job_id)}/image.exr", accept="image/x-exr")
 

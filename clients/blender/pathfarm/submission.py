@@ -3,8 +3,10 @@
 The HTTP runs in a thread (`Submission.start`); Blender's main thread only reads `snapshot()`
 from a timer, so the UI never waits on the network. No bpy here.
 
-Frame ranges: one job per frame, each with `frame` and `fps` set (`submit_frames`). When the
-coordinator's job body gains a `frames` field this is the one function to switch.
+Frame ranges: one sequence job (`frames`, e.g. "1-24", with `fps`): the farm renders the frames
+in order, writes each as it finishes, and the submission downloads each frame's EXR
+(`/jobs/{id}/frames/{n}/image.exr`) as soon as the job lists it done. A single frame is a plain
+job with `frame` set, whose image is `/jobs/{id}/image.exr`.
 """
 
 import os
@@ -21,16 +23,29 @@ def frame_path(out_dir, name, frame):
     return os.path.join(out_dir, f"{name}_{frame:04d}.exr")
 
 
+def frame_spec(frames):
+    """The job's `frames` string: runs of consecutive frames as ranges ("1-24", "1-3,7")."""
+    frames = sorted(set(int(f) for f in frames))
+    runs, start, prev = [], frames[0], frames[0]
+    for f in frames[1:] + [None]:
+        if f is not None and f == prev + 1:
+            prev = f
+            continue
+        runs.append(f"{start}" if start == prev else f"{start}-{prev}")
+        if f is not None:
+            start = prev = f
+    return ",".join(runs)
+
+
 def submit_frames(client, scene_id, job, frames):
-    """Submits `job` (a `POST /jobs` body without `scene_id`/`frame`) for every frame in
-    `frames`; returns `[(frame, job_id)]`."""
-    ids = []
-    for f in frames:
-        body = dict(job, scene_id=scene_id, frame=int(f))
-        if len(frames) > 1:
-            body["name"] = f"{job.get('name', 'blender')} frame {f}"
-        ids.append((f, client.submit(body)))
-    return ids
+    """Submits `job` (a `POST /jobs` body without `scene_id`/`frame`) for `frames`: one job, a
+    sequence when there are several. Returns the job id."""
+    body = dict(job, scene_id=scene_id)
+    if len(frames) == 1:
+        body["frame"] = int(frames[0])
+    else:
+        body["frames"] = frame_spec(frames)
+    return client.submit(body)
 
 
 class Submission:
@@ -88,9 +103,9 @@ class Submission:
             self._set(status=f"uploading the scene ({len(self.scene) / 1e6:.1f} MB)")
             created = self.client.upload_scene(self.scene)
             self._set(status="submitting")
-            jobs = submit_frames(self.client, created["scene_id"], self.job, self.frames)
-            self._set(jobs=[j for _, j in jobs], status=f"job {jobs[0][1]} queued")
-            self._follow(jobs)
+            job_id = submit_frames(self.client, created["scene_id"], self.job, self.frames)
+            self._set(jobs=[job_id], status=f"job {job_id} queued")
+            self._follow(job_id)
         except PathfarmError as e:
             self._set(error=str(e), status="failed")
         except Exception as e:  # noqa: BLE001 - anything else still reaches the artist in words
@@ -98,37 +113,41 @@ class Submission:
         finally:
             self._set(finished=True)
 
-    def _follow(self, jobs):
+    def _follow(self, job_id):
         os.makedirs(self.out_dir, exist_ok=True)
-        pending = dict(jobs)  # frame -> job id
-        progress = {f: 0.0 for f in pending}
-        while pending:
+        sequence = len(self.frames) > 1
+        pending = set(int(f) for f in self.frames)
+        total = len(pending)
+        while True:
             if self._cancel.is_set():
-                for job_id in pending.values():
-                    try:
-                        self.client.cancel(job_id)
-                    except PathfarmError:
-                        pass
-                raise PathfarmError("pathfarm: submission cancelled; its jobs were cancelled")
-            for frame, job_id in list(pending.items()):
-                info = self.client.job(job_id)
-                progress[frame] = float(info.get("progress", 0.0))
-                state = info.get("state")
-                if state in FINISHED:
-                    if state != "completed":
-                        why = info.get("error") or state
-                        raise PathfarmError(f"pathfarm job {job_id} (frame {frame}) {state}: {why}")
-                    path = frame_path(self.out_dir, self.name, frame)
-                    tmp = path + ".part"
-                    with open(tmp, "wb") as f:
-                        f.write(self.client.image_exr(job_id))
-                    os.replace(tmp, path)
-                    del pending[frame]
-                    with self._lock:
-                        self._state["done"].append((frame, path))
-            total = sum(progress.values()) / max(len(progress), 1)
-            n_done = len(jobs) - len(pending)
-            self._set(progress=total, status=f"rendering: {total:.0%}, {n_done}/{len(jobs)} frames done")
-            if pending:
-                time.sleep(self.poll_s)
-        self._set(progress=1.0, status=f"done: {len(jobs)} frame(s) in {self.out_dir}")
+                try:
+                    self.client.cancel(job_id)
+                except PathfarmError:
+                    pass
+                raise PathfarmError(f"pathfarm: submission cancelled; job {job_id} was cancelled")
+            info = self.client.job(job_id)
+            state = info.get("state")
+            if state in FINISHED and state != "completed":
+                why = info.get("error") or state
+                raise PathfarmError(f"pathfarm job {job_id} {state}: {why}")
+            if sequence:
+                ready = [f["frame"] for f in self.client.frames(job_id) if f["state"] == "done" and f["frame"] in pending]
+            else:
+                ready = list(pending) if state == "completed" else []
+            for frame in sorted(ready):
+                data = self.client.frame_exr(job_id, frame) if sequence else self.client.image_exr(job_id)
+                path = frame_path(self.out_dir, self.name, frame)
+                tmp = path + ".part"
+                with open(tmp, "wb") as f:
+                    f.write(data)
+                os.replace(tmp, path)
+                pending.discard(frame)
+                with self._lock:
+                    self._state["done"].append((frame, path))
+            progress = float(info.get("progress", 0.0))
+            self._set(progress=progress,
+                      status=f"rendering: {progress:.0%}, {total - len(pending)}/{total} frames done")
+            if not pending:
+                break
+            time.sleep(self.poll_s)
+        self._set(progress=1.0, status=f"done: {total} frame(s) in {self.out_dir}")
