@@ -9,7 +9,8 @@ use crate::events::{IdOnly, Snapshot};
 use axum::http::header;
 use axum::response::IntoResponse;
 use pathfarm_common::job::{
-    IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings, SamplerKind, TileRect, UnitKey,
+    EnvironmentSettings, IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings,
+    SamplerKind, TileRect, UnitKey,
 };
 use pathfarm_common::protocol::{
     ErrorBody, ErrorDetail, JobCreated, JobInfo, JobState, LeaseGrant, Notify, NotifyEvent, RegisterRequest,
@@ -77,6 +78,9 @@ pub struct JobRequestBody {
     pub shutter: Option<f32>,
     /// glTF animations that play (by name); absent = all.
     pub animations: Option<Vec<String>>,
+    /// Environment light: `{"file": "sky.exr", "intensity": 1, "rotation_deg": 0}` (an
+    /// equirectangular `.exr`/`.hdr` beside the bundle's `.gltf`/`.glb`) or `{"color": [r, g, b]}`.
+    pub environment: Option<pathfarm_common::job::EnvironmentSettings>,
 }
 
 /// `PUT /jobs/{id}/priority` body.
@@ -231,7 +235,7 @@ impl utoipa::Modify for SecuritySchemes {
     ),
     components(schemas(
         ErrorBody, ErrorDetail, SceneCreated, JobState, JobCreated, JobInfo, WorkerState, WorkerInfo,
-        RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings,
+        RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings, EnvironmentSettings,
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
         JobRequestBody, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, Convergence, ConvergencePoint,
     )),

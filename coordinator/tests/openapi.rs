@@ -169,3 +169,19 @@ async fn document_is_served_and_self_consistent() {
     let security = doc["components"]["securitySchemes"].as_object().expect("security schemes");
     assert!(security.contains_key("client_token") && security.contains_key("worker_token"));
 }
+
+#[test]
+fn the_job_body_spells_every_render_setting() {
+    // JobRequestBody repeats RenderSettings' fields by hand (see openapi.rs): a new setting
+    // must be documented there too.
+    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let schemas = &doc["components"]["schemas"];
+    let names = |schema: &serde_json::Value| -> BTreeSet<String> {
+        schema["properties"].as_object().map(|p| p.keys().cloned().collect()).unwrap_or_default()
+    };
+    let settings = names(&schemas["RenderSettings"]);
+    let body = names(&schemas["JobRequestBody"]);
+    assert!(settings.contains("environment"), "{settings:?}");
+    let missing: Vec<_> = settings.difference(&body).collect();
+    assert!(missing.is_empty(), "JobRequestBody lacks {missing:?}");
+}

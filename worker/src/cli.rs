@@ -4,9 +4,9 @@ use crate::render::{Renderer, render_local};
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use pathfarm_common::job::{
-    IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings, SamplerKind,
+    EnvironmentSettings, IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings, SamplerKind,
 };
-use pathfarm_common::scene::{LoadOptions, load_scene};
+use pathfarm_common::scene::{LoadOptions, load_job_environment, load_scene};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -93,6 +93,26 @@ pub struct SettingsArgs {
     /// BDPT: render only the MIS-weighted strategy `s,t` (s light vertices, t camera vertices).
     #[arg(long, value_parser = parse_strategy)]
     pub bdpt_strategy: Option<[u32; 2]>,
+    /// Environment light: an equirectangular .exr/.hdr beside the scene file (in the bundle),
+    /// or a constant linear colour `r,g,b`.
+    #[arg(long)]
+    pub environment: Option<String>,
+    /// Multiplies the environment's image or colour.
+    #[arg(long, default_value_t = 1.0)]
+    pub environment_intensity: f32,
+    /// Turns the environment about +Y (degrees, counter-clockwise seen from above).
+    #[arg(long, default_value_t = 0.0)]
+    pub environment_rotation: f32,
+}
+
+/// `--environment`: `r,g,b` is a colour, anything else a file.
+fn environment_arg(v: &str, intensity: f32, rotation_deg: f32) -> EnvironmentSettings {
+    let rgb: Vec<f32> = v.split(',').filter_map(|x| x.trim().parse().ok()).collect();
+    let (file, color) = match rgb[..] {
+        [r, g, b] if v.split(',').count() == 3 => (None, Some([r, g, b])),
+        _ => (Some(v.to_string()), None),
+    };
+    EnvironmentSettings { file, color, intensity, rotation_deg }
 }
 
 /// Parses `s,t` for `--bdpt-strategy`.
@@ -145,6 +165,10 @@ impl SettingsArgs {
         if self.pass_spp > 0 {
             s.passes = PassSchedule::Fixed { spp: self.pass_spp };
         }
+        s.environment = self
+            .environment
+            .as_deref()
+            .map(|v| environment_arg(v, self.environment_intensity, self.environment_rotation));
         s
     }
 }
@@ -193,7 +217,9 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
         tracing::warn!(scene = %args.scene.display(), "{w}");
     }
     let t0 = Instant::now();
-    let renderer = Renderer::new(&scene, &settings)?;
+    let folder = args.scene.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+    let environment = load_job_environment(folder, &settings, &LoadOptions::default())?;
+    let renderer = Renderer::with_environment(&scene, &settings, environment)?;
     let prep = t0.elapsed();
     let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
     bar.set_style(

@@ -187,13 +187,13 @@ pub fn emitter(name: &str, albedo: Vec3, radiance: Vec3) -> Value {
 }
 
 /// Two triangles of the quad `v0 v1 v2 v3` (counter-clockwise seen from the front).
-fn quad(b: &mut GltfBuilder, name: &str, v: [Vec3; 4], material: usize) {
+pub fn quad(b: &mut GltfBuilder, name: &str, v: [Vec3; 4], material: usize) {
     let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize();
     b.mesh(name, &v, &[n; 4], &[0, 1, 2, 0, 2, 3], material);
 }
 
 /// An axis-aligned box turned about +Y by `angle` (radians), resting on y = `y0`, outward normals.
-fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: f32, material: usize) {
+pub fn turned_box(b: &mut GltfBuilder, name: &str, center: Vec3, size: Vec3, angle: f32, material: usize) {
     let rot = Quat::from_rotation_y(angle);
     let h = size * 0.5;
     let c = |x: f32, y: f32, z: f32| center + rot * Vec3::new(x * h.x, y * h.y, z * h.z);

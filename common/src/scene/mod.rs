@@ -7,10 +7,12 @@
 
 pub mod bundle;
 pub mod demo;
+mod environment;
 mod error;
 mod load;
 mod texture;
 
+pub use environment::{EnvironmentImage, MAX_ENVIRONMENT_PIXELS, load_environment, load_job_environment};
 pub use error::SceneError;
 pub use load::{LoadOptions, MAX_COORDINATE, load_scene, load_scene_from_slice};
 pub use texture::{Texture, TextureTransform, WrapMode};
@@ -187,7 +189,8 @@ pub struct PunctualLight {
 }
 
 /// The loader's warning for a scene in which nothing emits light (see [`Scene::has_emitters`]).
-pub const NO_LIGHT_WARNING: &str = "the scene has no lights or emissive materials: it renders black";
+pub const NO_LIGHT_WARNING: &str =
+    "the scene has no lights or emissive materials: it renders black unless the job sets an environment";
 
 impl Scene {
     /// Whether anything emits light: a punctual light with nonzero intensity, or a mesh whose

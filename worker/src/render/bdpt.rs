@@ -17,7 +17,7 @@ use super::bsdf::Bsdf;
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
 use super::integrator::sample_scatter;
-use super::light::LightSampleContext;
+use super::light::{Light, LightSampleContext};
 use super::material::shade;
 use super::sampler::Sampler;
 use super::scene::{RenderScene, SurfaceInteraction};
@@ -146,6 +146,10 @@ impl Vertex {
                 let w = (prev.p - self.p).normalize_or_zero();
                 scene.emitted(&si, w)
             }
+            // A camera path that left the scene ends at the environment.
+            (VertexKind::Light, _) if self.is_infinite_light(scene) => {
+                scene.environment_le((self.p - prev.p).normalize_or_zero())
+            }
             _ => Vec3A::ZERO,
         }
     }
@@ -222,11 +226,15 @@ impl Vertex {
     fn pdf_light_origin(&self, scene: &RenderScene, v: &Vertex) -> f32 {
         let Some(l) = self.light_index(scene) else { return 0.0 };
         let light = &scene.lights[l];
-        if light.is_infinite() {
-            // A delta direction: no density of being hit.
-            return 0.0;
-        }
         let w = (v.p - self.p).normalize_or_zero();
+        if light.is_infinite() {
+            // Per solid angle: the density of choosing the direction toward this light from
+            // `v` (pbrt's `InfiniteLightDensity`); a directional light's is a delta, so 0.
+            return match light {
+                Light::Environment(env) => scene.light_pmf(l) * env.pdf_wi(-w),
+                _ => 0.0,
+            };
+        }
         scene.light_pmf(l) * light.pdf_le(w).0
     }
 }
@@ -275,7 +283,18 @@ pub fn random_walk(
     let mut pdf_fwd = pdf;
     let mut bounces = 0usize;
     while bounces < max_vertices {
-        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else { break };
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else {
+            // A camera path that leaves the scene ends on the environment (pbrt's escaped-ray
+            // light vertex), a unit beyond the last vertex along the ray.
+            if let (TransportMode::Radiance, Some((index, _))) = (mode, scene.environment()) {
+                let mut v = Vertex::light(index, ray.o + ray.d, None, beta, 0.0);
+                if let Some(prev) = path.last() {
+                    v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);
+                    path.push(v);
+                }
+            }
+            break;
+        };
         let wo = -ray.d;
         let sh = shade(scene, &si, wo, sampler.get_1d());
         if let Some(out) = aov.take() {
@@ -389,7 +408,9 @@ pub fn light_subpath(
                 v.pdf_fwd *= les.d.dot(v.ng).abs();
             }
         }
-        path[0].pdf_fwd = 0.0;
+        // Per solid angle, as its reverse densities are (0 for a directional light).
+        let origin = path[0].clone();
+        path[0].pdf_fwd = path.get(1).map_or(0.0, |v| origin.pdf_light_origin(scene, v));
     }
 }
 

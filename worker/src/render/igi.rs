@@ -184,7 +184,12 @@ pub fn li_igi(
     let mut l = Vec3A::ZERO;
     let mut beta = Vec3A::ONE;
     let mut segments = 0u32;
-    while let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) {
+    loop {
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else {
+            // Seen from the camera or through specular surfaces, like emitters.
+            l += beta * scene.environment_le(ray.d);
+            break;
+        };
         let wo = -ray.d;
         segments += 1;
         // Emitters seen from the camera or through specular surfaces count in full; after a

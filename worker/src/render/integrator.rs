@@ -115,27 +115,39 @@ pub fn li_path(
     let mut prev_bsdf_pdf = 0.0f32;
     let mut prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
     let mut depth = 0u32;
-    while let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) {
+    loop {
+        // The weight of emission found by BSDF sampling, given the light's density for it.
+        let emission_weight = |light_pdf: &dyn Fn() -> f32| {
+            if specular_bounce {
+                return 1.0;
+            }
+            match params.mis {
+                MisHeuristic::Bsdf => 1.0,
+                MisHeuristic::Light => 0.0,
+                mis => mis_weight(mis, prev_bsdf_pdf, light_pdf()),
+            }
+        };
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else {
+            // The ray left the scene: the environment is its emitter.
+            if let Some((i, env)) = scene.environment() {
+                let le = env.le(ray.d);
+                if le != Vec3A::ZERO {
+                    l += beta * le * emission_weight(&|| scene.light_pmf(i) * env.pdf_wi(ray.d));
+                }
+            }
+            break;
+        };
         let wo = -ray.d;
         if depth == 0 {
             out.depth = Some(si.t);
         }
         let le = scene.emitted(&si, wo);
         if le != Vec3A::ZERO {
-            let w = if specular_bounce {
-                1.0
-            } else {
-                match params.mis {
-                    MisHeuristic::Bsdf => 1.0,
-                    MisHeuristic::Light => 0.0,
-                    mis => {
-                        let light_pdf = scene.light_of_prim(si.prim).map_or(0.0, |i| {
-                            scene.light_pmf(i) * scene.lights[i].pdf_li(&prev_ctx, si.p, params.light_sampling)
-                        });
-                        mis_weight(mis, prev_bsdf_pdf, light_pdf)
-                    }
-                }
-            };
+            let w = emission_weight(&|| {
+                scene.light_of_prim(si.prim).map_or(0.0, |i| {
+                    scene.light_pmf(i) * scene.lights[i].pdf_li(&prev_ctx, si.p, params.light_sampling)
+                })
+            });
             l += beta * le * w;
         }
         // The next segment would exceed the depth limit.

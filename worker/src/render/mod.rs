@@ -24,10 +24,10 @@ use igi::{IgiParams, VplCache, li_igi};
 use integrator::{PathParams, li_path};
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
-use pathfarm_common::scene::Scene;
+use pathfarm_common::scene::{EnvironmentImage, Scene};
 use rayon::prelude::*;
 use sampler::{AnySampler, Sampler};
-use scene::RenderScene;
+use scene::{EnvironmentSpec, RenderScene};
 
 /// Errors preparing a scene for rendering.
 #[derive(Debug, thiserror::Error)]
@@ -70,7 +70,18 @@ type Splat = (Vec2, Vec3A);
 
 impl Renderer {
     /// Prepares `scene` for rendering with `settings` (builds the BVH: do it once per job).
+    /// A job whose environment names an image needs [`Renderer::with_environment`].
     pub fn new(scene: &Scene, settings: &RenderSettings) -> Result<Self, RenderError> {
+        Self::with_environment(scene, settings, None)
+    }
+
+    /// [`Renderer::new`] with the decoded image of the job's environment (the renderer does no
+    /// I/O: the caller loads it with `pathfarm_common::scene::load_environment`).
+    pub fn with_environment(
+        scene: &Scene,
+        settings: &RenderSettings,
+        environment_image: Option<EnvironmentImage>,
+    ) -> Result<Self, RenderError> {
         settings
             .validate(&pathfarm_common::job::Limits::default())
             .map_err(|e| RenderError::Settings(e.to_string()))?;
@@ -131,9 +142,10 @@ impl Renderer {
                 Integrator::Igi(IgiParams { vpls, vpl_sets, g_limit, bias_compensation, max_depth })
             }
         };
+        let environment = environment_spec(settings, environment_image)?;
         Ok(Self {
             settings: settings.clone(),
-            scene: RenderScene::new(scene),
+            scene: RenderScene::with_environment(scene, environment),
             camera,
             integrator,
             vpls: VplCache::default(),
@@ -229,6 +241,25 @@ impl Renderer {
         }
         (accum, splats)
     }
+}
+
+/// The job's environment light from its settings and the image its `file` names.
+fn environment_spec(
+    settings: &RenderSettings,
+    image: Option<EnvironmentImage>,
+) -> Result<Option<EnvironmentSpec>, RenderError> {
+    let Some(env) = &settings.environment else { return Ok(None) };
+    let scale = Vec3A::from(env.color.unwrap_or([1.0; 3])) * env.intensity;
+    let image = match (&env.file, image) {
+        (Some(_), Some(img)) => Some(img),
+        (Some(f), None) => {
+            return Err(RenderError::Settings(format!(
+                "environment.file {f:?}: the image was not loaded (Renderer::with_environment takes it)"
+            )));
+        }
+        (None, _) => None,
+    };
+    Ok(Some(EnvironmentSpec { image, scale, rotation_deg: env.rotation_deg }))
 }
 
 /// Renders a whole job locally, unit by unit in canonical order, exactly as the farm does.

@@ -351,6 +351,53 @@ impl Distribution1D {
     }
 }
 
+/// A piecewise-constant density over `[0, 1]^2` on an `nu x nv` grid of non-negative weights
+/// (pbrt's `PiecewiseConstant2D`): a marginal distribution over rows and one conditional
+/// distribution per row. Samples are continuous inside the chosen cell, so the density is
+/// constant over each cell and [`Distribution2D::pdf`] is exactly the density of
+/// [`Distribution2D::sample`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Distribution2D {
+    nu: usize,
+    nv: usize,
+    conditional: Vec<Distribution1D>,
+    marginal: Distribution1D,
+}
+
+impl Distribution2D {
+    /// `weights` row-major (`nv` rows of `nu`); `None` if the sizes disagree or are zero.
+    pub fn new(weights: &[f32], nu: usize, nv: usize) -> Option<Self> {
+        if nu == 0 || nv == 0 || weights.len() != nu.checked_mul(nv)? {
+            return None;
+        }
+        let clean = |w: f32| if w.is_finite() && w > 0.0 { f64::from(w) } else { 0.0 };
+        let conditional: Vec<Distribution1D> = weights.chunks_exact(nu).map(Distribution1D::new).collect();
+        let row_sums: Vec<f32> =
+            weights.chunks_exact(nu).map(|row| row.iter().map(|&w| clean(w)).sum::<f64>() as f32).collect();
+        Some(Self { nu, nv, conditional, marginal: Distribution1D::new(&row_sums) })
+    }
+
+    /// A point in `[0, 1)^2` and its density, from `u` in `[0, 1)^2`.
+    #[inline]
+    pub fn sample(&self, u: Vec2) -> Option<(Vec2, f32)> {
+        let (iv, pmf_v, rv) = self.marginal.sample(u.y);
+        let row = self.conditional.get(iv)?;
+        let (iu, pmf_u, ru) = row.sample(u.x);
+        let pdf = pmf_v * pmf_u * (self.nu * self.nv) as f32;
+        let p = Vec2::new((iu as f32 + ru) / self.nu as f32, (iv as f32 + rv) / self.nv as f32);
+        (pdf > 0.0).then_some((p.min(Vec2::splat(ONE_MINUS_EPSILON)), pdf))
+    }
+
+    /// Density at `p` in `[0, 1]^2` (the edge 1 belongs to the last cell).
+    #[inline]
+    pub fn pdf(&self, p: Vec2) -> f32 {
+        let iu = ((p.x.max(0.0) * self.nu as f32) as usize).min(self.nu.saturating_sub(1));
+        let iv = ((p.y.max(0.0) * self.nv as f32) as usize).min(self.nv.saturating_sub(1));
+        let pmf_u = self.conditional.get(iv).map_or(0.0, |row| row.pmf(iu));
+        self.marginal.pmf(iv) * pmf_u * (self.nu * self.nv) as f32
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

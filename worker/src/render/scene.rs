@@ -3,7 +3,7 @@
 
 use super::accel::Accel;
 use super::geometry::{offset_ray_origin, shadow_segment};
-use super::light::{Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
 use super::sampling::Distribution1D;
 use glam::{Vec2, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
@@ -51,6 +51,8 @@ pub struct RenderScene {
     light_distr: Distribution1D,
     /// Light index of each triangle, or [`NO_LIGHT`].
     tri_light: Vec<u32>,
+    /// Light index of the environment, if the job has one.
+    environment: Option<usize>,
     pub center: Vec3A,
     pub radius: f32,
 }
@@ -61,8 +63,22 @@ pub fn sample_texture(textures: &[Texture], r: &TextureRef, uv: &[Vec2; 2]) -> V
     textures.get(r.texture).map_or(Vec4::ONE, |t| t.sample(r.transform.apply(uv)))
 }
 
+/// The environment of a job, before the scene's bounds are known.
+#[derive(Clone, Debug)]
+pub struct EnvironmentSpec {
+    pub image: Option<pathfarm_common::scene::EnvironmentImage>,
+    /// Radiance factor: the colour (or white for an image) x the intensity.
+    pub scale: Vec3A,
+    pub rotation_deg: f32,
+}
+
 impl RenderScene {
     pub fn new(scene: &Scene) -> Self {
+        Self::with_environment(scene, None)
+    }
+
+    /// The render-side scene lit also by `environment`.
+    pub fn with_environment(scene: &Scene, environment: Option<EnvironmentSpec>) -> Self {
         let mut world_tris = Vec::with_capacity(scene.triangle_count());
         let mut tris = Vec::with_capacity(scene.triangle_count());
         for (mi, mesh) in scene.meshes.iter().enumerate() {
@@ -116,6 +132,16 @@ impl RenderScene {
                 PunctualKind::Directional => Light::Directional { w: dir, e: i, radius },
             });
         }
+        let environment = environment.map(|e| {
+            lights.push(Light::Environment(std::sync::Arc::new(EnvironmentLight::new(
+                e.image,
+                e.scale,
+                e.rotation_deg,
+                center,
+                radius,
+            ))));
+            lights.len() - 1
+        });
         let weights: Vec<f32> = lights.iter().map(|l| luminance(l.power())).collect();
         Self {
             accel: Accel::new(&world_tris),
@@ -126,9 +152,25 @@ impl RenderScene {
             lights,
             light_distr: Distribution1D::new(&weights),
             tri_light,
+            environment,
             center,
             radius,
         }
+    }
+
+    /// The environment light: (light index, light).
+    pub fn environment(&self) -> Option<(usize, &EnvironmentLight)> {
+        let i = self.environment?;
+        match self.lights.get(i) {
+            Some(Light::Environment(env)) => Some((i, env)),
+            _ => None,
+        }
+    }
+
+    /// Radiance arriving along a ray that leaves the scene in direction `d` (zero without an
+    /// environment).
+    pub fn environment_le(&self, d: Vec3A) -> Vec3A {
+        self.environment().map_or(Vec3A::ZERO, |(_, env)| env.le(d))
     }
 
     pub fn triangle_count(&self) -> usize {
