@@ -25,8 +25,8 @@
 //! `cameras[0]` is the first camera met in that traversal.
 
 use super::{
-    Camera, Material, MaterialModel, Mesh, Projection, PunctualKind, PunctualLight, Scene, SceneError, Texture,
-    TextureRef, TextureTransform, WrapMode,
+    AlphaMode, Camera, Material, MaterialModel, Mesh, Projection, PunctualKind, PunctualLight, Scene, SceneError,
+    Texture, TextureRef, TextureTransform, WrapMode,
 };
 use glam::{Mat3, Mat4, Quat, Vec2, Vec3, Vec4};
 use gltf::json;
@@ -707,7 +707,7 @@ impl Loader<'_> {
         Ok(())
     }
 
-    /// Converts one material. Alpha modes (MASK, BLEND) are ignored: surfaces are opaque.
+    /// Converts one material.
     fn material(&mut self, i: usize, m: &json::Material) -> Result<Material, SceneError> {
         let owner = format!("material {i}{}", quoted(m.name.as_deref()));
         let pbr = &m.pbr_metallic_roughness;
@@ -725,6 +725,13 @@ impl Loader<'_> {
             normal_texture: None,
             normal_scale: 1.0,
             double_sided: m.double_sided,
+            alpha_mode: match m.alpha_mode {
+                Checked::Valid(json::material::AlphaMode::Mask) => {
+                    AlphaMode::Mask { cutoff: m.alpha_cutoff.map_or(0.5, |c| c.0) }
+                }
+                Checked::Valid(json::material::AlphaMode::Blend) => AlphaMode::Blend,
+                _ => AlphaMode::Opaque,
+            },
             ..Material::default()
         };
         if let Some(n) = &m.normal_texture {
@@ -764,8 +771,13 @@ impl Loader<'_> {
             }
             mat.unlit = ext.unlit.is_some();
         }
+        let cutoff = match mat.alpha_mode {
+            AlphaMode::Mask { cutoff } => cutoff,
+            _ => 0.0,
+        };
         let finite = mat.base_color.is_finite()
             && mat.emissive.is_finite()
+            && cutoff.is_finite()
             && [mat.metallic, mat.roughness, mat.transmission, mat.ior, mat.specular_factor, mat.normal_scale]
                 .iter()
                 .all(|v| v.is_finite());
@@ -1250,6 +1262,43 @@ mod tests {
         glb.extend(2u32.to_le_bytes());
         glb.extend(4u32.to_le_bytes()); // shorter than the header itself
         assert!(split_glb(&glb).is_err());
+    }
+
+    #[test]
+    fn alpha_modes_are_read() {
+        use super::super::AlphaMode;
+        use super::super::demo::{GltfBuilder, lambert};
+        let mut b = GltfBuilder::new();
+        let tri = [glam::Vec3::ZERO, glam::Vec3::X, glam::Vec3::Y];
+        for (k, extra) in [
+            serde_json::json!({}),
+            serde_json::json!({"alphaMode": "MASK"}),
+            serde_json::json!({"alphaMode": "MASK", "alphaCutoff": 0.25}),
+            serde_json::json!({"alphaMode": "BLEND"}),
+            serde_json::json!({"alphaMode": "OPAQUE", "alphaCutoff": 0.9}),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut m = lambert(&format!("m{k}"), glam::Vec3::ONE);
+            for (key, v) in extra.as_object().expect("object") {
+                m[key] = v.clone();
+            }
+            let mi = b.material(m);
+            b.mesh(&format!("t{k}"), &tri, &[glam::Vec3::Z; 3], &[0, 1, 2], mi);
+        }
+        let s = load_scene_from_slice(&b.to_glb(), "t.glb", None, &LoadOptions::default()).expect("loads");
+        let modes: Vec<AlphaMode> = s.materials.iter().map(|m| m.alpha_mode).collect();
+        assert_eq!(
+            modes,
+            [
+                AlphaMode::Opaque,
+                AlphaMode::Mask { cutoff: 0.5 },
+                AlphaMode::Mask { cutoff: 0.25 },
+                AlphaMode::Blend,
+                AlphaMode::Opaque
+            ]
+        );
     }
 
     #[test]

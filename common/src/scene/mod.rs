@@ -117,6 +117,20 @@ pub struct Material {
     /// glTF doubleSided. One-sided materials are black from behind and emit only in front
     /// (Mitsuba's convention); the surface still blocks light.
     pub double_sided: bool,
+    /// glTF alphaMode, from the alpha of base colour factor x texture x vertex colour.
+    pub alpha_mode: AlphaMode,
+}
+
+/// glTF `alphaMode`: how the base colour's alpha makes a surface transparent to every ray.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub enum AlphaMode {
+    /// Alpha is ignored.
+    #[default]
+    Opaque,
+    /// Opaque where alpha >= `cutoff` (glTF's alphaCutoff, default 0.5), absent elsewhere.
+    Mask { cutoff: f32 },
+    /// Stochastic transparency: each surface point is present with probability alpha.
+    Blend,
 }
 
 impl Default for Material {
@@ -140,6 +154,7 @@ impl Default for Material {
             specular_factor: 1.0,
             unlit: false,
             double_sided: false,
+            alpha_mode: AlphaMode::Opaque,
         }
     }
 }

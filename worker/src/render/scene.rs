@@ -4,13 +4,16 @@
 use super::accel::Accel;
 use super::geometry::{offset_ray_origin, shadow_segment};
 use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::sampler::hash_u64;
 use super::sampling::Distribution1D;
 use glam::{Vec2, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
-use pathfarm_common::scene::{Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
+use pathfarm_common::scene::{AlphaMode, Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
 
 /// Marks a triangle that is not a light.
 const NO_LIGHT: u32 = u32::MAX;
+/// Most alpha-absent surfaces one ray passes through before the next counts as present.
+const MAX_ALPHA_LAYERS: usize = 256;
 
 /// Geometry of a ray hit.
 #[derive(Clone, Copy, Debug)]
@@ -53,6 +56,8 @@ pub struct RenderScene {
     tri_light: Vec<u32>,
     /// Light index of the environment, if the job has one.
     environment: Option<usize>,
+    /// Whether some mesh has a MASK or BLEND material (rays then test alpha at hits).
+    has_alpha: bool,
     pub center: Vec3A,
     pub radius: f32,
 }
@@ -143,6 +148,10 @@ impl RenderScene {
             lights.len() - 1
         });
         let weights: Vec<f32> = lights.iter().map(|l| luminance(l.power())).collect();
+        let has_alpha = scene
+            .meshes
+            .iter()
+            .any(|m| scene.materials.get(m.material).is_some_and(|mat| mat.alpha_mode != AlphaMode::Opaque));
         Self {
             accel: Accel::new(&world_tris),
             tris,
@@ -153,6 +162,7 @@ impl RenderScene {
             light_distr: Distribution1D::new(&weights),
             tri_light,
             environment,
+            has_alpha,
             center,
             radius,
         }
@@ -177,9 +187,75 @@ impl RenderScene {
         self.tris.len()
     }
 
-    /// Closest hit along a ray.
+    /// Closest hit along a ray; surfaces that alpha makes absent at the hit point are passed
+    /// through (glTF MASK and BLEND).
     pub fn intersect(&self, o: Vec3A, d: Vec3A, t_max: f32) -> Option<SurfaceInteraction> {
         let hit = self.accel.intersect(o, d, t_max)?;
+        if !self.has_alpha || self.present(hit.prim, hit.b1, hit.b2) {
+            return Some(self.surface(&hit));
+        }
+        let (mut o, mut t_max, mut t0) = (o, t_max, 0.0f32);
+        let mut si = self.surface(&hit);
+        for _ in 0..MAX_ALPHA_LAYERS {
+            // Continue from just beyond the absent surface; t stays measured from the origin.
+            let next = offset_ray_origin(si.p, si.ng, d);
+            let step = (next - o).dot(d) / d.length_squared();
+            (o, t0, t_max) = (next, t0 + step, t_max - step);
+            let hit = self.accel.intersect(o, d, t_max)?;
+            si = self.surface(&hit);
+            si.t += t0;
+            if self.present(hit.prim, hit.b1, hit.b2) {
+                return Some(si);
+            }
+        }
+        // So many cut-out layers in a row: treat the last as present.
+        Some(si)
+    }
+
+    /// Whether anything present (alpha considered) lies on the ray before `t_max`.
+    fn occluded(&self, o: Vec3A, d: Vec3A, t_max: f32) -> bool {
+        if !self.has_alpha {
+            return self.accel.occluded(o, d, t_max);
+        }
+        self.intersect(o, d, t_max).is_some()
+    }
+
+    /// Whether triangle `prim` is present at barycentrics (b1, b2): always for opaque materials;
+    /// MASK: alpha >= cutoff; BLEND: with probability alpha, decided by a hash of the point (so
+    /// every ray, camera, shadow or light path, sees the same surface).
+    pub fn present(&self, prim: u32, b1: f32, b2: f32) -> bool {
+        let Some(tr) = self.tris.get(prim as usize) else { return true };
+        let mesh = &self.meshes[tr.mesh as usize];
+        let Some(m) = self.materials.get(mesh.material) else { return true };
+        if m.alpha_mode == AlphaMode::Opaque {
+            return true;
+        }
+        let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
+        let b = [1.0 - b1 - b2, b1, b2];
+        let mut alpha = m.base_color.w;
+        if let Some(t) = &m.base_color_texture {
+            let uv = |set: &Option<Vec<Vec2>>| {
+                set.as_ref()
+                    .and_then(|uv| Some(*uv.get(idx[0])? * b[0] + *uv.get(idx[1])? * b[1] + *uv.get(idx[2])? * b[2]))
+                    .unwrap_or(Vec2::ZERO)
+            };
+            alpha *= sample_texture(&self.textures, t, &[uv(&mesh.uv0), uv(&mesh.uv1)]).w;
+        }
+        if let Some(c) = &mesh.colors {
+            alpha *= (0..3).map(|k| c.get(idx[k]).map_or(1.0, |c| c.w) * b[k]).sum::<f32>();
+        }
+        match m.alpha_mode {
+            AlphaMode::Mask { cutoff } => alpha >= cutoff,
+            AlphaMode::Blend => {
+                let h = hash_u64(&[u64::from(prim), u64::from(b1.to_bits()), u64::from(b2.to_bits())]);
+                ((h >> 40) as f32 * (1.0 / (1u64 << 24) as f32)) < alpha
+            }
+            AlphaMode::Opaque => true,
+        }
+    }
+
+    /// The surface data of a BVH hit.
+    fn surface(&self, hit: &super::accel::Hit) -> SurfaceInteraction {
         let tr = self.tris[hit.prim as usize];
         let mesh = &self.meshes[tr.mesh as usize];
         let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
@@ -209,7 +285,7 @@ impl RenderScene {
             let xyz = a.truncate() * b0 + b.truncate() * b1 + c.truncate() * b2;
             Some(xyz.extend(if a.w < 0.0 { -1.0 } else { 1.0 }))
         });
-        Some(SurfaceInteraction {
+        SurfaceInteraction {
             p,
             t: hit.t,
             ng,
@@ -225,23 +301,23 @@ impl RenderScene {
             material: mesh.material as u32,
             b1,
             b2,
-        })
+        }
     }
 
     /// Whether the segment between two surface points (or a point and a light) is blocked.
     pub fn unoccluded(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample) -> bool {
         if s.infinite {
             let o = offset_ray_origin(p0, n0, s.wi);
-            return !self.accel.occluded(o, s.wi, f32::INFINITY);
+            return !self.occluded(o, s.wi, f32::INFINITY);
         }
         let (o, d, t_max) = shadow_segment(p0, n0, s.p_light, s.n_light);
-        !self.accel.occluded(o, d, t_max)
+        !self.occluded(o, d, t_max)
     }
 
     /// Whether `p1` (normal `n1`) is visible from `p0` (normal `n0`).
     pub fn visible(&self, p0: Vec3A, n0: Vec3A, p1: Vec3A, n1: Option<Vec3A>) -> bool {
         let (o, d, t_max) = shadow_segment(p0, n0, p1, n1);
-        !self.accel.occluded(o, d, t_max)
+        !self.occluded(o, d, t_max)
     }
 
     /// Emission-texture factor of an area light's triangle at barycentrics `b`.
@@ -278,6 +354,10 @@ impl RenderScene {
         let light = &self.lights[index];
         let mut s = light.sample_li(ctx, u, mode)?;
         if let Light::Triangle { prim, .. } = *light {
+            // A point that alpha cuts out of an emitter emits nothing.
+            if self.has_alpha && !self.present(prim, s.b[1], s.b[2]) {
+                return None;
+            }
             s.l *= self.emission_texture(prim, s.b);
         }
         Some((index, s, pmf))
@@ -297,6 +377,9 @@ impl RenderScene {
         let light = self.lights.get(index)?;
         let mut s = light.sample_le(u1, u2, self.center)?;
         if let Light::Triangle { prim, .. } = *light {
+            if self.has_alpha && !self.present(prim, s.b[1], s.b[2]) {
+                return None;
+            }
             s.l *= self.emission_texture(prim, s.b);
         }
         (s.l.max_element() > 0.0 && s.pdf_pos > 0.0 && s.pdf_dir > 0.0).then_some(s)
