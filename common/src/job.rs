@@ -179,6 +179,19 @@ pub struct RenderSettings {
     /// in the scene bundle or a constant colour. `None` = black.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub environment: Option<EnvironmentSettings>,
+    /// Thin lens (depth of field): radius of the lens aperture in scene units (metres in glTF);
+    /// 0 = pinhole. glTF cameras have no aperture, so the job sets it. An f-number N of a lens
+    /// of focal length f is `aperture_radius = f / (2 N)`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub aperture_radius: f32,
+    /// Distance from the camera to the plane in focus, along the view axis, in scene units;
+    /// required when `aperture_radius` > 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focus_distance: Option<f32>,
+}
+
+fn is_zero(v: &f32) -> bool {
+    *v == 0.0
 }
 
 /// An environment light (JSON: `{"file": "sky.exr", "intensity": 1, "rotation_deg": 0}` or
@@ -334,6 +347,8 @@ impl RenderSettings {
             shutter: 0.0,
             animations: None,
             environment: None,
+            aperture_radius: 0.0,
+            focus_distance: None,
         }
     }
 
@@ -388,6 +403,25 @@ impl RenderSettings {
         }
         if let Some(env) = &self.environment {
             env.validate()?;
+        }
+        if !(self.aperture_radius.is_finite() && (0.0..=1e6).contains(&self.aperture_radius)) {
+            return Err(SettingsError::Invalid(format!(
+                "aperture_radius must be a number in [0, 1e6] (scene units; 0 = pinhole), got {}",
+                self.aperture_radius
+            )));
+        }
+        match self.focus_distance {
+            Some(f) if !(f.is_finite() && f > 0.0 && f <= 1e7) => {
+                return Err(SettingsError::Invalid(format!(
+                    "focus_distance must be a positive distance in scene units, got {f}"
+                )));
+            }
+            None if self.aperture_radius > 0.0 => {
+                return Err(SettingsError::Invalid(
+                    "focus_distance is required when aperture_radius > 0 (the distance in focus)".into(),
+                ));
+            }
+            _ => {}
         }
         // Counted, not built: 8192^2 in 8-px tiles with 1-spp passes of 2^20 spp would be 10^12.
         at_most("units (tiles x passes)", self.tile_count().saturating_mul(self.pass_count()), limits.max_units)?;
@@ -564,6 +598,21 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn lens_settings_are_checked_by_name() {
+        let mut s = RenderSettings::new(8, 8, 1);
+        s.aperture_radius = 0.1;
+        let e = s.validate(&Limits::default()).expect_err("no focus").to_string();
+        assert!(e.contains("focus_distance is required"), "{e}");
+        s.focus_distance = Some(2.0);
+        assert_eq!(s.validate(&Limits::default()), Ok(()));
+        s.focus_distance = Some(-1.0);
+        assert!(s.validate(&Limits::default()).expect_err("negative").to_string().contains("focus_distance"));
+        s.focus_distance = Some(2.0);
+        s.aperture_radius = f32::NAN;
+        assert!(s.validate(&Limits::default()).expect_err("nan").to_string().contains("aperture_radius"));
+    }
 
     #[test]
     fn environment_settings_are_checked_by_name() {

@@ -81,6 +81,13 @@ pub struct JobRequestBody {
     /// Environment light: `{"file": "sky.exr", "intensity": 1, "rotation_deg": 0}` (an
     /// equirectangular `.exr`/`.hdr` beside the bundle's `.gltf`/`.glb`) or `{"color": [r, g, b]}`.
     pub environment: Option<pathfarm_common::job::EnvironmentSettings>,
+    /// Thin lens: aperture radius in scene units (0 = pinhole; f-number N at focal length f:
+    /// f / (2 N)). Not with bdpt.
+    #[schema(minimum = 0.0, maximum = 1000000.0)]
+    pub aperture_radius: Option<f32>,
+    /// Distance in focus along the view axis (scene units); required with an aperture.
+    #[schema(exclusive_minimum = 0.0)]
+    pub focus_distance: Option<f32>,
 }
 
 /// `PUT /jobs/{id}/priority` body.

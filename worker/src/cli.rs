@@ -103,6 +103,12 @@ pub struct SettingsArgs {
     /// Turns the environment about +Y (degrees, counter-clockwise seen from above).
     #[arg(long, default_value_t = 0.0)]
     pub environment_rotation: f32,
+    /// Thin lens: aperture radius in scene units (0 = pinhole).
+    #[arg(long, default_value_t = 0.0)]
+    pub aperture_radius: f32,
+    /// Thin lens: distance in focus along the view axis (scene units).
+    #[arg(long)]
+    pub focus_distance: Option<f32>,
 }
 
 /// `--environment`: `r,g,b` is a colour, anything else a file.
@@ -169,6 +175,8 @@ impl SettingsArgs {
             .environment
             .as_deref()
             .map(|v| environment_arg(v, self.environment_intensity, self.environment_rotation));
+        s.aperture_radius = self.aperture_radius;
+        s.focus_distance = self.focus_distance;
         s
     }
 }

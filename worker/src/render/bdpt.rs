@@ -435,7 +435,7 @@ pub fn li_bdpt(
     };
     // Camera subpath.
     sampler.start_pixel_sample(pixel, sample_index, 0);
-    let ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let ray = camera.sample_ray(pixel, sampler);
     paths.camera.clear();
     paths.camera.push(Vertex::camera(ray.o, Vec3A::ONE));
     random_walk(

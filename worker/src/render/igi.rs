@@ -180,7 +180,7 @@ pub fn li_igi(
         let k = (u64::from(pixel.x) + 2 * u64::from(pixel.y)) % vpls.sets.len() as u64;
         &vpls.sets[k as usize]
     };
-    let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let mut ray: Ray = camera.sample_ray(pixel, sampler);
     let mut l = Vec3A::ZERO;
     let mut beta = Vec3A::ONE;
     let mut segments = 0u32;

@@ -106,7 +106,7 @@ pub fn li_path(
     params: &PathParams,
 ) -> SampleValue {
     let mut out = SampleValue::default();
-    let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let mut ray: Ray = camera.sample_ray(pixel, sampler);
     let mut l = Vec3A::ZERO;
     let mut beta = Vec3A::ONE;
     let mut eta_scale = 1.0f32;

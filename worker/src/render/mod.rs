@@ -107,6 +107,16 @@ impl Renderer {
                 None => Camera::framing(scene.bounds(), settings.width, settings.height),
             },
         };
+        let camera = match (settings.aperture_radius > 0.0, settings.focus_distance) {
+            (true, Some(focus_distance)) => camera
+                .with_lens(camera::Lens { radius: settings.aperture_radius, focus_distance })
+                .ok_or_else(|| {
+                    RenderError::Settings(
+                        "aperture_radius needs a perspective camera (this one is orthographic)".into(),
+                    )
+                })?,
+            _ => camera,
+        };
         let integrator = match settings.integrator {
             IntegratorSettings::Direct { mis, light_sampling } => {
                 Integrator::Path(PathParams { max_depth: 2, rr_depth: u32::MAX, mis, light_sampling })
@@ -115,6 +125,13 @@ impl Renderer {
                 Integrator::Path(PathParams { max_depth, rr_depth, mis, light_sampling })
             }
             IntegratorSettings::Bdpt { max_depth, mis, rr_depth, strategy } => {
+                if camera.lens().is_some() {
+                    return Err(RenderError::Settings(
+                        "bdpt does not connect light paths to a thin lens yet: use aperture_radius 0, or the path or \
+                         igi integrator for depth of field"
+                            .into(),
+                    ));
+                }
                 if !camera.is_pinhole() {
                     return Err(RenderError::Settings(
                         "bdpt needs a perspective (pinhole) camera: light paths cannot be connected to an \
