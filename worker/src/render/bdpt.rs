@@ -82,6 +82,9 @@ pub struct Vertex {
     pub(crate) delta: bool,
     pub(crate) pdf_fwd: f32,
     pub(crate) pdf_rev: f32,
+    /// A light-subpath vertex: its BSDF carries importance (the adjoint), which a refraction
+    /// does not scale by 1 / eta'^2 as radiance's does.
+    pub(crate) importance: bool,
 }
 
 impl Vertex {
@@ -100,6 +103,7 @@ impl Vertex {
             delta: false,
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
+            importance: false,
         }
     }
 
@@ -161,7 +165,8 @@ impl Vertex {
         if !has_transmission(bsdf) && wi.dot(self.ng_side) <= 0.0 {
             return Vec3A::ZERO;
         }
-        bsdf.f(self.wo, wi)
+        let f = bsdf.f(self.wo, wi);
+        if self.importance { f * bsdf.importance_scale(self.wo, wi) } else { f }
     }
 
     /// Converts a solid-angle density at this vertex to an area density at `next` (kept per
@@ -241,7 +246,7 @@ impl Vertex {
 
 /// Whether a BSDF can transmit (then connections may cross the surface).
 fn has_transmission(bsdf: &Bsdf) -> bool {
-    matches!(bsdf.bxdf, super::bsdf::Bxdf::Dielectric { .. })
+    bsdf.bxdf.has_transmission()
 }
 
 /// pbrt's correction of the adjoint BSDF for shading normals (importance transport).
@@ -317,6 +322,7 @@ pub fn random_walk(
             delta: false,
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
+            importance: mode == TransportMode::Importance,
         };
         let Some(prev) = path.last() else { break };
         v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);

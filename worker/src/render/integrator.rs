@@ -62,9 +62,10 @@ pub fn sample_ld(
     if params.mis == MisHeuristic::Bsdf && !delta {
         return Vec3A::ZERO;
     }
-    // Reflection only: directions below the geometric surface receive nothing (no leaks through
-    // shading normals).
-    if ls.l == Vec3A::ZERO || ls.wi.dot(sh.ng) <= 0.0 {
+    // Reflection stays on the viewer's side of the geometric surface (no leaks through shading
+    // normals); a transmitting BSDF also takes light from the other side.
+    let same_side = ls.wi.dot(sh.ng) * wo.dot(sh.ng) > 0.0;
+    if ls.l == Vec3A::ZERO || !(same_side || bsdf.bxdf.has_transmission() && ls.wi.dot(sh.ng) != 0.0) {
         return Vec3A::ZERO;
     }
     let f = bsdf.f(wo, ls.wi) * ls.wi.dot(bsdf.frame.z).abs();
