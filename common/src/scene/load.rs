@@ -64,6 +64,7 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_ior",
     "KHR_materials_emissive_strength",
     "KHR_materials_specular",
+    "KHR_materials_volume",
     // The accessor reader converts every component type, which is all this extension asks.
     "KHR_mesh_quantization",
 ];
@@ -71,7 +72,6 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
 /// Extensions we ignore with a warning even when required: the still image stays meaningful
 /// without them (material refinements, variants, animation).
 const IGNORABLE_EXTENSIONS: &[&str] = &[
-    "KHR_materials_volume",
     "KHR_materials_sheen",
     "KHR_materials_clearcoat",
     "KHR_materials_iridescence",
@@ -769,6 +769,26 @@ impl Loader<'_> {
             if let Some(s) = &ext.specular {
                 mat.specular_factor = s.specular_factor.0;
             }
+            if let Some(v) = &ext.volume {
+                let (color, distance) = (Vec3::from(v.attenuation_color.0), v.attenuation_distance.0);
+                if !(color.is_finite() && color.min_element() >= 0.0 && distance > 0.0) {
+                    return Err(self.invalid(
+                        &owner,
+                        "KHR_materials_volume: attenuationColor must be in [0, 1] and attenuationDistance > 0",
+                    ));
+                }
+                if v.thickness_factor.0 > 0.0 {
+                    if distance.is_finite() {
+                        // A colour of 0 absorbs everything: a large finite coefficient.
+                        let c = color.max(Vec3::splat(1e-6)).min(Vec3::ONE);
+                        mat.attenuation = -Vec3::new(c.x.ln(), c.y.ln(), c.z.ln()) / distance;
+                    }
+                } else if mat.transmission > 0.0 {
+                    self.warn(format!(
+                        "{owner}: KHR_materials_volume thicknessFactor 0 (thin-walled): rendered as solid glass"
+                    ));
+                }
+            }
             mat.unlit = ext.unlit.is_some();
         }
         let cutoff = match mat.alpha_mode {
@@ -777,6 +797,7 @@ impl Loader<'_> {
         };
         let finite = mat.base_color.is_finite()
             && mat.emissive.is_finite()
+            && mat.attenuation.is_finite()
             && cutoff.is_finite()
             && [mat.metallic, mat.roughness, mat.transmission, mat.ior, mat.specular_factor, mat.normal_scale]
                 .iter()

@@ -119,6 +119,9 @@ pub struct Material {
     pub double_sided: bool,
     /// glTF alphaMode, from the alpha of base colour factor x texture x vertex colour.
     pub alpha_mode: AlphaMode,
+    /// KHR_materials_volume: Beer-Lambert attenuation coefficient inside a transmissive object,
+    /// per scene unit, `-ln(attenuationColor) / attenuationDistance` (zero: clear).
+    pub attenuation: Vec3,
 }
 
 /// glTF `alphaMode`: how the base colour's alpha makes a surface transparent to every ray.
@@ -155,6 +158,7 @@ impl Default for Material {
             unlit: false,
             double_sided: false,
             alpha_mode: AlphaMode::Opaque,
+            attenuation: Vec3::ZERO,
         }
     }
 }

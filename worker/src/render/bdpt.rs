@@ -301,6 +301,7 @@ pub fn random_walk(
             break;
         };
         let wo = -ray.d;
+        beta *= scene.transmittance(&si, ray.d);
         let sh = shade(scene, &si, wo, sampler.get_1d());
         if let Some(out) = aov.take() {
             out.depth = Some(si.t);
@@ -558,6 +559,11 @@ fn connect(
             }
             let w = d / d2.sqrt();
             c *= w.dot(qs.ns).abs() * w.dot(pt.ns).abs() / d2;
+            // A connection inside an attenuating object (it reaches the back of pt's surface).
+            if let Some(si) = &pt.si {
+                let along = SurfaceInteraction { t: d2.sqrt(), ..*si };
+                c *= scene.transmittance(&along, w);
+            }
             if c != Vec3A::ZERO && !scene.visible(qs.p, qs.ng, pt.p, Some(pt.ng)) {
                 c = Vec3A::ZERO;
             }

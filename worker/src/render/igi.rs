@@ -192,6 +192,7 @@ pub fn li_igi(
         };
         let wo = -ray.d;
         segments += 1;
+        beta *= scene.transmittance(&si, ray.d);
         // Emitters seen from the camera or through specular surfaces count in full; after a
         // diffuse or glossy hit, direct lighting is the light sample's.
         l += beta * scene.emitted(&si, wo);

@@ -142,6 +142,7 @@ pub fn li_path(
         if depth == 0 {
             out.depth = Some(si.t);
         }
+        beta *= scene.transmittance(&si, ray.d);
         let le = scene.emitted(&si, wo);
         if le != Vec3A::ZERO {
             let w = emission_weight(&|| {

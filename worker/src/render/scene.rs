@@ -304,6 +304,19 @@ impl RenderScene {
         }
     }
 
+    /// Beer-Lambert transmittance of the segment a ray in direction `d` travelled to reach
+    /// `si`: when it leaves through the back of a surface whose material has
+    /// KHR_materials_volume attenuation, the segment ran inside that object (closed meshes,
+    /// outward winding, no nesting), and `exp(-sigma t)` of it is left.
+    pub fn transmittance(&self, si: &SurfaceInteraction, d: Vec3A) -> Vec3A {
+        let Some(m) = self.materials.get(si.material as usize) else { return Vec3A::ONE };
+        if m.attenuation == glam::Vec3::ZERO || si.ng.dot(d) <= 0.0 {
+            return Vec3A::ONE;
+        }
+        let sigma = Vec3A::from(m.attenuation) * (si.t * d.length());
+        Vec3A::new((-sigma.x).exp(), (-sigma.y).exp(), (-sigma.z).exp())
+    }
+
     /// Whether the segment between two surface points (or a point and a light) is blocked.
     pub fn unoccluded(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample) -> bool {
         if s.infinite {
