@@ -408,7 +408,7 @@ mod tests {
 
     /// Number of chi-square tests in this module: each runs at the Sidak-corrected level
     /// 1 - (1 - 0.01)^(1 / CHI2_TESTS), so the whole suite has alpha = 0.01.
-    const CHI2_TESTS: usize = 18;
+    const CHI2_TESTS: usize = 19;
 
     fn opts(seed: u64) -> Chi2Options {
         Chi2Options { samples: 1_000_000, res: (80, 160), alpha: 0.01, tests: CHI2_TESTS, seed }
@@ -778,6 +778,41 @@ mod tests {
 
     fn clean_weight(w: f32) -> f64 {
         if w.is_finite() && w > 0.0 { f64::from(w) } else { 0.0 }
+    }
+
+    #[test]
+    fn distribution_2d_matches_its_pdf() {
+        // A 7 x 5 grid with a zero cell, a zero row and a hot cell: chi-square of the samples
+        // against pdf on a 70 x 50 grid of the unit square (so every cell is split), and the
+        // density integrates to 1 over the square.
+        let (nu, nv) = (7usize, 5usize);
+        let w: Vec<f32> = (0..nu * nv)
+            .map(|i| match (i % nu, i / nu) {
+                (3, 1) => 0.0,
+                (_, 2) => 0.0,
+                (5, 4) => 30.0,
+                (x, y) => 1.0 + x as f32 * 0.5 + y as f32,
+            })
+            .collect();
+        let d = Distribution2D::new(&w, nu, nv).expect("sizes agree");
+        assert!(Distribution2D::new(&w, nu, nv + 1).is_none());
+        let o = Chi2Options { res: (70, 50), ..opts(83) };
+        pass(test_rect(
+            "distribution 2d",
+            |u| {
+                d.sample(u).map(|(p, pdf)| {
+                    assert!((d.pdf(p) - pdf).abs() <= 1e-3 * pdf, "{} vs {pdf} at {p}", d.pdf(p));
+                    p
+                })
+            },
+            |p| d.pdf(p),
+            (0.0, 1.0),
+            (0.0, 1.0),
+            &o,
+        ));
+        let total =
+            integrate_split(&|x, y| f64::from(d.pdf(Vec2::new(x as f32, y as f32))), (0.0, 1.0), (0.0, 1.0), 70);
+        assert!((total - 1.0).abs() < 1e-3, "integral {total}");
     }
 
     #[test]
