@@ -175,6 +175,97 @@ pub struct RenderSettings {
     /// Names of the glTF animations that play; `None` = all of them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub animations: Option<Vec<String>>,
+    /// Light arriving from infinitely far away in every direction: an equirectangular image
+    /// in the scene bundle or a constant colour. `None` = black.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub environment: Option<EnvironmentSettings>,
+    /// Thin lens (depth of field): radius of the lens aperture in scene units (metres in glTF);
+    /// 0 = pinhole. glTF cameras have no aperture, so the job sets it. An f-number N of a lens
+    /// of focal length f is `aperture_radius = f / (2 N)`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub aperture_radius: f32,
+    /// Distance from the camera to the plane in focus, along the view axis, in scene units;
+    /// required when `aperture_radius` > 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focus_distance: Option<f32>,
+}
+
+fn is_zero(v: &f32) -> bool {
+    *v == 0.0
+}
+
+/// An environment light (JSON: `{"file": "sky.exr", "intensity": 1, "rotation_deg": 0}` or
+/// `{"color": [0.5, 0.6, 0.8]}`).
+///
+/// The image is equirectangular (latitude-longitude, 2:1), linear RGB in `.exr` or `.hdr`, a
+/// path relative to the folder of the bundle's `.gltf`/`.glb` file (as glTF's own URIs are).
+/// Its top row is straight up (+Y, glTF's up axis), and its centre column looks along -X, as
+/// in Blender's world texture once glTF's axes are mapped to Blender's. Radiance = texel (or
+/// `color`) x `intensity`, in the scene's radiance units.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct EnvironmentSettings {
+    /// Equirectangular `.exr` or `.hdr` image in the scene bundle.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<String>,
+    /// Constant linear RGB radiance (instead of `file`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub color: Option<[f32; 3]>,
+    /// Multiplies the image or the colour (default 1).
+    #[serde(default = "default_intensity")]
+    pub intensity: f32,
+    /// Turns the environment about the up axis (+Y), counter-clockwise seen from above.
+    #[serde(default)]
+    pub rotation_deg: f32,
+}
+
+fn default_intensity() -> f32 {
+    1.0
+}
+
+/// Largest accepted length of an environment file name, in bytes.
+pub const MAX_ENVIRONMENT_PATH: usize = 256;
+
+impl EnvironmentSettings {
+    /// Checks the fields: exactly one of `file` and `color`, finite non-negative numbers, a
+    /// relative `.exr`/`.hdr` path that stays inside the bundle.
+    pub fn validate(&self) -> Result<(), SettingsError> {
+        let bad = |m: String| Err(SettingsError::Invalid(format!("environment.{m}")));
+        match (&self.file, &self.color) {
+            (Some(_), Some(_)) => return bad("file and environment.color exclude each other: give one".into()),
+            (None, None) => return bad("file or environment.color is required".into()),
+            (Some(f), None) => {
+                if f.len() > MAX_ENVIRONMENT_PATH {
+                    return bad(format!("file is {} bytes long; the limit is {MAX_ENVIRONMENT_PATH}", f.len()));
+                }
+                let path = std::path::Path::new(f);
+                let inside = !f.is_empty()
+                    && !f.contains('\\')
+                    && path.components().all(|c| matches!(c, std::path::Component::Normal(_)));
+                if !inside {
+                    return bad(format!(
+                        "file {f:?} must be a relative path inside the scene bundle (no '..', no leading '/')"
+                    ));
+                }
+                let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+                if !matches!(ext.as_deref(), Some("exr" | "hdr")) {
+                    return bad(format!("file {f:?} must be an .exr or .hdr image"));
+                }
+            }
+            (None, Some(c)) => {
+                if !c.iter().all(|v| v.is_finite() && *v >= 0.0) {
+                    return bad(format!("color must be three finite numbers >= 0, got {c:?}"));
+                }
+            }
+        }
+        if !(self.intensity.is_finite() && self.intensity >= 0.0) {
+            return bad(format!("intensity must be a finite number >= 0, got {}", self.intensity));
+        }
+        if !(self.rotation_deg.is_finite() && self.rotation_deg.abs() <= 360_000.0) {
+            return bad(format!("rotation_deg must be a finite number of degrees, got {}", self.rotation_deg));
+        }
+        Ok(())
+    }
 }
 
 fn default_fps() -> f32 {
@@ -255,6 +346,9 @@ impl RenderSettings {
             fps: default_fps(),
             shutter: 0.0,
             animations: None,
+            environment: None,
+            aperture_radius: 0.0,
+            focus_distance: None,
         }
     }
 
@@ -306,6 +400,28 @@ impl RenderSettings {
                     n.len()
                 )));
             }
+        }
+        if let Some(env) = &self.environment {
+            env.validate()?;
+        }
+        if !(self.aperture_radius.is_finite() && (0.0..=1e6).contains(&self.aperture_radius)) {
+            return Err(SettingsError::Invalid(format!(
+                "aperture_radius must be a number in [0, 1e6] (scene units; 0 = pinhole), got {}",
+                self.aperture_radius
+            )));
+        }
+        match self.focus_distance {
+            Some(f) if !(f.is_finite() && f > 0.0 && f <= 1e7) => {
+                return Err(SettingsError::Invalid(format!(
+                    "focus_distance must be a positive distance in scene units, got {f}"
+                )));
+            }
+            None if self.aperture_radius > 0.0 => {
+                return Err(SettingsError::Invalid(
+                    "focus_distance is required when aperture_radius > 0 (the distance in focus)".into(),
+                ));
+            }
+            _ => {}
         }
         // Counted, not built: 8192^2 in 8-px tiles with 1-spp passes of 2^20 spp would be 10^12.
         at_most("units (tiles x passes)", self.tile_count().saturating_mul(self.pass_count()), limits.max_units)?;
@@ -485,6 +601,52 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn lens_settings_are_checked_by_name() {
+        let mut s = RenderSettings::new(8, 8, 1);
+        s.aperture_radius = 0.1;
+        let e = s.validate(&Limits::default()).expect_err("no focus").to_string();
+        assert!(e.contains("focus_distance is required"), "{e}");
+        s.focus_distance = Some(2.0);
+        assert_eq!(s.validate(&Limits::default()), Ok(()));
+        s.focus_distance = Some(-1.0);
+        assert!(s.validate(&Limits::default()).expect_err("negative").to_string().contains("focus_distance"));
+        s.focus_distance = Some(2.0);
+        s.aperture_radius = f32::NAN;
+        assert!(s.validate(&Limits::default()).expect_err("nan").to_string().contains("aperture_radius"));
+    }
+
+    #[test]
+    fn environment_settings_are_checked_by_name() {
+        let mut s = RenderSettings::new(8, 8, 1);
+        let ok = |e: &str| -> EnvironmentSettings { serde_json::from_str(e).expect("parses") };
+        for good in [
+            r#"{"file": "sky.exr"}"#,
+            r#"{"file": "env/Sky.HDR", "intensity": 2, "rotation_deg": -90}"#,
+            r#"{"color": [0.5, 0.6, 0.8]}"#,
+        ] {
+            s.environment = Some(ok(good));
+            assert_eq!(s.validate(&Limits::default()), Ok(()), "{good}");
+        }
+        for (bad, words) in [
+            (r#"{}"#, "required"),
+            (r#"{"file": "a.exr", "color": [1, 1, 1]}"#, "exclude"),
+            (r#"{"file": "../a.exr"}"#, "inside the scene bundle"),
+            (r#"{"file": "/etc/a.exr"}"#, "inside the scene bundle"),
+            (r#"{"file": "sky.png"}"#, ".exr or .hdr"),
+            (r#"{"color": [1, -1, 1]}"#, "color"),
+            (r#"{"color": [1, 1, 1], "intensity": -2}"#, "intensity"),
+        ] {
+            s.environment = Some(ok(bad));
+            let e = s.validate(&Limits::default()).expect_err(bad).to_string();
+            assert!(e.contains("environment.") && e.contains(words), "{bad}: {e}");
+        }
+        assert!(serde_json::from_str::<EnvironmentSettings>(r#"{"colour": [1, 1, 1]}"#).is_err());
+        // A job without an environment serializes as before.
+        s.environment = None;
+        assert!(!serde_json::to_string(&s).expect("json").contains("environment"));
+    }
 
     #[test]
     fn plan_covers_every_pixel_and_sample_once() {

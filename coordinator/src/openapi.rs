@@ -9,7 +9,8 @@ use crate::events::{FrameWritten, IdOnly, Snapshot};
 use axum::http::header;
 use axum::response::IntoResponse;
 use pathfarm_common::job::{
-    IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings, SamplerKind, TileRect, UnitKey,
+    EnvironmentSettings, IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings,
+    SamplerKind, TileRect, UnitKey,
 };
 use pathfarm_common::protocol::{
     ErrorBody, ErrorDetail, FrameInfo, FrameOrder, FrameState, FramesSummary, JobCreated, JobInfo, JobState,
@@ -87,6 +88,16 @@ pub struct JobRequestBody {
     /// `sequence_preview`: every frame's first pass before any frame's second (every frame's
     /// film at once: refused when they do not fit `--film-memory-mb`).
     pub order: Option<pathfarm_common::protocol::FrameOrder>,
+    /// Environment light: `{"file": "sky.exr", "intensity": 1, "rotation_deg": 0}` (an
+    /// equirectangular `.exr`/`.hdr` beside the bundle's `.gltf`/`.glb`) or `{"color": [r, g, b]}`.
+    pub environment: Option<pathfarm_common::job::EnvironmentSettings>,
+    /// Thin lens: aperture radius in scene units (0 = pinhole; f-number N at focal length f:
+    /// f / (2 N)). Not with bdpt.
+    #[schema(minimum = 0.0, maximum = 1000000.0)]
+    pub aperture_radius: Option<f32>,
+    /// Distance in focus along the view axis (scene units); required with an aperture.
+    #[schema(exclusive_minimum = 0.0)]
+    pub focus_distance: Option<f32>,
 }
 
 /// `PUT /jobs/{id}/priority` body.
@@ -318,7 +329,7 @@ fn open_tuples(v: &mut serde_json::Value) {
     ),
     components(schemas(
         ErrorBody, ErrorDetail, SceneCreated, JobState, JobCreated, JobInfo, WorkerState, WorkerInfo,
-        RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings,
+        RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings, EnvironmentSettings,
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
         JobRequestBody, FrameOrder, FrameState, FrameInfo, FramesSummary, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, FrameWritten, Convergence, ConvergencePoint,
     )),

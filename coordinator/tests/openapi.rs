@@ -225,3 +225,19 @@ fn tuples_are_arrays_of_fixed_length() {
     assert_eq!(current["prefixItems"].as_array().map(Vec::len), Some(2), "{current}");
     assert_eq!((current["minItems"].as_u64(), current["maxItems"].as_u64()), (Some(2), Some(2)), "{current}");
 }
+
+#[test]
+fn the_job_body_spells_every_render_setting() {
+    // JobRequestBody repeats RenderSettings' fields by hand (see openapi.rs): a new setting
+    // must be documented there too.
+    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let schemas = &doc["components"]["schemas"];
+    let names = |schema: &serde_json::Value| -> BTreeSet<String> {
+        schema["properties"].as_object().map(|p| p.keys().cloned().collect()).unwrap_or_default()
+    };
+    let settings = names(&schemas["RenderSettings"]);
+    let body = names(&schemas["JobRequestBody"]);
+    assert!(settings.contains("environment"), "{settings:?}");
+    let missing: Vec<_> = settings.difference(&body).collect();
+    assert!(missing.is_empty(), "JobRequestBody lacks {missing:?}");
+}

@@ -322,3 +322,47 @@ fn a_tar_bundle_renders_and_a_job_no_worker_can_render_fails_with_the_reason() {
     assert!(error.contains("perspective"), "the job's error should carry the worker's reason: {error}");
     assert!(!info.blocklist.is_empty(), "the failing worker should be blocklisted");
 }
+
+#[test]
+fn an_environment_image_in_the_bundle_and_a_thin_lens_render_the_same_bits_through_the_farm() {
+    // The Cornell box export plus an equirectangular .hdr in a subfolder, as a tar bundle; the
+    // job names it (relative to the .gltf) and adds depth of field. A job naming a file the
+    // bundle lacks fails with the file's name.
+    let mut files = pathfarm_common::scene::demo::cornell_separate_files();
+    let mut hdr = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8 +X 16\n".to_vec();
+    for i in 0..128u32 {
+        hdr.extend_from_slice(&[128, 64 + (i % 16) as u8 * 8, 32, 129]);
+    }
+    files.push(("env/sky.hdr".into(), hdr));
+    let refs: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
+    let bundle = pathfarm_common::scene::bundle::tar_bundle(&refs).expect("tar");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let _w: Vec<Proc> =
+        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let client = Client::new(&coord.url, None).expect("client");
+    let mut s = settings(32, 32, 8, 16);
+    s.camera = Some(0);
+    s.environment = Some(pathfarm_common::job::EnvironmentSettings {
+        file: Some("env/sky.hdr".into()),
+        color: None,
+        intensity: 2.0,
+        rotation_deg: 30.0,
+    });
+    s.aperture_radius = 0.05;
+    s.focus_distance = Some(3.0);
+    let id = submit(&client, &bundle, &s, 0, "sky");
+    wait_done(&client, id, Duration::from_secs(120));
+    assert!(client.image_exr(id).expect("exr") == local_exr(&bundle, &s), "environment job differs from local");
+
+    let mut missing = s.clone();
+    missing.environment.as_mut().expect("set").file = Some("env/none.exr".into());
+    let id = submit(&client, &bundle, &missing, 0, "no sky");
+    let info = wait_for("the job to fail", Duration::from_secs(60), || {
+        let info = client.job(id).ok()?;
+        info.state.is_finished().then_some(info)
+    });
+    assert_eq!(info.state, JobState::Failed);
+    let error = info.error.unwrap_or_default();
+    assert!(error.contains("env/none.exr"), "the job's error should name the missing file: {error}");
+}

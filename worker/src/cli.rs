@@ -5,9 +5,9 @@ use anyhow::Context;
 use clap::{Args, ValueEnum};
 use pathfarm_common::frames::{FrameSet, frame_path};
 use pathfarm_common::job::{
-    IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings, SamplerKind,
+    EnvironmentSettings, IntegratorSettings, LightSampling, MisHeuristic, PassSchedule, RenderSettings, SamplerKind,
 };
-use pathfarm_common::scene::{LoadOptions, load_scene};
+use pathfarm_common::scene::{LoadOptions, load_job_environment, load_scene};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -94,6 +94,32 @@ pub struct SettingsArgs {
     /// BDPT: render only the MIS-weighted strategy `s,t` (s light vertices, t camera vertices).
     #[arg(long, value_parser = parse_strategy)]
     pub bdpt_strategy: Option<[u32; 2]>,
+    /// Environment light: an equirectangular .exr/.hdr beside the scene file (in the bundle),
+    /// or a constant linear colour `r,g,b`.
+    #[arg(long)]
+    pub environment: Option<String>,
+    /// Multiplies the environment's image or colour.
+    #[arg(long, default_value_t = 1.0)]
+    pub environment_intensity: f32,
+    /// Turns the environment about +Y (degrees, counter-clockwise seen from above).
+    #[arg(long, default_value_t = 0.0)]
+    pub environment_rotation: f32,
+    /// Thin lens: aperture radius in scene units (0 = pinhole).
+    #[arg(long, default_value_t = 0.0)]
+    pub aperture_radius: f32,
+    /// Thin lens: distance in focus along the view axis (scene units).
+    #[arg(long)]
+    pub focus_distance: Option<f32>,
+}
+
+/// `--environment`: `r,g,b` is a colour, anything else a file.
+fn environment_arg(v: &str, intensity: f32, rotation_deg: f32) -> EnvironmentSettings {
+    let rgb: Vec<f32> = v.split(',').filter_map(|x| x.trim().parse().ok()).collect();
+    let (file, color) = match rgb[..] {
+        [r, g, b] if v.split(',').count() == 3 => (None, Some([r, g, b])),
+        _ => (Some(v.to_string()), None),
+    };
+    EnvironmentSettings { file, color, intensity, rotation_deg }
 }
 
 /// Parses `s,t` for `--bdpt-strategy`.
@@ -146,6 +172,12 @@ impl SettingsArgs {
         if self.pass_spp > 0 {
             s.passes = PassSchedule::Fixed { spp: self.pass_spp };
         }
+        s.environment = self
+            .environment
+            .as_deref()
+            .map(|v| environment_arg(v, self.environment_intensity, self.environment_rotation));
+        s.aperture_radius = self.aperture_radius;
+        s.focus_distance = self.focus_distance;
         s
     }
 }
@@ -257,7 +289,9 @@ fn render_frame(
     png: Option<&Path>,
 ) -> anyhow::Result<()> {
     let t0 = Instant::now();
-    let renderer = Renderer::new(scene, settings)?;
+    let folder = args.scene.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let environment = load_job_environment(folder, settings, &LoadOptions::default())?;
+    let renderer = Renderer::with_environment(scene, settings, environment)?;
     let prep = t0.elapsed();
     let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
     bar.set_style(

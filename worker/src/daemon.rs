@@ -12,7 +12,7 @@ use pathfarm_common::protocol::{
     WorkerId,
 };
 use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
-use pathfarm_common::scene::{LoadOptions, Scene, load_scene};
+use pathfarm_common::scene::{LoadOptions, Scene, load_job_environment, load_scene};
 use reqwest::StatusCode;
 use reqwest::blocking::{Client, RequestBuilder, Response};
 use std::path::PathBuf;
@@ -156,8 +156,8 @@ pub struct Daemon {
     /// and release request.
     secret: String,
     heartbeat: Duration,
-    /// The scene of the last unit, by scene id.
-    scene: Option<(String, Arc<Scene>)>,
+    /// The scene of the last unit, by scene id, and the folder of its scene file.
+    scene: Option<(String, Arc<Scene>, PathBuf)>,
     /// Renderers (BVH and all) of the last (job, frame)s.
     renderers: RendererCache<Renderer>,
 }
@@ -469,21 +469,22 @@ impl Daemon {
     fn renderer_for(&mut self, grant: &LeaseGrant) -> anyhow::Result<Arc<Renderer>> {
         let mut renderers = std::mem::replace(&mut self.renderers, RendererCache::new(2));
         let r = renderers.get_or_build(grant.job_id, &grant.settings, || {
-            let scene = self.scene_for(&grant.scene_id)?;
-            Ok(Renderer::new(&scene, &grant.settings)?)
+            let (scene, scene_dir) = self.scene_for(&grant.scene_id)?;
+            let environment = load_job_environment(&scene_dir, &grant.settings, &LoadOptions::default())?;
+            Ok(Renderer::with_environment(&scene, &grant.settings, environment)?)
         });
         self.renderers = renderers;
         r
     }
 
-    fn scene_for(&mut self, id: &str) -> anyhow::Result<Arc<Scene>> {
+    fn scene_for(&mut self, id: &str) -> anyhow::Result<(Arc<Scene>, PathBuf)> {
         if !is_scene_id(id) {
             bail!("scene id {id:?} is not a SHA-256");
         }
-        if let Some((cached, s)) = &self.scene
+        if let Some((cached, s, folder)) = &self.scene
             && cached == id
         {
-            return Ok(s.clone());
+            return Ok((s.clone(), folder.clone()));
         }
         let bundle_path = self.cfg.cache_dir.join(format!("{id}.bundle"));
         let bytes = match std::fs::read(&bundle_path) {
@@ -514,9 +515,11 @@ impl Daemon {
         if dir.exists() || std::fs::rename(&tmp, &dir).is_err() {
             let _ = std::fs::remove_dir_all(&tmp);
         }
-        let scene = Arc::new(load_scene(&dir.join(rel), &LoadOptions::default())?);
-        self.scene = Some((id.to_string(), scene.clone()));
-        Ok(scene)
+        let main = dir.join(rel);
+        let scene = Arc::new(load_scene(&main, &LoadOptions::default())?);
+        let folder = main.parent().map_or_else(|| dir.clone(), PathBuf::from);
+        self.scene = Some((id.to_string(), scene.clone(), folder.clone()));
+        Ok((scene, folder))
     }
 }
 

@@ -337,7 +337,7 @@ pub fn emitter(name: &str, albedo: Vec3, radiance: Vec3) -> Value {
 }
 
 /// Two triangles of the quad `v0 v1 v2 v3` (counter-clockwise seen from the front).
-fn quad(b: &mut GltfBuilder, name: &str, v: [Vec3; 4], material: usize) {
+pub fn quad(b: &mut GltfBuilder, name: &str, v: [Vec3; 4], material: usize) {
     let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize();
     b.mesh(name, &v, &[n; 4], &[0, 1, 2, 0, 2, 3], material);
 }

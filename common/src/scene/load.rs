@@ -26,8 +26,8 @@
 
 use super::anim::{self, Animation};
 use super::{
-    Camera, Material, MaterialModel, Mesh, Projection, PunctualKind, PunctualLight, Scene, SceneError, Texture,
-    TextureRef, TextureTransform, WrapMode,
+    AlphaMode, Camera, Material, MaterialModel, Mesh, Projection, PunctualKind, PunctualLight, Scene, SceneError,
+    Texture, TextureRef, TextureTransform, WrapMode,
 };
 use glam::{Mat3, Mat4, Quat, Vec2, Vec3, Vec4};
 use gltf::json;
@@ -65,6 +65,7 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_ior",
     "KHR_materials_emissive_strength",
     "KHR_materials_specular",
+    "KHR_materials_volume",
     // The accessor reader converts every component type, which is all this extension asks.
     "KHR_mesh_quantization",
     // Camera, light and material properties (see `anim`); unknown pointers are skipped with a
@@ -75,7 +76,6 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
 /// Extensions we ignore with a warning even when required: the still image stays meaningful
 /// without them (material refinements, variants).
 const IGNORABLE_EXTENSIONS: &[&str] = &[
-    "KHR_materials_volume",
     "KHR_materials_sheen",
     "KHR_materials_clearcoat",
     "KHR_materials_iridescence",
@@ -793,7 +793,7 @@ impl<'a> Loader<'a> {
         Ok(())
     }
 
-    /// Converts one material. Alpha modes (MASK, BLEND) are ignored: surfaces are opaque.
+    /// Converts one material.
     fn material(&mut self, i: usize, m: &json::Material) -> Result<Material, SceneError> {
         let owner = format!("material {i}{}", quoted(m.name.as_deref()));
         let pbr = &m.pbr_metallic_roughness;
@@ -811,6 +811,13 @@ impl<'a> Loader<'a> {
             normal_texture: None,
             normal_scale: 1.0,
             double_sided: m.double_sided,
+            alpha_mode: match m.alpha_mode {
+                Checked::Valid(json::material::AlphaMode::Mask) => {
+                    AlphaMode::Mask { cutoff: m.alpha_cutoff.map_or(0.5, |c| c.0) }
+                }
+                Checked::Valid(json::material::AlphaMode::Blend) => AlphaMode::Blend,
+                _ => AlphaMode::Opaque,
+            },
             ..Material::default()
         };
         if let Some(n) = &m.normal_texture {
@@ -848,10 +855,36 @@ impl<'a> Loader<'a> {
             if let Some(s) = &ext.specular {
                 mat.specular_factor = s.specular_factor.0;
             }
+            if let Some(v) = &ext.volume {
+                let (color, distance) = (Vec3::from(v.attenuation_color.0), v.attenuation_distance.0);
+                if !(color.is_finite() && color.min_element() >= 0.0 && distance > 0.0) {
+                    return Err(self.invalid(
+                        &owner,
+                        "KHR_materials_volume: attenuationColor must be in [0, 1] and attenuationDistance > 0",
+                    ));
+                }
+                if v.thickness_factor.0 > 0.0 {
+                    if distance.is_finite() {
+                        // A colour of 0 absorbs everything: a large finite coefficient.
+                        let c = color.max(Vec3::splat(1e-6)).min(Vec3::ONE);
+                        mat.attenuation = -Vec3::new(c.x.ln(), c.y.ln(), c.z.ln()) / distance;
+                    }
+                } else if mat.transmission > 0.0 {
+                    self.warn(format!(
+                        "{owner}: KHR_materials_volume thicknessFactor 0 (thin-walled): rendered as solid glass"
+                    ));
+                }
+            }
             mat.unlit = ext.unlit.is_some();
         }
+        let cutoff = match mat.alpha_mode {
+            AlphaMode::Mask { cutoff } => cutoff,
+            _ => 0.0,
+        };
         let finite = mat.base_color.is_finite()
             && mat.emissive.is_finite()
+            && mat.attenuation.is_finite()
+            && cutoff.is_finite()
             && [mat.metallic, mat.roughness, mat.transmission, mat.ior, mat.specular_factor, mat.normal_scale]
                 .iter()
                 .all(|v| v.is_finite());
@@ -1542,6 +1575,43 @@ mod tests {
         glb.extend(2u32.to_le_bytes());
         glb.extend(4u32.to_le_bytes()); // shorter than the header itself
         assert!(split_glb(&glb).is_err());
+    }
+
+    #[test]
+    fn alpha_modes_are_read() {
+        use super::super::AlphaMode;
+        use super::super::demo::{GltfBuilder, lambert};
+        let mut b = GltfBuilder::new();
+        let tri = [glam::Vec3::ZERO, glam::Vec3::X, glam::Vec3::Y];
+        for (k, extra) in [
+            serde_json::json!({}),
+            serde_json::json!({"alphaMode": "MASK"}),
+            serde_json::json!({"alphaMode": "MASK", "alphaCutoff": 0.25}),
+            serde_json::json!({"alphaMode": "BLEND"}),
+            serde_json::json!({"alphaMode": "OPAQUE", "alphaCutoff": 0.9}),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut m = lambert(&format!("m{k}"), glam::Vec3::ONE);
+            for (key, v) in extra.as_object().expect("object") {
+                m[key] = v.clone();
+            }
+            let mi = b.material(m);
+            b.mesh(&format!("t{k}"), &tri, &[glam::Vec3::Z; 3], &[0, 1, 2], mi);
+        }
+        let s = load_scene_from_slice(&b.to_glb(), "t.glb", None, &LoadOptions::default()).expect("loads");
+        let modes: Vec<AlphaMode> = s.materials.iter().map(|m| m.alpha_mode).collect();
+        assert_eq!(
+            modes,
+            [
+                AlphaMode::Opaque,
+                AlphaMode::Mask { cutoff: 0.5 },
+                AlphaMode::Mask { cutoff: 0.25 },
+                AlphaMode::Blend,
+                AlphaMode::Opaque
+            ]
+        );
     }
 
     #[test]

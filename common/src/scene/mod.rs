@@ -10,10 +10,12 @@
 pub mod anim;
 pub mod bundle;
 pub mod demo;
+mod environment;
 mod error;
 mod load;
 mod texture;
 
+pub use environment::{EnvironmentImage, MAX_ENVIRONMENT_PIXELS, load_environment, load_job_environment};
 pub use error::SceneError;
 pub use load::{LoadOptions, MAX_COORDINATE, load_scene, load_scene_from_slice};
 pub use texture::{Texture, TextureTransform, WrapMode};
@@ -122,6 +124,23 @@ pub struct Material {
     /// glTF doubleSided. One-sided materials are black from behind and emit only in front
     /// (Mitsuba's convention); the surface still blocks light.
     pub double_sided: bool,
+    /// glTF alphaMode, from the alpha of base colour factor x texture x vertex colour.
+    pub alpha_mode: AlphaMode,
+    /// KHR_materials_volume: Beer-Lambert attenuation coefficient inside a transmissive object,
+    /// per scene unit, `-ln(attenuationColor) / attenuationDistance` (zero: clear).
+    pub attenuation: Vec3,
+}
+
+/// glTF `alphaMode`: how the base colour's alpha makes a surface transparent to every ray.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub enum AlphaMode {
+    /// Alpha is ignored.
+    #[default]
+    Opaque,
+    /// Opaque where alpha >= `cutoff` (glTF's alphaCutoff, default 0.5), absent elsewhere.
+    Mask { cutoff: f32 },
+    /// Stochastic transparency: each surface point is present with probability alpha.
+    Blend,
 }
 
 impl Default for Material {
@@ -145,6 +164,8 @@ impl Default for Material {
             specular_factor: 1.0,
             unlit: false,
             double_sided: false,
+            alpha_mode: AlphaMode::Opaque,
+            attenuation: Vec3::ZERO,
         }
     }
 }
@@ -201,7 +222,8 @@ pub struct PunctualLight {
 }
 
 /// The loader's warning for a scene in which nothing emits light (see [`Scene::has_emitters`]).
-pub const NO_LIGHT_WARNING: &str = "the scene has no lights or emissive materials: it renders black";
+pub const NO_LIGHT_WARNING: &str =
+    "the scene has no lights or emissive materials: it renders black unless the job sets an environment";
 
 impl Scene {
     /// The scene at animation time `t` seconds with the animations named in `names` playing

@@ -5,8 +5,8 @@
 #![allow(dead_code)]
 
 use pathfarm_common::job::RenderSettings;
-use pathfarm_common::scene::LoadOptions;
-use pathfarm_common::scene::bundle::load_bundle;
+use pathfarm_common::scene::bundle::unpack_bundle;
+use pathfarm_common::scene::{LoadOptions, load_job_environment, load_scene};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -73,8 +73,12 @@ pub fn start_worker(url: &str, name: &str, cache_dir: &Path, extra: &[&str]) -> 
 /// The EXR a local render of `settings` produces (same plan and merge as the farm).
 pub fn local_exr(scene_bytes: &[u8], settings: &RenderSettings) -> Vec<u8> {
     let dir = tempfile::tempdir().expect("tempdir");
-    let scene = load_bundle(scene_bytes, dir.path(), &LoadOptions::default()).expect("scene loads");
-    let renderer = pathfarm_worker::render::Renderer::new(&scene, settings).expect("renderer");
+    let main = unpack_bundle(scene_bytes, dir.path()).expect("bundle unpacks");
+    let scene = load_scene(&main, &LoadOptions::default()).expect("scene loads");
+    let folder = main.parent().expect("the scene file's folder");
+    let environment = load_job_environment(folder, settings, &LoadOptions::default()).expect("environment loads");
+    let renderer =
+        pathfarm_worker::render::Renderer::with_environment(&scene, settings, environment).expect("renderer");
     let film = pathfarm_worker::render::render_local(&renderer, |_, _| {});
     film.resolve().encode_exr().expect("encode")
 }

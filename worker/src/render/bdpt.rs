@@ -17,7 +17,7 @@ use super::bsdf::Bsdf;
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
 use super::integrator::sample_scatter;
-use super::light::LightSampleContext;
+use super::light::{Light, LightSampleContext};
 use super::material::shade;
 use super::sampler::Sampler;
 use super::scene::{RenderScene, SurfaceInteraction};
@@ -82,6 +82,9 @@ pub struct Vertex {
     pub(crate) delta: bool,
     pub(crate) pdf_fwd: f32,
     pub(crate) pdf_rev: f32,
+    /// A light-subpath vertex: its BSDF carries importance (the adjoint), which a refraction
+    /// does not scale by 1 / eta'^2 as radiance's does.
+    pub(crate) importance: bool,
 }
 
 impl Vertex {
@@ -100,6 +103,7 @@ impl Vertex {
             delta: false,
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
+            importance: false,
         }
     }
 
@@ -146,6 +150,10 @@ impl Vertex {
                 let w = (prev.p - self.p).normalize_or_zero();
                 scene.emitted(&si, w)
             }
+            // A camera path that left the scene ends at the environment.
+            (VertexKind::Light, _) if self.is_infinite_light(scene) => {
+                scene.environment_le((self.p - prev.p).normalize_or_zero())
+            }
             _ => Vec3A::ZERO,
         }
     }
@@ -157,7 +165,8 @@ impl Vertex {
         if !has_transmission(bsdf) && wi.dot(self.ng_side) <= 0.0 {
             return Vec3A::ZERO;
         }
-        bsdf.f(self.wo, wi)
+        let f = bsdf.f(self.wo, wi);
+        if self.importance { f * bsdf.importance_scale(self.wo, wi) } else { f }
     }
 
     /// Converts a solid-angle density at this vertex to an area density at `next` (kept per
@@ -222,18 +231,22 @@ impl Vertex {
     fn pdf_light_origin(&self, scene: &RenderScene, v: &Vertex) -> f32 {
         let Some(l) = self.light_index(scene) else { return 0.0 };
         let light = &scene.lights[l];
-        if light.is_infinite() {
-            // A delta direction: no density of being hit.
-            return 0.0;
-        }
         let w = (v.p - self.p).normalize_or_zero();
+        if light.is_infinite() {
+            // Per solid angle: the density of choosing the direction toward this light from
+            // `v` (pbrt's `InfiniteLightDensity`); a directional light's is a delta, so 0.
+            return match light {
+                Light::Environment(env) => scene.light_pmf(l) * env.pdf_wi(-w),
+                _ => 0.0,
+            };
+        }
         scene.light_pmf(l) * light.pdf_le(w).0
     }
 }
 
 /// Whether a BSDF can transmit (then connections may cross the surface).
 fn has_transmission(bsdf: &Bsdf) -> bool {
-    matches!(bsdf.bxdf, super::bsdf::Bxdf::Dielectric { .. })
+    bsdf.bxdf.has_transmission()
 }
 
 /// pbrt's correction of the adjoint BSDF for shading normals (importance transport).
@@ -275,8 +288,20 @@ pub fn random_walk(
     let mut pdf_fwd = pdf;
     let mut bounces = 0usize;
     while bounces < max_vertices {
-        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else { break };
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else {
+            // A camera path that leaves the scene ends on the environment (pbrt's escaped-ray
+            // light vertex), a unit beyond the last vertex along the ray.
+            if let (TransportMode::Radiance, Some((index, _))) = (mode, scene.environment()) {
+                let mut v = Vertex::light(index, ray.o + ray.d, None, beta, 0.0);
+                if let Some(prev) = path.last() {
+                    v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);
+                    path.push(v);
+                }
+            }
+            break;
+        };
         let wo = -ray.d;
+        beta *= scene.transmittance(&si, ray.d);
         let sh = shade(scene, &si, wo, sampler.get_1d());
         if let Some(out) = aov.take() {
             out.depth = Some(si.t);
@@ -298,6 +323,7 @@ pub fn random_walk(
             delta: false,
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
+            importance: mode == TransportMode::Importance,
         };
         let Some(prev) = path.last() else { break };
         v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);
@@ -389,7 +415,9 @@ pub fn light_subpath(
                 v.pdf_fwd *= les.d.dot(v.ng).abs();
             }
         }
-        path[0].pdf_fwd = 0.0;
+        // Per solid angle, as its reverse densities are (0 for a directional light).
+        let origin = path[0].clone();
+        path[0].pdf_fwd = path.get(1).map_or(0.0, |v| origin.pdf_light_origin(scene, v));
     }
 }
 
@@ -414,7 +442,7 @@ pub fn li_bdpt(
     };
     // Camera subpath.
     sampler.start_pixel_sample(pixel, sample_index, 0);
-    let ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let ray = camera.sample_ray(pixel, sampler);
     paths.camera.clear();
     paths.camera.push(Vertex::camera(ray.o, Vec3A::ONE));
     random_walk(
@@ -531,6 +559,11 @@ fn connect(
             }
             let w = d / d2.sqrt();
             c *= w.dot(qs.ns).abs() * w.dot(pt.ns).abs() / d2;
+            // A connection inside an attenuating object (it reaches the back of pt's surface).
+            if let Some(si) = &pt.si {
+                let along = SurfaceInteraction { t: d2.sqrt(), ..*si };
+                c *= scene.transmittance(&along, w);
+            }
             if c != Vec3A::ZERO && !scene.visible(qs.p, qs.ng, pt.p, Some(pt.ng)) {
                 c = Vec3A::ZERO;
             }

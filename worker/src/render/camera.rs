@@ -1,7 +1,10 @@
 //! Cameras: pinhole perspective and orthographic, from the scene's glTF cameras, or a default
-//! perspective camera framing the scene bounds.
+//! perspective camera framing the scene bounds; a perspective camera may get a thin lens (the
+//! job's `aperture_radius` and `focus_distance`: glTF cameras have no aperture).
 
 use super::geometry::Ray;
+use super::sampler::Sampler;
+use super::sampling::sample_uniform_disk_concentric;
 use glam::{Affine3A, Mat4, UVec2, Vec2, Vec3, Vec3A};
 use pathfarm_common::scene::{self, Projection};
 
@@ -26,7 +29,21 @@ pub struct Camera {
     kind: Kind,
     width: u32,
     height: u32,
+    lens: Option<Lens>,
 }
+
+/// A thin lens (pbrt's `PerspectiveCamera` with `lensRadius > 0`): rays start on a disk of
+/// `radius` around the camera position, perpendicular to the view axis, and all rays through a
+/// pixel meet on the plane at `focus_distance` along the axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lens {
+    pub radius: f32,
+    pub focus_distance: f32,
+}
+
+/// The sampler dimension of the lens sample: apart from the stream the integrators use, so a
+/// pinhole render (which never reads it) keeps its dimension layout.
+pub const LENS_DIM: u32 = 1 << 15;
 
 impl Camera {
     /// A camera from a scene camera; the image's aspect ratio wins over the file's.
@@ -65,7 +82,49 @@ impl Camera {
         // Remove scale and shear: cameras are rigid.
         let (_, rot, trans) = world_from_camera.to_scale_rotation_translation();
         let world_from_camera = Affine3A::from_rotation_translation(rot.normalize(), trans);
-        Self { camera_from_world: world_from_camera.inverse(), world_from_camera, kind, width, height }
+        Self { camera_from_world: world_from_camera.inverse(), world_from_camera, kind, width, height, lens: None }
+    }
+
+    /// This camera with a thin lens; `None` unless it is a perspective camera and the lens is
+    /// valid (radius > 0, focus distance > 0, both finite).
+    pub fn with_lens(self, lens: Lens) -> Option<Self> {
+        let ok = matches!(self.kind, Kind::Perspective { .. })
+            && lens.radius.is_finite()
+            && lens.radius > 0.0
+            && lens.focus_distance.is_finite()
+            && lens.focus_distance > 0.0;
+        ok.then_some(Self { lens: Some(lens), ..self })
+    }
+
+    /// The camera ray of the current pixel sample: the film position from the sampler's next
+    /// pair, the lens position (thin lens only) from [`LENS_DIM`].
+    pub fn sample_ray(&self, pixel: UVec2, sampler: &mut impl Sampler) -> Ray {
+        let u = sampler.get_pixel_2d();
+        match self.lens {
+            None => self.generate_ray(pixel, u),
+            Some(lens) => self.generate_ray_lens(pixel, u, sampler.get_2d_at(LENS_DIM), lens),
+        }
+    }
+
+    /// The thin-lens ray through `pixel` at offset `u`, from lens position `u_lens`.
+    fn generate_ray_lens(&self, pixel: UVec2, u: Vec2, u_lens: Vec2, lens: Lens) -> Ray {
+        let Kind::Perspective { tan_half_y, aspect } = self.kind else { return self.generate_ray(pixel, u) };
+        let sx = 2.0 * (pixel.x as f32 + u.x) / self.width as f32 - 1.0;
+        let sy = 1.0 - 2.0 * (pixel.y as f32 + u.y) / self.height as f32;
+        // The pinhole ray's point on the plane of focus, reached from a point of the lens.
+        let p_focus = Vec3A::new(sx * tan_half_y * aspect, sy * tan_half_y, -1.0) * lens.focus_distance;
+        let disk = sample_uniform_disk_concentric(u_lens) * lens.radius;
+        let p_lens = Vec3A::new(disk.x, disk.y, 0.0);
+        let d = (p_focus - p_lens).normalize();
+        Ray::new(
+            self.world_from_camera.transform_point3a(p_lens),
+            self.world_from_camera.transform_vector3a(d).normalize(),
+        )
+    }
+
+    /// The thin lens, if any.
+    pub fn lens(&self) -> Option<Lens> {
+        self.lens
     }
 
     /// A perspective camera (40 degrees vertical) on the +Z side of `bounds`, looking down -Z,
@@ -151,9 +210,9 @@ pub struct CameraWiSample {
 
 impl Camera {
     /// Whether light paths can be connected to the camera ([`Camera::sample_wi`] works): only
-    /// the pinhole perspective camera.
+    /// the pinhole perspective camera (no thin lens).
     pub fn is_pinhole(&self) -> bool {
-        matches!(self.kind, Kind::Perspective { .. })
+        matches!(self.kind, Kind::Perspective { .. }) && self.lens.is_none()
     }
 
     /// pbrt-v4 `PerspectiveCamera::We`: `1 / (A cos^4)` with `A` the whole image plane's area at
@@ -255,6 +314,50 @@ mod tests {
         assert!((s.wi + ray.d).length() < 1e-4);
         assert!((s.pdf - 9.0 / forward.dot(ray.d)).abs() < 1e-3);
         assert!(c.pdf_we(ray.d) > 0.0 && c.pdf_we(-ray.d) == 0.0);
+    }
+
+    #[test]
+    fn lens_positions_are_uniform_on_the_aperture_and_rays_meet_in_focus() {
+        use crate::render::chi2::{Chi2Options, test_rect};
+        let cam = scene::Camera {
+            name: "c".into(),
+            world_from_camera: Mat4::from_rotation_translation(
+                glam::Quat::from_rotation_y(0.4),
+                Vec3::new(1.0, 0.5, 2.0),
+            ),
+            projection: Projection::Perspective { yfov: 0.7, aspect: None },
+        };
+        let lens = Lens { radius: 0.3, focus_distance: 2.5 };
+        let c = Camera::new(&cam, 32, 24).with_lens(lens).expect("perspective");
+        let pixel = UVec2::new(5, 17);
+        let u = Vec2::new(0.3, 0.6);
+        let pinhole = c.generate_ray(pixel, u);
+        let forward = c.world_from_camera.transform_vector3a(-Vec3A::Z);
+        let focus = pinhole.at(lens.focus_distance / pinhole.d.dot(forward));
+        // Chi-square (alpha 0.01, seed 5) of the ray origins in camera space against the uniform
+        // density 1 / (pi r^2) on the disk; every ray passes through the pinhole ray's focus point.
+        let r = lens.radius;
+        let result = test_rect(
+            "thin lens",
+            |u_lens| {
+                let ray = c.generate_ray_lens(pixel, u, u_lens, lens);
+                let to_focus = (focus - ray.o).normalize();
+                assert!((to_focus - ray.d).length() < 1e-4, "{to_focus} vs {}", ray.d);
+                let o = c.camera_from_world.transform_point3a(ray.o);
+                assert!(o.z.abs() < 1e-5);
+                Some(Vec2::new(o.x, o.y))
+            },
+            |p| if p.length_squared() <= r * r { 1.0 / (std::f32::consts::PI * r * r) } else { 0.0 },
+            (-r, r),
+            (-r, r),
+            &Chi2Options { samples: 400_000, res: (40, 40), seed: 5, ..Default::default() },
+        );
+        assert!(result.is_ok(), "{result:?}");
+        // No lens on an orthographic camera, nor a zero or non-finite one.
+        let ortho = scene::Camera { projection: Projection::Orthographic { xmag: 1.0, ymag: 1.0 }, ..cam.clone() };
+        assert!(Camera::new(&ortho, 8, 8).with_lens(lens).is_none());
+        assert!(Camera::new(&cam, 8, 8).with_lens(Lens { radius: 0.0, focus_distance: 1.0 }).is_none());
+        assert!(Camera::new(&cam, 8, 8).with_lens(Lens { radius: 0.1, focus_distance: f32::NAN }).is_none());
     }
 
     /// A thin wall (1 x 4 x 4, thinnest along X) is framed face on from +X, a flat terrain

@@ -180,13 +180,19 @@ pub fn li_igi(
         let k = (u64::from(pixel.x) + 2 * u64::from(pixel.y)) % vpls.sets.len() as u64;
         &vpls.sets[k as usize]
     };
-    let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let mut ray: Ray = camera.sample_ray(pixel, sampler);
     let mut l = Vec3A::ZERO;
     let mut beta = Vec3A::ONE;
     let mut segments = 0u32;
-    while let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) {
+    loop {
+        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else {
+            // Seen from the camera or through specular surfaces, like emitters.
+            l += beta * scene.environment_le(ray.d);
+            break;
+        };
         let wo = -ray.d;
         segments += 1;
+        beta *= scene.transmittance(&si, ray.d);
         // Emitters seen from the camera or through specular surfaces count in full; after a
         // diffuse or glossy hit, direct lighting is the light sample's.
         l += beta * scene.emitted(&si, wo);

@@ -64,9 +64,10 @@ pub fn sample_ld(
     if params.mis == MisHeuristic::Bsdf && !delta {
         return Vec3A::ZERO;
     }
-    // Reflection only: directions below the geometric surface receive nothing (no leaks through
-    // shading normals).
-    if ls.l == Vec3A::ZERO || ls.wi.dot(sh.ng) <= 0.0 {
+    // Reflection stays on the viewer's side of the geometric surface (no leaks through shading
+    // normals); a transmitting BSDF also takes light from the other side.
+    let same_side = ls.wi.dot(sh.ng) * wo.dot(sh.ng) > 0.0;
+    if ls.l == Vec3A::ZERO || !(same_side || bsdf.bxdf.has_transmission() && ls.wi.dot(sh.ng) != 0.0) {
         return Vec3A::ZERO;
     }
     let f = bsdf.f(wo, ls.wi) * ls.wi.dot(bsdf.frame.z).abs();
@@ -111,7 +112,7 @@ pub fn li_path(
     time: f32,
 ) -> SampleValue {
     let mut out = SampleValue::default();
-    let mut ray: Ray = camera.generate_ray(pixel, sampler.get_pixel_2d());
+    let mut ray: Ray = camera.sample_ray(pixel, sampler);
     let mut l = Vec3A::ZERO;
     let mut beta = Vec3A::ONE;
     let mut eta_scale = 1.0f32;
@@ -120,27 +121,40 @@ pub fn li_path(
     let mut prev_bsdf_pdf = 0.0f32;
     let mut prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
     let mut depth = 0u32;
-    while let Some(si) = scene.intersect_at(ray.o, ray.d, f32::INFINITY, time) {
+    loop {
+        // The weight of emission found by BSDF sampling, given the light's density for it.
+        let emission_weight = |light_pdf: &dyn Fn() -> f32| {
+            if specular_bounce {
+                return 1.0;
+            }
+            match params.mis {
+                MisHeuristic::Bsdf => 1.0,
+                MisHeuristic::Light => 0.0,
+                mis => mis_weight(mis, prev_bsdf_pdf, light_pdf()),
+            }
+        };
+        let Some(si) = scene.intersect_at(ray.o, ray.d, f32::INFINITY, time) else {
+            // The ray left the scene: the environment is its emitter.
+            if let Some((i, env)) = scene.environment() {
+                let le = env.le(ray.d);
+                if le != Vec3A::ZERO {
+                    l += beta * le * emission_weight(&|| scene.light_pmf(i) * env.pdf_wi(ray.d));
+                }
+            }
+            break;
+        };
         let wo = -ray.d;
         if depth == 0 {
             out.depth = Some(si.t);
         }
+        beta *= scene.transmittance(&si, ray.d);
         let le = scene.emitted_at(&si, wo, time);
         if le != Vec3A::ZERO {
-            let w = if specular_bounce {
-                1.0
-            } else {
-                match params.mis {
-                    MisHeuristic::Bsdf => 1.0,
-                    MisHeuristic::Light => 0.0,
-                    mis => {
-                        let light_pdf = scene.light_of_prim(si.prim).map_or(0.0, |i| {
-                            scene.light_pmf(i) * scene.light_at(i, time).pdf_li(&prev_ctx, si.p, params.light_sampling)
-                        });
-                        mis_weight(mis, prev_bsdf_pdf, light_pdf)
-                    }
-                }
-            };
+            let w = emission_weight(&|| {
+                scene.light_of_prim(si.prim).map_or(0.0, |i| {
+                    scene.light_pmf(i) * scene.light_at(i, time).pdf_li(&prev_ctx, si.p, params.light_sampling)
+                })
+            });
             l += beta * le * w;
         }
         // The next segment would exceed the depth limit.

@@ -6,7 +6,7 @@
 
 use super::bsdf::{Bsdf, Bxdf};
 use super::geometry::Frame;
-use super::microfacet::{Fresnel, MicrofacetDistribution};
+use super::microfacet::{Fresnel, MicrofacetDistribution, SMOOTH_ALPHA};
 use super::scene::{RenderScene, SurfaceInteraction, sample_texture};
 use glam::{Vec3A, Vec4Swizzles};
 use pathfarm_common::scene::MaterialModel;
@@ -85,7 +85,17 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
             },
             fresnel: Fresnel::Schlick { f0: base },
         },
-        MaterialModel::Gltf if is_glass => Bxdf::Dielectric { eta: m.ior.max(1.0001), tint: base },
+        MaterialModel::Gltf if is_glass => {
+            // KHR_materials_transmission uses the material's roughness for its microfacets.
+            let roughness = (m.roughness * tex(&m.metallic_roughness_texture).y).clamp(0.0, 1.0);
+            let alpha = roughness * roughness;
+            let eta = m.ior.max(1.0001);
+            if alpha >= SMOOTH_ALPHA {
+                Bxdf::RoughDielectric { eta, tint: base, alpha }
+            } else {
+                Bxdf::Dielectric { eta, tint: base }
+            }
+        }
         MaterialModel::Gltf => {
             let mr = tex(&m.metallic_roughness_texture);
             let metallic = (m.metallic * mr.z).clamp(0.0, 1.0);

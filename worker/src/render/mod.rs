@@ -24,10 +24,10 @@ use igi::{IgiParams, VplCache, li_igi};
 use integrator::{PathParams, li_path};
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
-use pathfarm_common::scene::{self as scene_model, Scene};
+use pathfarm_common::scene::{self as scene_model, EnvironmentImage, Scene};
 use rayon::prelude::*;
 use sampler::{AnySampler, Sampler};
-use scene::RenderScene;
+use scene::{EnvironmentSpec, RenderScene};
 
 /// Errors preparing a scene for rendering.
 #[derive(Debug, thiserror::Error)]
@@ -76,8 +76,19 @@ impl Renderer {
     /// Prepares `scene` for rendering with `settings` (builds the BVH: do it once per job).
     ///
     /// An animated scene is posed at the settings' frame time (`frame / fps`) with the named
-    /// animations playing (all by default); a still scene is used as it is.
+    /// animations playing (all by default); a still scene is used as it is. A job whose
+    /// environment names an image needs [`Renderer::with_environment`].
     pub fn new(scene: &Scene, settings: &RenderSettings) -> Result<Self, RenderError> {
+        Self::with_environment(scene, settings, None)
+    }
+
+    /// [`Renderer::new`] with the decoded image of the job's environment (the renderer does no
+    /// I/O: the caller loads it with `pathfarm_common::scene::load_environment`).
+    pub fn with_environment(
+        scene: &Scene,
+        settings: &RenderSettings,
+        environment_image: Option<EnvironmentImage>,
+    ) -> Result<Self, RenderError> {
         settings
             .validate(&pathfarm_common::job::Limits::default())
             .map_err(|e| RenderError::Settings(e.to_string()))?;
@@ -130,6 +141,16 @@ impl Renderer {
             Some(_) => Some((open_camera.clone(), open_camera)),
             None => None,
         };
+        let camera = match (settings.aperture_radius > 0.0, settings.focus_distance) {
+            (true, Some(focus_distance)) => camera
+                .with_lens(camera::Lens { radius: settings.aperture_radius, focus_distance })
+                .ok_or_else(|| {
+                    RenderError::Settings(
+                        "aperture_radius needs a perspective camera (this one is orthographic)".into(),
+                    )
+                })?,
+            _ => camera,
+        };
         let integrator = match settings.integrator {
             IntegratorSettings::Direct { mis, light_sampling } => {
                 Integrator::Path(PathParams { max_depth: 2, rr_depth: u32::MAX, mis, light_sampling })
@@ -138,6 +159,13 @@ impl Renderer {
                 Integrator::Path(PathParams { max_depth, rr_depth, mis, light_sampling })
             }
             IntegratorSettings::Bdpt { max_depth, mis, rr_depth, strategy } => {
+                if camera.lens().is_some() {
+                    return Err(RenderError::Settings(
+                        "bdpt does not connect light paths to a thin lens yet: use aperture_radius 0, or the path or \
+                         igi integrator for depth of field"
+                            .into(),
+                    ));
+                }
                 if !camera.is_pinhole() {
                     return Err(RenderError::Settings(
                         "bdpt needs a perspective (pinhole) camera: light paths cannot be connected to an \
@@ -165,9 +193,10 @@ impl Renderer {
                 Integrator::Igi(IgiParams { vpls, vpl_sets, g_limit, bias_compensation, max_depth })
             }
         };
+        let environment = environment_spec(settings, environment_image)?;
         let render_scene = match &close {
-            Some(c) => RenderScene::new_moving(scene, c).map_err(RenderError::Scene)?,
-            None => RenderScene::new(scene),
+            Some(c) => RenderScene::new_moving(scene, c, environment).map_err(RenderError::Scene)?,
+            None => RenderScene::with_environment(scene, environment),
         };
         Ok(Self {
             settings: settings.clone(),
@@ -241,6 +270,12 @@ impl Renderer {
                                         let time = sampler.get_1d();
                                         let (w, h) = (self.settings.width, self.settings.height);
                                         let camera = Camera::interpolate(open, close, time, w, h);
+                                        // The job's thin lens moves with the camera.
+                                        // (Validated perspective at construction, so with_lens holds.)
+                                        let camera = match self.camera.lens() {
+                                            Some(lens) => camera.clone().with_lens(lens).unwrap_or(camera),
+                                            None => camera,
+                                        };
                                         li_path(&self.scene, &camera, pixel, &mut sampler, params, time)
                                     }
                                     None => li_path(&self.scene, &self.camera, pixel, &mut sampler, params, 0.0),
@@ -278,6 +313,25 @@ impl Renderer {
         }
         (accum, splats)
     }
+}
+
+/// The job's environment light from its settings and the image its `file` names.
+fn environment_spec(
+    settings: &RenderSettings,
+    image: Option<EnvironmentImage>,
+) -> Result<Option<EnvironmentSpec>, RenderError> {
+    let Some(env) = &settings.environment else { return Ok(None) };
+    let scale = Vec3A::from(env.color.unwrap_or([1.0; 3])) * env.intensity;
+    let image = match (&env.file, image) {
+        (Some(_), Some(img)) => Some(img),
+        (Some(f), None) => {
+            return Err(RenderError::Settings(format!(
+                "environment.file {f:?}: the image was not loaded (Renderer::with_environment takes it)"
+            )));
+        }
+        (None, _) => None,
+    };
+    Ok(Some(EnvironmentSpec { image, scale, rotation_deg: env.rotation_deg }))
 }
 
 /// Renders a whole job locally, unit by unit in canonical order, exactly as the farm does.

@@ -142,6 +142,9 @@ pub trait Sampler {
     /// The 2D sample used for the position inside the pixel (pbrt's `GetPixel2D`); here it is
     /// `get_2d` and advances the dimension by 2.
     fn get_pixel_2d(&mut self) -> Vec2;
+    /// The 2D sample at dimension `dim` of the current pixel sample, leaving the stream where it
+    /// is: a dedicated dimension (the lens) that does not shift every later one.
+    fn get_2d_at(&mut self, dim: u32) -> Vec2;
 }
 
 /// Independent uniform numbers from a counter-based hash of (seed, pixel, index, dimension).
@@ -191,6 +194,14 @@ impl Sampler for IndependentSampler {
     #[inline]
     fn get_pixel_2d(&mut self) -> Vec2 {
         self.get_2d()
+    }
+
+    #[inline]
+    fn get_2d_at(&mut self, dim: u32) -> Vec2 {
+        let saved = std::mem::replace(&mut self.dim, dim);
+        let v = self.get_2d();
+        self.dim = saved;
+        v
     }
 }
 
@@ -260,6 +271,14 @@ impl Sampler for SobolSampler {
     fn get_pixel_2d(&mut self) -> Vec2 {
         self.get_2d()
     }
+
+    #[inline]
+    fn get_2d_at(&mut self, dim: u32) -> Vec2 {
+        let saved = std::mem::replace(&mut self.dim, dim);
+        let v = self.get_2d();
+        self.dim = saved;
+        v
+    }
 }
 
 /// The sampler a job chose. The integrator matches on it once per unit and runs a loop
@@ -309,6 +328,14 @@ impl Sampler for AnySampler {
         match self {
             Self::Independent(s) => s.get_pixel_2d(),
             Self::Sobol(s) => s.get_pixel_2d(),
+        }
+    }
+
+    #[inline]
+    fn get_2d_at(&mut self, dim: u32) -> Vec2 {
+        match self {
+            Self::Independent(s) => s.get_2d_at(dim),
+            Self::Sobol(s) => s.get_2d_at(dim),
         }
     }
 }

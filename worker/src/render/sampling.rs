@@ -351,6 +351,53 @@ impl Distribution1D {
     }
 }
 
+/// A piecewise-constant density over `[0, 1]^2` on an `nu x nv` grid of non-negative weights
+/// (pbrt's `PiecewiseConstant2D`): a marginal distribution over rows and one conditional
+/// distribution per row. Samples are continuous inside the chosen cell, so the density is
+/// constant over each cell and [`Distribution2D::pdf`] is exactly the density of
+/// [`Distribution2D::sample`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Distribution2D {
+    nu: usize,
+    nv: usize,
+    conditional: Vec<Distribution1D>,
+    marginal: Distribution1D,
+}
+
+impl Distribution2D {
+    /// `weights` row-major (`nv` rows of `nu`); `None` if the sizes disagree or are zero.
+    pub fn new(weights: &[f32], nu: usize, nv: usize) -> Option<Self> {
+        if nu == 0 || nv == 0 || weights.len() != nu.checked_mul(nv)? {
+            return None;
+        }
+        let clean = |w: f32| if w.is_finite() && w > 0.0 { f64::from(w) } else { 0.0 };
+        let conditional: Vec<Distribution1D> = weights.chunks_exact(nu).map(Distribution1D::new).collect();
+        let row_sums: Vec<f32> =
+            weights.chunks_exact(nu).map(|row| row.iter().map(|&w| clean(w)).sum::<f64>() as f32).collect();
+        Some(Self { nu, nv, conditional, marginal: Distribution1D::new(&row_sums) })
+    }
+
+    /// A point in `[0, 1)^2` and its density, from `u` in `[0, 1)^2`.
+    #[inline]
+    pub fn sample(&self, u: Vec2) -> Option<(Vec2, f32)> {
+        let (iv, pmf_v, rv) = self.marginal.sample(u.y);
+        let row = self.conditional.get(iv)?;
+        let (iu, pmf_u, ru) = row.sample(u.x);
+        let pdf = pmf_v * pmf_u * (self.nu * self.nv) as f32;
+        let p = Vec2::new((iu as f32 + ru) / self.nu as f32, (iv as f32 + rv) / self.nv as f32);
+        (pdf > 0.0).then_some((p.min(Vec2::splat(ONE_MINUS_EPSILON)), pdf))
+    }
+
+    /// Density at `p` in `[0, 1]^2` (the edge 1 belongs to the last cell).
+    #[inline]
+    pub fn pdf(&self, p: Vec2) -> f32 {
+        let iu = ((p.x.max(0.0) * self.nu as f32) as usize).min(self.nu.saturating_sub(1));
+        let iv = ((p.y.max(0.0) * self.nv as f32) as usize).min(self.nv.saturating_sub(1));
+        let pmf_u = self.conditional.get(iv).map_or(0.0, |row| row.pmf(iu));
+        self.marginal.pmf(iv) * pmf_u * (self.nu * self.nv) as f32
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -361,7 +408,7 @@ mod tests {
 
     /// Number of chi-square tests in this module: each runs at the Sidak-corrected level
     /// 1 - (1 - 0.01)^(1 / CHI2_TESTS), so the whole suite has alpha = 0.01.
-    const CHI2_TESTS: usize = 18;
+    const CHI2_TESTS: usize = 19;
 
     fn opts(seed: u64) -> Chi2Options {
         Chi2Options { samples: 1_000_000, res: (80, 160), alpha: 0.01, tests: CHI2_TESTS, seed }
@@ -731,6 +778,41 @@ mod tests {
 
     fn clean_weight(w: f32) -> f64 {
         if w.is_finite() && w > 0.0 { f64::from(w) } else { 0.0 }
+    }
+
+    #[test]
+    fn distribution_2d_matches_its_pdf() {
+        // A 7 x 5 grid with a zero cell, a zero row and a hot cell: chi-square of the samples
+        // against pdf on a 70 x 50 grid of the unit square (so every cell is split), and the
+        // density integrates to 1 over the square.
+        let (nu, nv) = (7usize, 5usize);
+        let w: Vec<f32> = (0..nu * nv)
+            .map(|i| match (i % nu, i / nu) {
+                (3, 1) => 0.0,
+                (_, 2) => 0.0,
+                (5, 4) => 30.0,
+                (x, y) => 1.0 + x as f32 * 0.5 + y as f32,
+            })
+            .collect();
+        let d = Distribution2D::new(&w, nu, nv).expect("sizes agree");
+        assert!(Distribution2D::new(&w, nu, nv + 1).is_none());
+        let o = Chi2Options { res: (70, 50), ..opts(83) };
+        pass(test_rect(
+            "distribution 2d",
+            |u| {
+                d.sample(u).map(|(p, pdf)| {
+                    assert!((d.pdf(p) - pdf).abs() <= 1e-3 * pdf, "{} vs {pdf} at {p}", d.pdf(p));
+                    p
+                })
+            },
+            |p| d.pdf(p),
+            (0.0, 1.0),
+            (0.0, 1.0),
+            &o,
+        ));
+        let total =
+            integrate_split(&|x, y| f64::from(d.pdf(Vec2::new(x as f32, y as f32))), (0.0, 1.0), (0.0, 1.0), 70);
+        assert!((total - 1.0).abs() < 1e-3, "integral {total}");
     }
 
     #[test]

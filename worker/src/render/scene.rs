@@ -3,15 +3,18 @@
 
 use super::accel::{Accel, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
-use super::light::{Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::sampler::hash_u64;
 use super::sampling::Distribution1D;
 use glam::{Vec2, Vec3, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
-use pathfarm_common::scene::{Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
+use pathfarm_common::scene::{AlphaMode, Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
 use std::borrow::Cow;
 
 /// Marks a triangle that is not a light.
 const NO_LIGHT: u32 = u32::MAX;
+/// Most alpha-absent surfaces one ray passes through before the next counts as present.
+const MAX_ALPHA_LAYERS: usize = 256;
 
 /// Geometry of a ray hit.
 #[derive(Clone, Copy, Debug)]
@@ -52,6 +55,10 @@ pub struct RenderScene {
     light_distr: Distribution1D,
     /// Light index of each triangle, or [`NO_LIGHT`].
     tri_light: Vec<u32>,
+    /// Light index of the environment, if the job has one.
+    environment: Option<usize>,
+    /// Whether some mesh has a MASK or BLEND material (rays then test alpha at hits).
+    has_alpha: bool,
     pub center: Vec3A,
     pub radius: f32,
     /// Motion blur: where things are at shutter close (`None`: nothing moves).
@@ -73,15 +80,29 @@ pub fn sample_texture(textures: &[Texture], r: &TextureRef, uv: &[Vec2; 2]) -> V
     textures.get(r.texture).map_or(Vec4::ONE, |t| t.sample(r.transform.apply(uv)))
 }
 
+/// The environment of a job, before the scene's bounds are known.
+#[derive(Clone, Debug)]
+pub struct EnvironmentSpec {
+    pub image: Option<pathfarm_common::scene::EnvironmentImage>,
+    /// Radiance factor: the colour (or white for an image) x the intensity.
+    pub scale: Vec3A,
+    pub rotation_deg: f32,
+}
+
 impl RenderScene {
     pub fn new(scene: &Scene) -> Self {
-        Self::build(scene, None)
+        Self::build(scene, None, None)
+    }
+
+    /// The render-side scene lit also by `environment`.
+    pub fn with_environment(scene: &Scene, environment: Option<EnvironmentSpec>) -> Self {
+        Self::build(scene, None, environment)
     }
 
     /// A scene whose geometry moves from `open` (shutter open, time 0) to `close` (time 1): both
     /// must come from posing one file (same meshes, triangles and vertex counts). Lights,
     /// materials and textures are those of `open`. When nothing moves this is [`Self::new`].
-    pub fn new_moving(open: &Scene, close: &Scene) -> Result<Self, String> {
+    pub fn new_moving(open: &Scene, close: &Scene, environment: Option<EnvironmentSpec>) -> Result<Self, String> {
         if open.meshes.len() != close.meshes.len() {
             return Err(format!(
                 "the scene has {} meshes at shutter open and {} at shutter close",
@@ -99,10 +120,10 @@ impl RenderScene {
             .iter()
             .zip(&close.meshes)
             .any(|(a, b)| a.positions != b.positions || a.normals != b.normals || a.tangents != b.tangents);
-        Ok(Self::build(open, moves.then_some(close)))
+        Ok(Self::build(open, moves.then_some(close), environment))
     }
 
-    fn build(scene: &Scene, close: Option<&Scene>) -> Self {
+    fn build(scene: &Scene, close: Option<&Scene>, environment: Option<EnvironmentSpec>) -> Self {
         let mut world_tris = Vec::with_capacity(scene.triangle_count());
         let mut tris = Vec::with_capacity(scene.triangle_count());
         for (mi, mesh) in scene.meshes.iter().enumerate() {
@@ -170,7 +191,21 @@ impl RenderScene {
                 PunctualKind::Directional => Light::Directional { w: dir, e: i, radius },
             });
         }
+        let environment = environment.map(|e| {
+            lights.push(Light::Environment(std::sync::Arc::new(EnvironmentLight::new(
+                e.image,
+                e.scale,
+                e.rotation_deg,
+                center,
+                radius,
+            ))));
+            lights.len() - 1
+        });
         let weights: Vec<f32> = lights.iter().map(|l| luminance(l.power())).collect();
+        let has_alpha = scene
+            .meshes
+            .iter()
+            .any(|m| scene.materials.get(m.material).is_some_and(|mat| mat.alpha_mode != AlphaMode::Opaque));
         let motion = close.zip(close_tris.as_ref()).map(|(c, ct)| Motion {
             close: c.meshes.clone(),
             light_close: lights
@@ -194,6 +229,8 @@ impl RenderScene {
             lights,
             light_distr: Distribution1D::new(&weights),
             tri_light,
+            environment,
+            has_alpha,
             center,
             radius,
             motion,
@@ -227,6 +264,21 @@ impl RenderScene {
         }
     }
 
+    /// The environment light: (light index, light).
+    pub fn environment(&self) -> Option<(usize, &EnvironmentLight)> {
+        let i = self.environment?;
+        match self.lights.get(i) {
+            Some(Light::Environment(env)) => Some((i, env)),
+            _ => None,
+        }
+    }
+
+    /// Radiance arriving along a ray that leaves the scene in direction `d` (zero without an
+    /// environment).
+    pub fn environment_le(&self, d: Vec3A) -> Vec3A {
+        self.environment().map_or(Vec3A::ZERO, |(_, env)| env.le(d))
+    }
+
     pub fn triangle_count(&self) -> usize {
         self.tris.len()
     }
@@ -237,9 +289,75 @@ impl RenderScene {
     }
 
     /// Closest hit along a ray at shutter time `time` in [0, 1]: moving geometry (positions,
-    /// normals, tangents) is lerped between shutter open and close.
+    /// normals, tangents) is lerped between shutter open and close; surfaces that alpha makes
+    /// absent at the hit point are passed through (glTF MASK and BLEND).
     pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<SurfaceInteraction> {
         let hit = self.accel.intersect_at(o, d, t_max, time)?;
+        if !self.has_alpha || self.present(hit.prim, hit.b1, hit.b2) {
+            return Some(self.surface(&hit, time));
+        }
+        let (mut o, mut t_max, mut t0) = (o, t_max, 0.0f32);
+        let mut si = self.surface(&hit, time);
+        for _ in 0..MAX_ALPHA_LAYERS {
+            // Continue from just beyond the absent surface; t stays measured from the origin.
+            let next = offset_ray_origin(si.p, si.ng, d);
+            let step = (next - o).dot(d) / d.length_squared();
+            (o, t0, t_max) = (next, t0 + step, t_max - step);
+            let hit = self.accel.intersect_at(o, d, t_max, time)?;
+            si = self.surface(&hit, time);
+            si.t += t0;
+            if self.present(hit.prim, hit.b1, hit.b2) {
+                return Some(si);
+            }
+        }
+        // So many cut-out layers in a row: treat the last as present.
+        Some(si)
+    }
+
+    /// Whether anything present (alpha considered) lies on the ray before `t_max` at `time`.
+    fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
+        if !self.has_alpha {
+            return self.accel.occluded_at(o, d, t_max, time);
+        }
+        self.intersect_at(o, d, t_max, time).is_some()
+    }
+
+    /// Whether triangle `prim` is present at barycentrics (b1, b2): always for opaque materials;
+    /// MASK: alpha >= cutoff; BLEND: with probability alpha, decided by a hash of the point (so
+    /// every ray, camera, shadow or light path, sees the same surface).
+    pub fn present(&self, prim: u32, b1: f32, b2: f32) -> bool {
+        let Some(tr) = self.tris.get(prim as usize) else { return true };
+        let mesh = &self.meshes[tr.mesh as usize];
+        let Some(m) = self.materials.get(mesh.material) else { return true };
+        if m.alpha_mode == AlphaMode::Opaque {
+            return true;
+        }
+        let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
+        let b = [1.0 - b1 - b2, b1, b2];
+        let mut alpha = m.base_color.w;
+        if let Some(t) = &m.base_color_texture {
+            let uv = |set: &Option<Vec<Vec2>>| {
+                set.as_ref()
+                    .and_then(|uv| Some(*uv.get(idx[0])? * b[0] + *uv.get(idx[1])? * b[1] + *uv.get(idx[2])? * b[2]))
+                    .unwrap_or(Vec2::ZERO)
+            };
+            alpha *= sample_texture(&self.textures, t, &[uv(&mesh.uv0), uv(&mesh.uv1)]).w;
+        }
+        if let Some(c) = &mesh.colors {
+            alpha *= (0..3).map(|k| c.get(idx[k]).map_or(1.0, |c| c.w) * b[k]).sum::<f32>();
+        }
+        match m.alpha_mode {
+            AlphaMode::Mask { cutoff } => alpha >= cutoff,
+            AlphaMode::Blend => {
+                let h = hash_u64(&[u64::from(prim), u64::from(b1.to_bits()), u64::from(b2.to_bits())]);
+                ((h >> 40) as f32 * (1.0 / (1u64 << 24) as f32)) < alpha
+            }
+            AlphaMode::Opaque => true,
+        }
+    }
+
+    /// The surface data of a BVH hit at shutter time `time`.
+    fn surface(&self, hit: &super::accel::Hit, time: f32) -> SurfaceInteraction {
         let tr = self.tris[hit.prim as usize];
         let mesh = &self.meshes[tr.mesh as usize];
         let close = self.motion.as_ref().and_then(|m| m.close.get(tr.mesh as usize));
@@ -287,7 +405,7 @@ impl RenderScene {
             };
             Some(xyz.extend(if a.w < 0.0 { -1.0 } else { 1.0 }))
         });
-        Some(SurfaceInteraction {
+        SurfaceInteraction {
             p,
             t: hit.t,
             ng,
@@ -303,7 +421,20 @@ impl RenderScene {
             material: mesh.material as u32,
             b1,
             b2,
-        })
+        }
+    }
+
+    /// Beer-Lambert transmittance of the segment a ray in direction `d` travelled to reach
+    /// `si`: when it leaves through the back of a surface whose material has
+    /// KHR_materials_volume attenuation, the segment ran inside that object (closed meshes,
+    /// outward winding, no nesting), and `exp(-sigma t)` of it is left.
+    pub fn transmittance(&self, si: &SurfaceInteraction, d: Vec3A) -> Vec3A {
+        let Some(m) = self.materials.get(si.material as usize) else { return Vec3A::ONE };
+        if m.attenuation == glam::Vec3::ZERO || si.ng.dot(d) <= 0.0 {
+            return Vec3A::ONE;
+        }
+        let sigma = Vec3A::from(m.attenuation) * (si.t * d.length());
+        Vec3A::new((-sigma.x).exp(), (-sigma.y).exp(), (-sigma.z).exp())
     }
 
     /// Whether the segment between two surface points (or a point and a light) is blocked.
@@ -315,16 +446,16 @@ impl RenderScene {
     pub fn unoccluded_at(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample, time: f32) -> bool {
         if s.infinite {
             let o = offset_ray_origin(p0, n0, s.wi);
-            return !self.accel.occluded_at(o, s.wi, f32::INFINITY, time);
+            return !self.occluded_at(o, s.wi, f32::INFINITY, time);
         }
         let (o, d, t_max) = shadow_segment(p0, n0, s.p_light, s.n_light);
-        !self.accel.occluded_at(o, d, t_max, time)
+        !self.occluded_at(o, d, t_max, time)
     }
 
     /// Whether `p1` (normal `n1`) is visible from `p0` (normal `n0`).
     pub fn visible(&self, p0: Vec3A, n0: Vec3A, p1: Vec3A, n1: Option<Vec3A>) -> bool {
         let (o, d, t_max) = shadow_segment(p0, n0, p1, n1);
-        !self.accel.occluded(o, d, t_max)
+        !self.occluded_at(o, d, t_max, 0.0)
     }
 
     /// Emission-texture factor of an area light's triangle at barycentrics `b`.
@@ -373,6 +504,10 @@ impl RenderScene {
         let light = self.light_at(index, time);
         let mut s = light.sample_li(ctx, u, mode)?;
         if let Light::Triangle { prim, .. } = *light {
+            // A point that alpha cuts out of an emitter emits nothing.
+            if self.has_alpha && !self.present(prim, s.b[1], s.b[2]) {
+                return None;
+            }
             s.l *= self.emission_texture(prim, s.b);
         }
         Some((index, s, pmf))
@@ -392,6 +527,9 @@ impl RenderScene {
         let light = self.lights.get(index)?;
         let mut s = light.sample_le(u1, u2, self.center)?;
         if let Light::Triangle { prim, .. } = *light {
+            if self.has_alpha && !self.present(prim, s.b[1], s.b[2]) {
+                return None;
+            }
             s.l *= self.emission_texture(prim, s.b);
         }
         (s.l.max_element() > 0.0 && s.pdf_pos > 0.0 && s.pdf_dir > 0.0).then_some(s)
