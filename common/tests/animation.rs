@@ -156,14 +156,20 @@ fn animation_pointers_reach_materials_lights_and_cameras() {
     assert!((mat.base_color - Vec4::new(0.5, 0.0, 0.5, 1.0)).abs().max_element() < 1e-6, "{}", mat.base_color);
     // emitter(): factor (1, 1, 1) x strength; the strength key at 0.4 (STEP) holds at 0.5.
     assert!(close(mat.emissive, Vec3::splat(7.0), 1e-6), "{}", mat.emissive);
-    assert!(close(posed.lights[0].intensity, Vec3::new(15.0, 7.5, 3.75), 1e-5), "{}", posed.lights[0].intensity);
+    // The animated intensity is in candela, as the file's: /683 lm/W makes it W/sr.
+    let watts = Vec3::new(15.0, 7.5, 3.75) / pathfarm_common::scene::LUMENS_PER_WATT;
+    assert!(close(posed.lights[0].intensity, watts, 1e-7), "{}", posed.lights[0].intensity);
     match posed.cameras[0].projection {
         Projection::Perspective { yfov, .. } => assert!((yfov - 0.75).abs() < 1e-6, "{yfov}"),
         p => panic!("{p:?}"),
     }
     // Loading poses at t = 0: the first keys.
     assert!((scene.materials[0].base_color - Vec4::new(1.0, 0.0, 0.0, 1.0)).abs().max_element() < 1e-6);
-    assert!(close(scene.lights[0].intensity, Vec3::new(10.0, 5.0, 2.5), 1e-6));
+    assert!(close(
+        scene.lights[0].intensity,
+        Vec3::new(10.0, 5.0, 2.5) / pathfarm_common::scene::LUMENS_PER_WATT,
+        1e-7
+    ));
 }
 
 /// A scene with animations loads posed at t = 0 (every animation playing), not at its rest
