@@ -673,7 +673,7 @@ fn with_film<T>(
     }
 }
 
-/// Resolves a film a band of rows at a time (see [`resolve_banded`]); `frame` as in [`with_film`].
+/// Resolves a film a band of rows at a time (see [`resolve_banded`]); `frame` as in `with_film`.
 pub fn resolve_film_banded(state: &AppState, id: JobId, frame: Option<i32>) -> ApiResult<ImageLayers> {
     use pathfarm_common::film::{Film, SplatBuffer, ch};
     // A film's size never changes; a frame dropped between bands is refused by `with_film`.

@@ -267,7 +267,7 @@ fn creatable(key: &str) -> bool {
 }
 
 /// Checks that `pointer` can be written into `doc`: arrays are indexed within bounds, objects
-/// exist (or are [`creatable`]). The last segment may be missing (glTF defaults).
+/// exist (or are creatable extension objects). The last segment may be missing (glTF defaults).
 pub fn check_pointer(doc: &Value, pointer: &str) -> Result<(), String> {
     let segs: Vec<&str> = pointer.strip_prefix('/').ok_or("must start with '/'")?.split('/').collect();
     let mut cur = Some(doc);
