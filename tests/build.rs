@@ -36,7 +36,14 @@ fn main() {
     println!("cargo:rustc-check-cfg=cfg(bpy)");
     println!("cargo:rustc-check-cfg=cfg(openapi_client)");
     println!("cargo:rerun-if-env-changed=PATHFARM_RECHECK_PYTHON");
-    let python = |code: &str| Command::new("python3").args(["-c", code]).output().is_ok_and(|o| o.status.success());
+    // Without LD_LIBRARY_PATH, as the tests run Python (an OIDN folder there breaks `import bpy`).
+    let python = |code: &str| {
+        Command::new("python3")
+            .args(["-c", code])
+            .env_remove("LD_LIBRARY_PATH")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
     if python("import bpy, OpenEXR, numpy") {
         println!("cargo:rustc-cfg=bpy");
     }

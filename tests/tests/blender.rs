@@ -27,6 +27,12 @@ fn run_python(script: &str, args: &[&str], env: &[(&str, &Path)], limit: Duratio
     for (k, v) in env {
         cmd.env(k, v);
     }
+    // bpy loads its own SYCL runtime, which an OIDN library folder on LD_LIBRARY_PATH (set for a
+    // worker built with `denoise`) shadows with an older libur_loader: Python gets none, and the
+    // scripts hand the folder to the pathfarm-worker processes they start.
+    if let Some(path) = std::env::var_os("LD_LIBRARY_PATH") {
+        cmd.env_remove("LD_LIBRARY_PATH").env("PATHFARM_WORKER_LD_LIBRARY_PATH", path);
+    }
     let child = cmd.spawn().expect("start python3");
     let pid = child.id();
     let (tx, rx) = std::sync::mpsc::channel();
