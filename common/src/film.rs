@@ -168,6 +168,20 @@ pub struct Film {
     pub splat_spp: u32,
 }
 
+/// How previews (PNG) are exposed: `ev` stops, added to the automatic exposure when `auto`.
+/// From a job's `exposure` and `auto_exposure`; the EXR is never affected.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PreviewExposure {
+    pub ev: f32,
+    pub auto: bool,
+}
+
+impl PreviewExposure {
+    pub fn of(settings: &crate::job::RenderSettings) -> Self {
+        Self { ev: settings.exposure, auto: settings.auto_exposure }
+    }
+}
+
 /// Float layers of a resolved image, each `width * height` (or x3 for RGB), row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ImageLayers {
@@ -331,6 +345,33 @@ impl ImageLayers {
         write_atomic(path, &bytes)
     }
 
+    /// The exposure (EV) that brings the log-average luminance of the shown colour (denoised if
+    /// there is one) to middle grey, 0.18 (Reinhard's key value): `log2(0.18 / exp(mean(ln(1e-4
+    /// + L))))` over the finite pixels, within +-20 EV; 0 for an all-black image.
+    pub fn auto_exposure(&self) -> f32 {
+        let shown = self.denoised.as_deref().unwrap_or(&self.rgb);
+        let (mut sum, mut n, mut max) = (0.0f64, 0usize, 0.0f32);
+        for c in shown {
+            let l = 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+            if l.is_finite() && l >= 0.0 {
+                sum += f64::from(1e-4 + l).ln();
+                n += 1;
+                max = max.max(l);
+            }
+        }
+        if n == 0 || max <= 0.0 {
+            return 0.0;
+        }
+        let log_average = (sum / n as f64).exp();
+        ((0.18 / log_average).log2() as f32).clamp(-20.0, 20.0)
+    }
+
+    /// The EV a preview uses: `exposure.ev`, plus [`ImageLayers::auto_exposure`] when
+    /// `exposure.auto`.
+    pub fn preview_ev(&self, exposure: PreviewExposure) -> f32 {
+        if exposure.auto { exposure.ev + self.auto_exposure() } else { exposure.ev }
+    }
+
     /// An 8-bit sRGB preview of the denoised colour if there is one, else of the colour:
     /// `exposure` in stops, clamped, sRGB-encoded.
     pub fn preview_rgb8(&self, exposure: f32) -> image::RgbImage {
@@ -452,6 +493,40 @@ mod tests {
     }
 
     use super::*;
+
+    fn uniform(width: u32, height: u32, rgb: [f32; 3]) -> ImageLayers {
+        let n = (width * height) as usize;
+        ImageLayers {
+            width,
+            height,
+            rgb: vec![rgb; n],
+            albedo: vec![[0.0; 3]; n],
+            normal: vec![[0.0; 3]; n],
+            depth: vec![0.0; n],
+            samples: vec![1.0; n],
+            variance: vec![0.0; n],
+            denoised: None,
+        }
+    }
+
+    /// Auto exposure brings the log-average luminance to 0.18: a uniform grey of 0.045 gets
+    /// log2(0.18 / 0.0451) = +1.997 EV, so its preview shows middle grey (sRGB 118); a manual EV
+    /// adds to it; a black image keeps 0; the EXR does not change.
+    #[test]
+    fn auto_exposure_maps_the_log_average_to_middle_grey() {
+        let img = uniform(4, 2, [0.045; 3]);
+        let ev = img.auto_exposure();
+        assert!((ev - (0.18f32 / 0.0451).log2()).abs() < 1e-4, "{ev}");
+        let auto = PreviewExposure { ev: 0.0, auto: true };
+        let px = img.preview_rgb8(img.preview_ev(auto));
+        assert_eq!(px.get_pixel(0, 0).0, [encode_srgb8(0.18 * 0.045 / 0.0451); 3]);
+        assert_eq!(img.preview_ev(PreviewExposure { ev: -1.0, auto: true }), ev - 1.0);
+        assert_eq!(img.preview_ev(PreviewExposure { ev: 1.5, auto: false }), 1.5);
+        assert_eq!(uniform(2, 2, [0.0; 3]).auto_exposure(), 0.0);
+        // A bright image is exposed down: 100x brighter is log2(100) = 6.6 EV less.
+        let bright = uniform(2, 2, [4.5; 3]);
+        assert!((ev - bright.auto_exposure() - 100f32.log2()).abs() < 0.01);
+    }
 
     #[test]
     fn fixed_point_merge_is_order_independent() {

@@ -175,6 +175,14 @@ pub struct RenderSettings {
     /// Names of the glTF animations that play; `None` = all of them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub animations: Option<Vec<String>>,
+    /// Preview exposure in EV (stops): the PNG previews are scaled by 2^exposure. The EXR always
+    /// holds the true radiance.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub exposure: f32,
+    /// Previews expose automatically (log-average luminance to middle grey 0.18), `exposure`
+    /// then adds to the automatic EV. The EXR is never affected.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub auto_exposure: bool,
     /// Light arriving from infinitely far away in every direction: an equirectangular image
     /// in the scene bundle or a constant colour. `None` = black.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -346,6 +354,8 @@ impl RenderSettings {
             fps: default_fps(),
             shutter: 0.0,
             animations: None,
+            exposure: 0.0,
+            auto_exposure: false,
             environment: None,
             aperture_radius: 0.0,
             focus_distance: None,
@@ -389,6 +399,12 @@ impl RenderSettings {
             return Err(SettingsError::Invalid(format!(
                 "shutter must be a fraction of a frame in [0, 1], got {}",
                 self.shutter
+            )));
+        }
+        if !(self.exposure.is_finite() && self.exposure.abs() <= 32.0) {
+            return Err(SettingsError::Invalid(format!(
+                "exposure must be between -32 and 32 EV, got {}",
+                self.exposure
             )));
         }
         if let Some(names) = &self.animations {

@@ -759,13 +759,33 @@ async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> 
 )]
 async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
     let layers = resolve_job(&state, &id).await?;
-    let bytes = tokio::task::spawn_blocking(move || layers.encode_png(0.0))
-        .await
-        .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+    let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
+    let (bytes, ev) = tokio::task::spawn_blocking(move || {
+        let ev = layers.preview_ev(exposure);
+        layers.encode_png(ev).map(|b| (b, ev))
+    })
+    .await
+    .map_err(|e| ApiError::internal(e.to_string()))?
+    .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
     let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    insert_exposure_header(&mut resp, ev);
     Ok(resp)
+}
+
+/// The response header that says which exposure a PNG preview used (EV).
+pub const EXPOSURE_HEADER: &str = "x-pathfarm-preview-ev";
+
+fn insert_exposure_header(resp: &mut Response, ev: f32) {
+    if let Ok(v) = HeaderValue::from_str(&format!("{ev:.3}")) {
+        resp.headers_mut().insert(EXPOSURE_HEADER, v);
+    }
+}
+
+/// How job `id`'s previews are exposed (its `exposure` and `auto_exposure` settings).
+fn preview_exposure(state: &AppState, id: JobId) -> ApiResult<pathfarm_common::film::PreviewExposure> {
+    let farm = state.farm.lock();
+    Ok(pathfarm_common::film::PreviewExposure::of(&farm.job(id)?.settings))
 }
 
 // ------------------------------------------------------------------------------------ frames
@@ -846,10 +866,12 @@ async fn frame_image(state: Arc<AppState>, id: String, frame: String, png: bool)
         }
         FrameSource::Film => {
             let st = state.clone();
+            let exposure = preview_exposure(&state, id)?;
             tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
                 let layers = resolve_film_banded(&st, id, Some(n))?;
                 if png {
-                    layers.encode_png(0.0).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))
+                    let ev = layers.preview_ev(exposure);
+                    layers.encode_png(ev).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))
                 } else {
                     layers.encode_exr().map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))
                 }

@@ -79,6 +79,12 @@ pub struct JobRequestBody {
     pub shutter: Option<f32>,
     /// glTF animations that play (by name); absent = all.
     pub animations: Option<Vec<String>>,
+    /// Preview (PNG) exposure in EV, default 0; the EXR always holds the true radiance.
+    #[schema(minimum = -32.0, maximum = 32.0)]
+    pub exposure: Option<f32>,
+    /// Previews expose automatically (log-average luminance to middle grey); `exposure` adds to
+    /// it. The EV used is in the PNG's `x-pathfarm-preview-ev` header.
+    pub auto_exposure: Option<bool>,
     /// A sequence: the frames to render, `"1-100"`, `"1-100x5"` (every 5th) or `"1,5,10-20"`
     /// (at most 100,000; frames x tiles x passes count against the unit limit). Each frame is
     /// rendered with `frame` set to it and written to `frames/NNNN/image.exr` and

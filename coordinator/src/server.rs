@@ -604,11 +604,17 @@ impl AppState {
 }
 
 /// Writes `image.exr` and `preview.png` of a job atomically.
-pub fn write_outputs(dir: &Path, layers: &ImageLayers) -> anyhow::Result<()> {
+/// The PNG is exposed as the job asks (`exposure`, `auto_exposure`); returns the EV it used.
+pub fn write_outputs(
+    dir: &Path,
+    layers: &ImageLayers,
+    exposure: pathfarm_common::film::PreviewExposure,
+) -> anyhow::Result<f32> {
     std::fs::create_dir_all(dir)?;
     write_atomic(&dir.join("image.exr"), &layers.encode_exr()?)?;
-    write_atomic(&dir.join("preview.png"), &layers.encode_png(0.0)?)?;
-    Ok(())
+    let ev = layers.preview_ev(exposure);
+    write_atomic(&dir.join("preview.png"), &layers.encode_png(ev)?)?;
+    Ok(ev)
 }
 
 /// Expires leases every `expiry_tick_ms` (a quarter second), prunes workers, wakes lease waiters
@@ -659,9 +665,10 @@ pub fn collect_scenes(state: &AppState, stored_before: u64) -> Vec<String> {
 }
 
 /// A sequence's merged frame: job, index in its frame set, frame number, film.
-type FrameToWrite = (JobId, usize, i32, Arc<Film>);
+type FrameToWrite = (JobId, usize, i32, Arc<Film>, pathfarm_common::film::PreviewExposure);
 
-type FrameWrite = (PathBuf, Arc<Film>, tokio::sync::oneshot::Sender<anyhow::Result<()>>);
+type FrameWrite =
+    (PathBuf, Arc<Film>, pathfarm_common::film::PreviewExposure, tokio::sync::oneshot::Sender<anyhow::Result<()>>);
 
 /// One thread that resolves and encodes sequence frames, one after the other. A frame's
 /// working set (float layers, EXR and PNG buffers: ~100 MiB at 1080p) is then reused frame
@@ -675,9 +682,10 @@ impl FrameWriter {
     fn start() -> std::io::Result<Self> {
         let (tx, rx) = std::sync::mpsc::channel::<FrameWrite>();
         std::thread::Builder::new().name("frame-writer".into()).spawn(move || {
-            for (dir, film, reply) in rx {
+            for (dir, film, exposure, reply) in rx {
                 let r = (|| -> anyhow::Result<()> {
-                    write_outputs(&dir, &film.resolve())?;
+                    let ev = write_outputs(&dir, &film.resolve(), exposure)?;
+                    tracing::debug!(dir = %dir.display(), preview_ev = ev, "frame written");
                     // The frame is written: its checkpoint is of no more use.
                     match std::fs::remove_file(dir.join("checkpoint.bin")) {
                         Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e.into()),
@@ -692,9 +700,14 @@ impl FrameWriter {
     }
 
     /// Writes `dir/image.exr` and `preview.png` of `film`; `Err` also when the thread is gone.
-    async fn write(&self, dir: PathBuf, film: Arc<Film>) -> Result<anyhow::Result<()>, String> {
+    async fn write(
+        &self,
+        dir: PathBuf,
+        film: Arc<Film>,
+        exposure: pathfarm_common::film::PreviewExposure,
+    ) -> Result<anyhow::Result<()>, String> {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        self.tx.send((dir, film, reply)).map_err(|_| "the frame writer thread is gone".to_string())?;
+        self.tx.send((dir, film, exposure, reply)).map_err(|_| "the frame writer thread is gone".to_string())?;
         answer.await.map_err(|_| "the frame writer thread panicked".to_string())
     }
 }
@@ -712,7 +725,7 @@ async fn output_loop(state: Arc<AppState>) {
     };
     loop {
         let _ = tokio::time::timeout(Duration::from_millis(500), state.output_ready.notified()).await;
-        let (due, frames): (Vec<(JobId, JobState)>, Vec<FrameToWrite>) = {
+        let (due, frames): (Vec<(JobId, JobState, pathfarm_common::film::PreviewExposure)>, Vec<FrameToWrite>) = {
             let mut farm = state.farm.lock();
             let mut frames = Vec::new();
             let due = farm
@@ -725,20 +738,21 @@ async fn output_loop(state: Arc<AppState>) {
                 })
                 .filter_map(|j| {
                     j.output_dirty = false;
+                    let exposure = pathfarm_common::film::PreviewExposure::of(&j.settings);
                     if j.sequence {
-                        frames.extend(j.frames_to_write().into_iter().map(|(i, f, film)| (j.id, i, f, film)));
+                        frames.extend(j.frames_to_write().into_iter().map(|(i, f, film)| (j.id, i, f, film, exposure)));
                         None
                     } else {
-                        Some((j.id, j.state))
+                        Some((j.id, j.state, exposure))
                     }
                 })
                 .collect();
             (due, frames)
         };
         // A sequence's merged frames: written once, then their films are dropped.
-        for (id, index, frame, film) in frames {
+        for (id, index, frame, film, exposure) in frames {
             let dir = crate::store::frame_dir(&state.job_dir(id), frame);
-            match writer.write(dir, film).await {
+            match writer.write(dir, film, exposure).await {
                 Ok(Ok(())) => {
                     let (written, exists) = {
                         let mut farm = state.farm.lock();
@@ -763,18 +777,18 @@ async fn output_loop(state: Arc<AppState>) {
                 Err(e) => tracing::error!(job = id, frame, "frame writer panicked: {e}"),
             }
         }
-        for (id, job_state) in due {
+        for (id, job_state, exposure) in due {
             last.insert(id, Instant::now());
             let dir = state.job_dir(id);
             let st = state.clone();
             // Resolved band by band, so the farm lock is never held for a whole film.
-            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+            let r = tokio::task::spawn_blocking(move || -> anyhow::Result<f32> {
                 let layers = crate::api::resolve_banded(&st, id).map_err(|e| anyhow::anyhow!(e.message))?;
-                write_outputs(&dir, &layers)
+                write_outputs(&dir, &layers, exposure)
             })
             .await;
             match r {
-                Ok(Ok(())) => tracing::debug!(job = id, state = job_state.as_str(), "images written"),
+                Ok(Ok(ev)) => tracing::debug!(job = id, state = job_state.as_str(), preview_ev = ev, "images written"),
                 Ok(Err(e)) => tracing::error!(job = id, "writing images failed: {e:#}"),
                 Err(e) => tracing::error!(job = id, "image writer panicked: {e}"),
             }

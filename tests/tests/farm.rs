@@ -366,3 +366,42 @@ fn an_environment_image_in_the_bundle_and_a_thin_lens_render_the_same_bits_throu
     let error = info.error.unwrap_or_default();
     assert!(error.contains("env/none.exr"), "the job's error should name the missing file: {error}");
 }
+
+/// Preview exposure: a job with `auto_exposure` and `exposure` 0.5 gets previews at the automatic
+/// EV of its image plus 0.5 (said in the PNG's header; the PNG is exactly that exposure of the
+/// local render), while its EXR holds the true radiance, bit-identical to a render without them.
+#[test]
+fn previews_use_the_jobs_exposure_and_the_exr_keeps_radiance() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let _w = start_worker(&coord.url, "w", &dir.path().join("c"), &[]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_demo_glb();
+    let mut s = settings(32, 24, 4, 16);
+    s.exposure = 0.5;
+    s.auto_exposure = true;
+    let id = submit(&client, &scene, &s, 0, "exposure");
+    wait_done(&client, id, Duration::from_secs(120));
+    let mut plain = s.clone();
+    (plain.exposure, plain.auto_exposure) = (0.0, false);
+    assert!(client.image_exr(id).expect("exr") == local_exr(&scene, &plain), "the EXR changed with the exposure");
+    let resp = reqwest::blocking::get(format!("{}{API}/jobs/{id}/preview.png", coord.url)).expect("png");
+    let ev: f32 = resp
+        .headers()
+        .get("x-pathfarm-preview-ev")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse().ok())
+        .expect("the preview says its exposure");
+    let png = resp.bytes().expect("body");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let local = pathfarm_common::scene::bundle::load_bundle(&scene, tmp.path(), &Default::default()).expect("scene");
+    let layers = pathfarm_worker::render::render_local(
+        &pathfarm_worker::render::Renderer::new(&local, &s).expect("renderer"),
+        |_, _| {},
+    )
+    .resolve();
+    let expected = layers.auto_exposure() + 0.5;
+    assert!((ev - expected).abs() < 1e-3, "preview EV {ev}, expected {expected}");
+    assert!(expected.abs() > 0.6, "the automatic part should matter here: {expected}");
+    assert!(png.as_ref() == layers.encode_png(expected).expect("png").as_slice(), "the PNG is not that exposure");
+}

@@ -110,6 +110,13 @@ pub struct SettingsArgs {
     /// Thin lens: distance in focus along the view axis (scene units).
     #[arg(long)]
     pub focus_distance: Option<f32>,
+    /// Preview (PNG) exposure in stops (EV); the EXR keeps the true radiance.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub exposure: f32,
+    /// Previews expose automatically (log-average luminance to middle grey 0.18); `--exposure`
+    /// adds to it.
+    #[arg(long)]
+    pub auto_exposure: bool,
 }
 
 /// `--environment`: `r,g,b` is a colour, anything else a file.
@@ -178,6 +185,8 @@ impl SettingsArgs {
             .map(|v| environment_arg(v, self.environment_intensity, self.environment_rotation));
         s.aperture_radius = self.aperture_radius;
         s.focus_distance = self.focus_distance;
+        s.exposure = self.exposure;
+        s.auto_exposure = self.auto_exposure;
         s
     }
 }
@@ -228,9 +237,6 @@ pub struct RenderArgs {
     /// Also write an sRGB PNG preview (with `--frames`: a pattern like `--out`).
     #[arg(long)]
     pub png: Option<PathBuf>,
-    /// PNG exposure in stops.
-    #[arg(long, default_value_t = 0.0)]
-    pub exposure: f32,
     /// Render threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -314,7 +320,9 @@ fn render_frame(
     }
     image.write_exr(out)?;
     if let Some(png) = png {
-        image.write_png(png, args.exposure)?;
+        let ev = image.preview_ev(pathfarm_common::film::PreviewExposure::of(settings));
+        image.write_png(png, ev)?;
+        tracing::info!(png = %png.display(), preview_ev = ev, auto = settings.auto_exposure, "preview written");
     }
     tracing::info!(
         out = %out.display(),
