@@ -11,10 +11,10 @@
 //! Needs `python3` with `bpy`, OpenEXR and numpy (`scripts/test` installs them). Where they were
 //! missing at build time (tests/build.rs) the tests are `#[ignore]`d with that reason.
 
-use pathfarm_tests::procs::{Proc, bin};
+use pathfarm_tests::procs::{Coordinator, bin};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 fn scripts() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../clients/blender/tests")
@@ -57,19 +57,6 @@ fn run_python(script: &str, args: &[&str], env: &[(&str, &Path)], limit: Duratio
     );
 }
 
-fn wait_for_file(path: &Path, timeout: Duration) -> String {
-    let t0 = Instant::now();
-    loop {
-        if let Ok(s) = std::fs::read_to_string(path)
-            && !s.trim().is_empty()
-        {
-            return s.trim().to_string();
-        }
-        assert!(t0.elapsed() < timeout, "{} did not appear in {timeout:?}", path.display());
-        std::thread::sleep(Duration::from_millis(25));
-    }
-}
-
 #[test]
 #[cfg_attr(
     not(bpy),
@@ -77,31 +64,11 @@ fn wait_for_file(path: &Path, timeout: Duration) -> String {
 )]
 fn the_blender_addon_submits_and_loads_the_farms_images() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let data = tmp.path().join("data");
     let (client_token, worker_token) = ("blender-client-token", "blender-worker-token");
-    let log = std::fs::File::create(tmp.path().join("coordinator.log")).expect("log");
-    let _coordinator = Proc {
-        child: Command::new(bin("pathfarm-coordinator"))
-            .args(["--listen", "127.0.0.1:0", "--data-dir"])
-            .arg(&data)
-            .env("PATHFARM_CLIENT_TOKEN", client_token)
-            .env("PATHFARM_WORKER_TOKEN", worker_token)
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .expect("start the coordinator"),
-    };
-    let url = format!("http://{}", wait_for_file(&data.join("coordinator.addr"), Duration::from_secs(30)));
-    let _worker = Proc {
-        child: Command::new(bin("pathfarm-worker"))
-            .args(["run", "--coordinator", &url, "--threads", "1", "--name", "blender-test", "--cache-dir"])
-            .arg(tmp.path().join("cache"))
-            .env("PATHFARM_WORKER_TOKEN", worker_token)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start the worker"),
-    };
+    let coordinator = Coordinator::start(&["--client-token", client_token, "--worker-token", worker_token])
+        .expect("start the coordinator");
+    let _worker = coordinator.start_worker().expect("start the worker");
+    let url = coordinator.url.clone();
     let worker = bin("pathfarm-worker");
     let out = tmp.path().join("out");
     let resources = tmp.path().join("blender-user");

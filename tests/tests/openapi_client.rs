@@ -4,23 +4,9 @@
 //! when `openapi-python-client` (with httpx, attrs) was missing at build time (tests/build.rs);
 //! `scripts/test` installs it.
 
-use pathfarm_tests::procs::{Proc, bin};
+use pathfarm_tests::procs::{Coordinator, bin};
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
-
-fn wait_for_file(path: &Path, timeout: Duration) -> String {
-    let t0 = Instant::now();
-    loop {
-        if let Ok(s) = std::fs::read_to_string(path)
-            && !s.trim().is_empty()
-        {
-            return s.trim().to_string();
-        }
-        assert!(t0.elapsed() < timeout, "{} did not appear in {timeout:?}", path.display());
-        std::thread::sleep(Duration::from_millis(25));
-    }
-}
+use std::process::Command;
 
 #[test]
 #[cfg_attr(
@@ -29,31 +15,11 @@ fn wait_for_file(path: &Path, timeout: Duration) -> String {
 )]
 fn a_generated_python_client_uploads_submits_and_downloads() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let data = tmp.path().join("data");
     let (client_token, worker_token) = ("generated-client-token", "generated-worker-token");
-    let log = std::fs::File::create(tmp.path().join("coordinator.log")).expect("log");
-    let _coordinator = Proc {
-        child: Command::new(bin("pathfarm-coordinator"))
-            .args(["--listen", "127.0.0.1:0", "--data-dir"])
-            .arg(&data)
-            .env("PATHFARM_CLIENT_TOKEN", client_token)
-            .env("PATHFARM_WORKER_TOKEN", worker_token)
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .expect("start the coordinator"),
-    };
-    let url = format!("http://{}", wait_for_file(&data.join("coordinator.addr"), Duration::from_secs(30)));
-    let _worker = Proc {
-        child: Command::new(bin("pathfarm-worker"))
-            .args(["run", "--coordinator", &url, "--threads", "1", "--name", "generated-client-test", "--cache-dir"])
-            .arg(tmp.path().join("cache"))
-            .env("PATHFARM_WORKER_TOKEN", worker_token)
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("start the worker"),
-    };
+    let coordinator = Coordinator::start(&["--client-token", client_token, "--worker-token", worker_token])
+        .expect("start the coordinator");
+    let _worker = coordinator.start_worker().expect("start the worker");
+    let url = coordinator.url.clone();
     let scene = tmp.path().join("cornell.glb");
     std::fs::write(&scene, pathfarm_common::scene::demo::cornell_demo_glb()).expect("write the scene");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/openapi_client.py");
