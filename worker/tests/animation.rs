@@ -300,8 +300,78 @@ fn motion_blur_follows_a_moving_camera() {
     eprintln!("moving camera: blurred energy {energy:.3} (quad 64); worst column error {worst:.3}");
 }
 
-/// Motion blur (shutter > 0) on an animated scene is refused for bdpt and igi with a clear
-/// message; on a still scene it changes nothing (nothing moves).
+/// bdpt with motion blur: the emissive quad slides from x = -1 to 1 during the shutter in front
+/// of a camera (perspective: bdpt connects light paths to it), lighting a floor. bdpt (both
+/// subpaths, every connection and the moving light's emission and densities at the camera
+/// sample's time) and path agree: image mean per channel within 2%, the mean of each image
+/// quarter within 5% (32 x 32; path 512 spp, bdpt 256 spp, seed 3; measured 0.28% and 1.6%;
+/// at 2048/1024 spp the means differ by 0.16%, the stills' by 0.03%). The blurred image differs
+/// from the still one by far more.
+#[test]
+fn bdpt_motion_blur_agrees_with_path() {
+    let mut b = GltfBuilder::new();
+    let node = glowing_quad(&mut b);
+    let floor = b.material(lambert("floor", Vec3::splat(0.8)));
+    let v = Vec3::new;
+    pathfarm_common::scene::demo::quad(
+        &mut b,
+        "floor",
+        [v(-3.0, -1.0, 3.0), v(3.0, -1.0, 3.0), v(3.0, -1.0, -1.0), v(-3.0, -1.0, -1.0)],
+        floor,
+    );
+    b.camera(v(0.0, 0.5, 5.0), v(0.0, -0.3, 0.0), Vec3::Y, 0.8, 1.0);
+    b.animate(
+        "slide",
+        json!({"node": node, "path": "translation"}),
+        "LINEAR",
+        &[0.0, 1.0],
+        &[-1.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+        "VEC3",
+    );
+    let scene = glb_scene(&b.to_glb());
+    let run = |integrator: IntegratorSettings, spp: u32, shutter: f32| {
+        let mut s = RenderSettings::new(32, 32, spp);
+        s.integrator = integrator;
+        s.fps = 1.0;
+        s.shutter = shutter;
+        s.seed = 3;
+        render(&scene, &s)
+    };
+    let path = IntegratorSettings::Path {
+        max_depth: 4,
+        rr_depth: 3,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    let bdpt = IntegratorSettings::Bdpt { max_depth: 4, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
+    let (p, d) = (run(path.clone(), 512, 1.0), run(bdpt, 256, 1.0));
+    let (mp, md) = (mean_rgb(&p), mean_rgb(&d));
+    for c in 0..3 {
+        let rel = (md[c] - mp[c]).abs() / mp[c];
+        eprintln!("blurred channel {c}: path {:.5}, bdpt {:.5} ({:.2}%)", mp[c], md[c], rel * 100.0);
+        assert!(rel < 0.02, "channel {c}: path {}, bdpt {}", mp[c], md[c]);
+    }
+    let quarter = |img: &ImageLayers, qx: usize, qy: usize| -> f64 {
+        let mut sum = 0.0;
+        for y in qy * 16..qy * 16 + 16 {
+            for x in qx * 16..qx * 16 + 16 {
+                sum += f64::from(img.rgb[y * 32 + x][0]) / 256.0;
+            }
+        }
+        sum
+    };
+    for (qx, qy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        let (a, b) = (quarter(&p, qx, qy), quarter(&d, qx, qy));
+        eprintln!("quarter ({qx}, {qy}): path {a:.5}, bdpt {b:.5}");
+        assert!((a - b).abs() <= 0.05 * a.max(1e-3), "quarter ({qx}, {qy}): path {a}, bdpt {b}");
+    }
+    let still = run(path, 64, 0.0);
+    let diff: f64 = still.rgb.iter().zip(&p.rgb).map(|(a, b)| f64::from((a[0] - b[0]).abs())).sum();
+    assert!(diff > 0.1 * mp[0] * 1024.0, "the blurred image looks like the still one ({diff})");
+}
+
+/// Motion blur (shutter > 0) on an animated scene is refused for igi with a clear message (its
+/// VPLs are shared by every pixel); on a still scene it changes nothing (nothing moves).
 #[test]
 fn motion_blur_is_refused_where_unsupported_and_a_no_op_on_stills() {
     let (mut b, cube, _) = cube_scene();

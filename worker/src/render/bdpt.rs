@@ -85,6 +85,8 @@ pub struct Vertex {
     /// A light-subpath vertex: its BSDF carries importance (the adjoint), which a refraction
     /// does not scale by 1 / eta'^2 as radiance's does.
     pub(crate) importance: bool,
+    /// Shutter time in [0, 1] of the path this vertex is on (0 without motion blur).
+    pub(crate) time: f32,
 }
 
 impl Vertex {
@@ -104,6 +106,7 @@ impl Vertex {
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
             importance: false,
+            time: 0.0,
         }
     }
 
@@ -148,7 +151,7 @@ impl Vertex {
         match (self.kind, self.si) {
             (VertexKind::Surface, Some(si)) => {
                 let w = (prev.p - self.p).normalize_or_zero();
-                scene.emitted(&si, w)
+                scene.emitted_at(&si, w, self.time)
             }
             // A camera path that left the scene ends at the environment.
             (VertexKind::Light, _) if self.is_infinite_light(scene) => {
@@ -214,7 +217,7 @@ impl Vertex {
             return 0.0;
         }
         let w = w / d2.sqrt();
-        let light = &scene.lights[l];
+        let light = scene.light_at(l, self.time);
         let mut pdf = if light.is_infinite() {
             // Directional: the disk covering the scene, per unit area.
             1.0 / (PI * scene.radius * scene.radius)
@@ -230,12 +233,12 @@ impl Vertex {
     /// Area density of choosing this point as a light path's origin (light selection included).
     fn pdf_light_origin(&self, scene: &RenderScene, v: &Vertex) -> f32 {
         let Some(l) = self.light_index(scene) else { return 0.0 };
-        let light = &scene.lights[l];
+        let light = scene.light_at(l, self.time);
         let w = (v.p - self.p).normalize_or_zero();
         if light.is_infinite() {
             // Per solid angle: the density of choosing the direction toward this light from
             // `v` (pbrt's `InfiniteLightDensity`); a directional light's is a delta, so 0.
-            return match light {
+            return match &*light {
                 Light::Environment(env) => scene.light_pmf(l) * env.pdf_wi(-w),
                 _ => 0.0,
             };
@@ -287,12 +290,15 @@ pub fn random_walk(
 ) {
     let mut pdf_fwd = pdf;
     let mut bounces = 0usize;
+    // The path's shutter time, from its first vertex.
+    let time = path.first().map_or(0.0, |v| v.time);
     while bounces < max_vertices {
-        let Some(si) = scene.intersect(ray.o, ray.d, f32::INFINITY) else {
+        let Some(si) = scene.intersect_at(ray.o, ray.d, f32::INFINITY, time) else {
             // A camera path that leaves the scene ends on the environment (pbrt's escaped-ray
             // light vertex), a unit beyond the last vertex along the ray.
             if let (TransportMode::Radiance, Some((index, _))) = (mode, scene.environment()) {
                 let mut v = Vertex::light(index, ray.o + ray.d, None, beta, 0.0);
+                v.time = time;
                 if let Some(prev) = path.last() {
                     v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);
                     path.push(v);
@@ -324,6 +330,7 @@ pub fn random_walk(
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
             importance: mode == TransportMode::Importance,
+            time,
         };
         let Some(prev) = path.last() else { break };
         v.pdf_fwd = prev.convert_density(scene, pdf_fwd, &v);
@@ -371,14 +378,15 @@ pub fn random_walk(
     }
 }
 
-/// Traces a light subpath into `path` (cleared first): light chosen by power, emission sampled
-/// by position and direction.
+/// Traces a light subpath into `path` (cleared first) at shutter time `time`: light chosen by
+/// power, emission sampled by position and direction.
 pub fn light_subpath(
     scene: &RenderScene,
     max_vertices: usize,
     rr_depth: u32,
     sampler: &mut impl Sampler,
     path: &mut Vec<Vertex>,
+    time: f32,
 ) {
     path.clear();
     if max_vertices == 0 {
@@ -388,8 +396,10 @@ pub fn light_subpath(
     let u1 = sampler.get_2d();
     let u2 = sampler.get_2d();
     let Some((index, pmf)) = scene.pick_light(u_light) else { return };
-    let Some(les) = scene.sample_le(index, u1, u2) else { return };
-    path.push(Vertex::light(index, les.o, les.n, les.l, les.pdf_pos * pmf));
+    let Some(les) = scene.sample_le_at(index, u1, u2, time) else { return };
+    let mut origin = Vertex::light(index, les.o, les.n, les.l, les.pdf_pos * pmf);
+    origin.time = time;
+    path.push(origin);
     let cos = les.n.map_or(1.0, |n| n.dot(les.d).abs());
     let beta = les.l * (cos / (pmf * les.pdf_pos * les.pdf_dir));
     let o = match les.n {
@@ -421,8 +431,10 @@ pub fn light_subpath(
     }
 }
 
-/// Traces one BDPT sample through `pixel`: returns the camera-side estimate and its AOVs and
-/// calls `splat(raster, value)` for every light-tracing (`t = 1`) contribution.
+/// Traces one BDPT sample through `pixel` at shutter time `time` (both subpaths and every
+/// connection see the scene then; `camera` is the camera at that time): returns the camera-side
+/// estimate and its AOVs and calls `splat(raster, value)` for every light-tracing (`t = 1`)
+/// contribution.
 #[allow(clippy::too_many_arguments)]
 pub fn li_bdpt(
     scene: &RenderScene,
@@ -433,6 +445,7 @@ pub fn li_bdpt(
     params: &BdptParams,
     paths: &mut Subpaths,
     splat: &mut impl FnMut(Vec2, Vec3A),
+    time: f32,
 ) -> SampleValue {
     let mut out = SampleValue::default();
     let (max_camera, max_light) = if params.max_depth == 0 {
@@ -444,7 +457,9 @@ pub fn li_bdpt(
     sampler.start_pixel_sample(pixel, sample_index, 0);
     let ray = camera.sample_ray(pixel, sampler);
     paths.camera.clear();
-    paths.camera.push(Vertex::camera(ray.o, Vec3A::ONE));
+    let mut origin = Vertex::camera(ray.o, Vec3A::ONE);
+    origin.time = time;
+    paths.camera.push(origin);
     random_walk(
         scene,
         ray,
@@ -459,7 +474,7 @@ pub fn li_bdpt(
     );
     // Light subpath.
     sampler.start_pixel_sample(pixel, sample_index, LIGHT_DIM);
-    light_subpath(scene, max_light, params.rr_depth, sampler, &mut paths.light);
+    light_subpath(scene, max_light, params.rr_depth, sampler, &mut paths.light, time);
 
     let max_vertices = if params.max_depth == 0 { usize::MAX } else { params.max_depth as usize + 1 };
     let mut l = Vec3A::ZERO;
@@ -505,6 +520,8 @@ fn connect(
     mis_exponent: u32,
 ) -> (Vec3A, Option<Vec2>) {
     let pt = &cam[t - 1];
+    // Both subpaths are at the camera sample's shutter time.
+    let time = pt.time;
     let mut raster = None;
     let mut sampled = None;
     let l = if s == 0 {
@@ -518,9 +535,10 @@ fn connect(
             return (Vec3A::ZERO, None);
         }
         let Some(cs) = camera.sample_wi(qs.p) else { return (Vec3A::ZERO, None) };
-        let v = Vertex::camera(cs.p_camera, Vec3A::splat(cs.we / cs.pdf));
+        let mut v = Vertex::camera(cs.p_camera, Vec3A::splat(cs.we / cs.pdf));
+        v.time = time;
         let mut c = qs.beta * qs.f(&v) * v.beta * cs.wi.dot(qs.ns).abs();
-        if c != Vec3A::ZERO && !scene.visible(qs.p, qs.ng, cs.p_camera, None) {
+        if c != Vec3A::ZERO && !scene.visible_at(qs.p, qs.ng, cs.p_camera, None, time) {
             c = Vec3A::ZERO;
         }
         raster = Some(cs.raster);
@@ -534,13 +552,14 @@ fn connect(
         let u = sampler.get_2d();
         let ctx = LightSampleContext { p: pt.p, n: pt.ng };
         // Area sampling: the density the MIS weights assume for a light vertex.
-        let Some((index, ls, pmf)) = scene.sample_light(&ctx, u_select, u, LightSampling::Area) else {
+        let Some((index, ls, pmf)) = scene.sample_light_at(&ctx, u_select, u, LightSampling::Area, time) else {
             return (Vec3A::ZERO, None);
         };
         let mut v = Vertex::light(index, ls.p_light, ls.n_light, ls.l / (ls.pdf * pmf), 0.0);
+        v.time = time;
         v.pdf_fwd = v.pdf_light_origin(scene, pt);
         let mut c = pt.beta * pt.f(&v) * v.beta * ls.wi.dot(pt.ns).abs();
-        if c != Vec3A::ZERO && !scene.unoccluded(pt.p, pt.ng, &ls) {
+        if c != Vec3A::ZERO && !scene.unoccluded_at(pt.p, pt.ng, &ls, time) {
             c = Vec3A::ZERO;
         }
         sampled = Some(v);
@@ -564,7 +583,7 @@ fn connect(
                 let along = SurfaceInteraction { t: d2.sqrt(), ..*si };
                 c *= scene.transmittance(&along, w);
             }
-            if c != Vec3A::ZERO && !scene.visible(qs.p, qs.ng, pt.p, Some(pt.ng)) {
+            if c != Vec3A::ZERO && !scene.visible_at(qs.p, qs.ng, pt.p, Some(pt.ng), time) {
                 c = Vec3A::ZERO;
             }
         }

@@ -138,7 +138,7 @@ pub fn trace_vpls(
             let mut vpls = Vec::new();
             for k in 0..params.vpls {
                 sampler.start_pixel_sample(UVec2::new(set, sample_index), k, 0);
-                light_subpath(scene, max_vertices, RR_DEPTH, &mut sampler, paths.light_mut());
+                light_subpath(scene, max_vertices, RR_DEPTH, &mut sampler, paths.light_mut(), 0.0);
                 for (segments, v) in paths.light_mut().iter().enumerate().skip(1) {
                     let Some(bsdf) = v.bsdf else { continue };
                     if v.kind != VertexKind::Surface || bsdf.is_delta() {

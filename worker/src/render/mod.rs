@@ -69,6 +69,10 @@ pub struct Renderer {
     vpls: VplCache,
 }
 
+/// The sample dimension of a bdpt sample's shutter time (beyond its camera and light subpaths'
+/// dimensions, below the lens's).
+const BDPT_TIME_DIM: u32 = 1 << 14;
+
 /// A light-tracing contribution at a raster position.
 type Splat = (Vec2, Vec3A);
 
@@ -99,10 +103,10 @@ impl Renderer {
         }
         // Motion blur needs something that can move: an animated scene.
         let blur = settings.shutter > 0.0 && scene.animation.is_some();
-        if blur && !matches!(settings.integrator, IntegratorSettings::Direct { .. } | IntegratorSettings::Path { .. }) {
+        if blur && matches!(settings.integrator, IntegratorSettings::Igi { .. }) {
             return Err(RenderError::Settings(
-                "motion blur (shutter > 0) on an animated scene is implemented for the direct and path \
-                 integrators only; bdpt and igi need shutter 0"
+                "motion blur (shutter > 0) on an animated scene is implemented for the direct, path and \
+                 bdpt integrators; igi (whose VPLs are shared by every pixel) needs shutter 0"
                     .into(),
             ));
         }
@@ -212,6 +216,17 @@ impl Renderer {
         &self.settings
     }
 
+    /// The camera at shutter time `time` (motion blur): interpolated between shutter open and
+    /// close, with the job's thin lens (validated perspective at construction, so it holds).
+    fn camera_at(&self, time: f32) -> Camera {
+        let Some((open, close)) = &self.shutter_cameras else { return self.camera.clone() };
+        let camera = Camera::interpolate(open, close, time, self.settings.width, self.settings.height);
+        match self.camera.lens() {
+            Some(lens) => camera.clone().with_lens(lens).unwrap_or(camera),
+            None => camera,
+        }
+    }
+
     pub fn scene(&self) -> &RenderScene {
         &self.scene
     }
@@ -266,31 +281,37 @@ impl Renderer {
                                 match &self.shutter_cameras {
                                     // The time is the sample's first dimension, so stills keep
                                     // their layout.
-                                    Some((open, close)) => {
+                                    Some(_) => {
                                         let time = sampler.get_1d();
-                                        let (w, h) = (self.settings.width, self.settings.height);
-                                        let camera = Camera::interpolate(open, close, time, w, h);
-                                        // The job's thin lens moves with the camera.
-                                        // (Validated perspective at construction, so with_lens holds.)
-                                        let camera = match self.camera.lens() {
-                                            Some(lens) => camera.clone().with_lens(lens).unwrap_or(camera),
-                                            None => camera,
-                                        };
+                                        let camera = self.camera_at(time);
                                         li_path(&self.scene, &camera, pixel, &mut sampler, params, time)
                                     }
                                     None => li_path(&self.scene, &self.camera, pixel, &mut sampler, params, 0.0),
                                 }
                             }
-                            Integrator::Bdpt(params) => li_bdpt(
-                                &self.scene,
-                                &self.camera,
-                                pixel,
-                                s,
-                                &mut sampler,
-                                params,
-                                &mut paths,
-                                &mut |raster, v| splats.push((raster, v)),
-                            ),
+                            Integrator::Bdpt(params) => {
+                                // bdpt addresses its own dimensions from 0: the time comes from
+                                // a dimension of its own.
+                                let (camera, time) = match &self.shutter_cameras {
+                                    Some(_) => {
+                                        sampler.start_pixel_sample(pixel, s, 0);
+                                        let time = sampler.get_2d_at(BDPT_TIME_DIM).x;
+                                        (std::borrow::Cow::Owned(self.camera_at(time)), time)
+                                    }
+                                    None => (std::borrow::Cow::Borrowed(&self.camera), 0.0),
+                                };
+                                li_bdpt(
+                                    &self.scene,
+                                    &camera,
+                                    pixel,
+                                    s,
+                                    &mut sampler,
+                                    params,
+                                    &mut paths,
+                                    &mut |raster, v| splats.push((raster, v)),
+                                    time,
+                                )
+                            }
                             Integrator::Igi(params) => {
                                 sampler.start_pixel_sample(pixel, s, 0);
                                 match vpls.as_ref().and_then(|v| v.get((s - pass.s0) as usize)) {

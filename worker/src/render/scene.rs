@@ -454,8 +454,13 @@ impl RenderScene {
 
     /// Whether `p1` (normal `n1`) is visible from `p0` (normal `n0`).
     pub fn visible(&self, p0: Vec3A, n0: Vec3A, p1: Vec3A, n1: Option<Vec3A>) -> bool {
+        self.visible_at(p0, n0, p1, n1, 0.0)
+    }
+
+    /// [`Self::visible`] at shutter time `time`.
+    pub fn visible_at(&self, p0: Vec3A, n0: Vec3A, p1: Vec3A, n1: Option<Vec3A>, time: f32) -> bool {
         let (o, d, t_max) = shadow_segment(p0, n0, p1, n1);
-        !self.occluded_at(o, d, t_max, 0.0)
+        !self.occluded_at(o, d, t_max, time)
     }
 
     /// Emission-texture factor of an area light's triangle at barycentrics `b`.
@@ -524,7 +529,15 @@ impl RenderScene {
 
     /// Samples an emitted ray of light `index` (pbrt's `SampleLe`), emission texture applied.
     pub fn sample_le(&self, index: usize, u1: Vec2, u2: Vec2) -> Option<LightLeSample> {
-        let light = self.lights.get(index)?;
+        self.sample_le_at(index, u1, u2, 0.0)
+    }
+
+    /// [`Self::sample_le`] at shutter time `time` (a moving area light where it is then).
+    pub fn sample_le_at(&self, index: usize, u1: Vec2, u2: Vec2, time: f32) -> Option<LightLeSample> {
+        if index >= self.lights.len() {
+            return None;
+        }
+        let light = self.light_at(index, time);
         let mut s = light.sample_le(u1, u2, self.center)?;
         if let Light::Triangle { prim, .. } = *light {
             if self.has_alpha && !self.present(prim, s.b[1], s.b[2]) {
