@@ -27,6 +27,7 @@ impl LocalWorkers {
                 token: token.clone(),
                 threads,
                 cache_dir: cache_dir.to_path_buf(),
+                cache_max_bytes: 4 << 30,
                 name: format!("local-{i}"),
                 lease_wait: Duration::from_millis(500),
                 tags: pathfarm_worker::daemon::automatic_tags(),

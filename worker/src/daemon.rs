@@ -35,6 +35,10 @@ pub struct RunArgs {
     /// Where downloaded scenes are kept (default: a pathfarm folder in the system temp dir).
     #[arg(long)]
     pub cache_dir: Option<PathBuf>,
+    /// Most disk the scene cache may use, in MiB: least recently used scenes are removed beyond
+    /// it (never the one in use).
+    #[arg(long, env = "PATHFARM_CACHE_MAX_MB", default_value_t = 4096)]
+    pub cache_max_mb: u64,
     /// Name shown on the dashboard (default: host name and process id).
     #[arg(long)]
     pub name: Option<String>,
@@ -87,6 +91,8 @@ pub struct DaemonConfig {
     pub token: Option<String>,
     pub threads: usize,
     pub cache_dir: PathBuf,
+    /// Disk budget of the scene cache, in bytes (see [`prune_scene_cache`]).
+    pub cache_max_bytes: u64,
     pub name: String,
     /// Long-poll time of a lease request.
     pub lease_wait: Duration,
@@ -106,6 +112,7 @@ impl DaemonConfig {
             token: args.token,
             threads: threads.max(1),
             cache_dir: args.cache_dir.unwrap_or_else(|| std::env::temp_dir().join("pathfarm-worker-cache")),
+            cache_max_bytes: args.cache_max_mb.saturating_mul(1 << 20),
             name: args.name.unwrap_or_else(|| format!("{host}-{}", std::process::id())),
             lease_wait: Duration::from_secs(5),
             ca_cert: args.ca_cert,
@@ -488,7 +495,13 @@ impl Daemon {
         }
         let bundle_path = self.cfg.cache_dir.join(format!("{id}.bundle"));
         let bytes = match std::fs::read(&bundle_path) {
-            Ok(b) if scene_id(&b) == id => b,
+            Ok(b) if scene_id(&b) == id => {
+                // Used now: the cache evicts the least recently used scenes first.
+                if let Ok(f) = std::fs::File::options().append(true).open(&bundle_path) {
+                    let _ = f.set_modified(std::time::SystemTime::now());
+                }
+                b
+            }
             _ => {
                 let resp = self.auth(self.http.get(self.url(&format!("/scenes/{id}")))).send()?;
                 if !resp.status().is_success() {
@@ -500,6 +513,16 @@ impl Daemon {
                     bail!("downloaded scene does not hash to {id}");
                 }
                 pathfarm_common::film::write_atomic(&bundle_path, &b)?;
+                match prune_scene_cache(&self.cfg.cache_dir, id, self.cfg.cache_max_bytes) {
+                    Ok(removed) if !removed.is_empty() => {
+                        tracing::info!(
+                            removed = removed.len(),
+                            "scene cache over its budget: least recently used scenes removed"
+                        );
+                    }
+                    Ok(_) => {}
+                    Err(e) => tracing::warn!("pruning the scene cache: {e}"),
+                }
                 b
             }
         };
@@ -521,6 +544,45 @@ impl Daemon {
         self.scene = Some((id.to_string(), scene.clone(), folder.clone()));
         Ok((scene, folder))
     }
+}
+
+/// Keeps the scene cache in `dir` within `max_bytes`: each scene is its `ID.bundle` file plus its
+/// unpacked `ID/` folder; the least recently used (by the bundle's modification time, refreshed
+/// on use) go first, never `keep` (the scene being loaded). Returns the ids removed.
+pub fn prune_scene_cache(dir: &std::path::Path, keep: &str, max_bytes: u64) -> std::io::Result<Vec<String>> {
+    fn size(p: &std::path::Path) -> u64 {
+        match std::fs::symlink_metadata(p) {
+            Ok(m) if m.is_dir() => {
+                std::fs::read_dir(p).map(|d| d.flatten().map(|e| size(&e.path())).sum()).unwrap_or(0)
+            }
+            Ok(m) => m.len(),
+            Err(_) => 0,
+        }
+    }
+    let mut scenes = Vec::new();
+    for e in std::fs::read_dir(dir)?.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(id) = name.strip_suffix(".bundle").filter(|id| is_scene_id(id)) else { continue };
+        let used = e.metadata().and_then(|m| m.modified()).unwrap_or(std::time::UNIX_EPOCH);
+        let bytes = size(&e.path()) + size(&dir.join(id));
+        scenes.push((used, id.to_string(), bytes));
+    }
+    let mut total: u64 = scenes.iter().map(|s| s.2).sum();
+    scenes.sort();
+    let mut removed = Vec::new();
+    for (_, id, bytes) in scenes {
+        if total <= max_bytes {
+            break;
+        }
+        if id == keep {
+            continue;
+        }
+        let _ = std::fs::remove_dir_all(dir.join(&id));
+        std::fs::remove_file(dir.join(format!("{id}.bundle")))?;
+        total = total.saturating_sub(bytes);
+        removed.push(id);
+    }
+    Ok(removed)
 }
 
 /// Trusts the PEM certificate(s) in `ca_cert` (else in `PATHFARM_CA_CERT`, if set) as well as
@@ -567,6 +629,37 @@ mod tests {
     use pathfarm_common::job::RenderSettings;
     use pathfarm_common::scene::demo::cornell_demo_glb;
     use pathfarm_common::scene::load_scene_from_slice;
+
+    /// The scene cache keeps within its budget by removing the least recently used scenes
+    /// (bundle and unpacked folder), never the one being loaded, and leaves other files alone.
+    #[test]
+    fn the_scene_cache_drops_least_recently_used_scenes_beyond_its_budget() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let ids: Vec<String> = (0..4u8).map(|i| hex::encode([i; 32])).collect();
+        let t0 = std::time::SystemTime::now() - Duration::from_secs(1000);
+        for (i, id) in ids.iter().enumerate() {
+            let bundle = dir.path().join(format!("{id}.bundle"));
+            std::fs::write(&bundle, vec![0u8; 1000]).expect("bundle");
+            std::fs::create_dir_all(dir.path().join(id)).expect("folder");
+            std::fs::write(dir.path().join(id).join("scene.glb"), vec![0u8; 1000]).expect("scene");
+            // Scene 0 is the least recently used, scene 3 the most.
+            let f = std::fs::File::options().append(true).open(&bundle).expect("open");
+            f.set_modified(t0 + Duration::from_secs(10 * i as u64)).expect("mtime");
+        }
+        std::fs::write(dir.path().join("notes.txt"), b"not a scene").expect("other file");
+        // 8,000 bytes in all; a 5,000-byte budget removes two scenes, oldest first, but keeps
+        // scene 0 because it is being loaded.
+        let removed = prune_scene_cache(dir.path(), &ids[0], 5000).expect("prune");
+        assert_eq!(removed, vec![ids[1].clone(), ids[2].clone()]);
+        for (i, id) in ids.iter().enumerate() {
+            let kept = i == 0 || i == 3;
+            assert_eq!(dir.path().join(format!("{id}.bundle")).exists(), kept, "scene {i}");
+            assert_eq!(dir.path().join(id).exists(), kept, "scene {i}'s folder");
+        }
+        assert!(dir.path().join("notes.txt").exists());
+        // Within the budget nothing goes.
+        assert!(prune_scene_cache(dir.path(), &ids[3], 1 << 20).expect("prune").is_empty());
+    }
 
     /// A renderer is built once per (job, frame); two frames are kept; another job's are dropped.
     #[test]
