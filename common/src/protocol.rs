@@ -361,6 +361,10 @@ impl JobRequest {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct JobCreated {
     pub id: JobId,
+    /// What the job will look like that the submitter may not expect (also in the job's log),
+    /// e.g. a scene without lights and a job without an environment renders black.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// `GET /jobs/{id}`: a job's state and progress.

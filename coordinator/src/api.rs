@@ -376,6 +376,11 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
             format!("camera {cam} does not exist (the scene has {} cameras)", meta.cameras),
         ));
     }
+    let mut warnings = Vec::new();
+    if meta.warnings.iter().any(|w| w == pathfarm_common::scene::NO_LIGHT_WARNING) && req.settings.environment.is_none()
+    {
+        warnings.push(pathfarm_common::scene::DARK_JOB_WARNING.to_string());
+    }
     let id = {
         let mut farm = state.farm.lock();
         // Checked again under the farm lock: a DELETE of the scene (or its GC) holds it too.
@@ -396,6 +401,9 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
         };
         let id = farm.submit_job(spec, now_ms())?;
         farm.set_notify(id, req.notify)?;
+        for w in &warnings {
+            farm.log_job(id, format!("warning: {w}"));
+        }
         id
     };
     tracing::info!(job = id, "job submitted");
@@ -406,7 +414,10 @@ async fn create_job(State(state): State<Arc<AppState>>, body: Bytes) -> ApiResul
     }
     state.work_ready.notify_waiters();
     state.publish("job", id);
-    Ok((StatusCode::CREATED, Json(JobCreated { id })))
+    for w in &warnings {
+        tracing::warn!(job = id, "{w}");
+    }
+    Ok((StatusCode::CREATED, Json(JobCreated { id, warnings })))
 }
 
 #[utoipa::path(

@@ -55,8 +55,12 @@ impl Client {
     }
 
     pub fn submit(&self, job: &JobRequest) -> anyhow::Result<JobId> {
-        let created: JobCreated = self.req(self.http.post(self.url("/jobs")).json(&job.to_json()))?.json()?;
-        Ok(created.id)
+        Ok(self.submit_job(job)?.id)
+    }
+
+    /// `POST /jobs`: the new job's id and the coordinator's warnings about it.
+    pub fn submit_job(&self, job: &JobRequest) -> anyhow::Result<JobCreated> {
+        Ok(self.req(self.http.post(self.url("/jobs")).json(&job.to_json()))?.json()?)
     }
 
     pub fn job(&self, id: JobId) -> anyhow::Result<JobInfo> {

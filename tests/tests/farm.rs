@@ -405,3 +405,54 @@ fn previews_use_the_jobs_exposure_and_the_exr_keeps_radiance() {
     assert!(expected.abs() > 0.6, "the automatic part should matter here: {expected}");
     assert!(png.as_ref() == layers.encode_png(expected).expect("png").as_slice(), "the PNG is not that exposure");
 }
+
+/// A scene without lights: a job without an environment is accepted with a warning (in the 201
+/// answer and the job's log) that it renders black; with a constant environment there is none.
+#[test]
+fn a_dark_job_is_warned_about() {
+    use pathfarm_common::scene::demo::{GltfBuilder, lambert};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let client = Client::new(&coord.url, None).expect("client");
+    let mut b = GltfBuilder::new();
+    let grey = b.material(lambert("grey", glam::Vec3::splat(0.5)));
+    let v = glam::Vec3::new;
+    pathfarm_common::scene::demo::quad(
+        &mut b,
+        "floor",
+        [v(-1.0, 0.0, 1.0), v(1.0, 0.0, 1.0), v(1.0, 0.0, -1.0), v(-1.0, 0.0, -1.0)],
+        grey,
+    );
+    let created = client.upload_scene(b.to_glb()).expect("upload");
+    let submit = |environment: Option<serde_json::Value>| -> serde_json::Value {
+        let mut body = JobRequest {
+            scene_id: created.scene_id.clone(),
+            name: None,
+            priority: 0,
+            requires: Vec::new(),
+            notify: None,
+            frames: None,
+            order: Default::default(),
+            settings: settings(16, 16, 1, 16),
+        }
+        .to_json();
+        if let Some(e) = environment {
+            body["environment"] = e;
+        }
+        let resp = reqwest::blocking::Client::new()
+            .post(format!("{}{API}/jobs", coord.url))
+            .json(&body)
+            .send()
+            .expect("submit");
+        assert_eq!(resp.status().as_u16(), 201);
+        resp.json().expect("json")
+    };
+    let dark = submit(None);
+    let warning = pathfarm_common::scene::DARK_JOB_WARNING;
+    assert_eq!(dark["warnings"], serde_json::json!([warning]), "{dark}");
+    let id = dark["id"].as_u64().expect("id");
+    let log = reqwest::blocking::get(format!("{}{API}/jobs/{id}/log", coord.url)).expect("log").text().expect("text");
+    assert!(log.contains(warning), "{log}");
+    let lit = submit(Some(serde_json::json!({"color": [1.0, 1.0, 1.0]})));
+    assert!(lit.get("warnings").is_none(), "{lit}");
+}

@@ -222,6 +222,10 @@ pub struct PunctualLight {
 }
 
 /// The loader's warning for a scene in which nothing emits light (see [`Scene::has_emitters`]).
+/// A job's warning when its scene has no light ([`NO_LIGHT_WARNING`]) and it sets no environment.
+pub const DARK_JOB_WARNING: &str =
+    "the scene has no lights or emissive materials and the job sets no environment: every pixel will be black";
+
 pub const NO_LIGHT_WARNING: &str =
     "the scene has no lights or emissive materials: it renders black unless the job sets an environment";
 

@@ -126,7 +126,11 @@ fn main() -> anyhow::Result<()> {
                 notify: None,
                 settings,
             };
-            let id = client.submit(&job)?;
+            let created = client.submit_job(&job)?;
+            for w in &created.warnings {
+                eprintln!("job warning: {w}");
+            }
+            let id = created.id;
             writeln!(stdout, "{id}")?;
             if wait {
                 let info = client.wait(id, true)?;
