@@ -270,7 +270,13 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     for w in &scene.warnings {
         tracing::warn!(scene = %args.scene.display(), "{w}");
     }
-    let Some(frames) = frames else { return render_frame(&args, &scene, &settings, &args.out, args.png.as_deref()) };
+    // The job's environment image (if it names one) is decoded once for every frame.
+    let folder = args.scene.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let environment = load_job_environment(folder, &settings, &LoadOptions::default())?;
+    let env = environment.as_ref();
+    let Some(frames) = frames else {
+        return render_frame(&args, &scene, &settings, env, &args.out, args.png.as_deref());
+    };
     let (out, png) =
         (args.out.to_string_lossy().into_owned(), args.png.as_ref().map(|p| p.to_string_lossy().into_owned()));
     for &frame in frames.frames() {
@@ -281,7 +287,7 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
         if let Some(dir) = exr.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         }
-        render_frame(&args, &scene, &settings, &exr, png.as_deref()).with_context(|| format!("frame {frame}"))?;
+        render_frame(&args, &scene, &settings, env, &exr, png.as_deref()).with_context(|| format!("frame {frame}"))?;
     }
     Ok(())
 }
@@ -291,13 +297,12 @@ fn render_frame(
     args: &RenderArgs,
     scene: &pathfarm_common::scene::Scene,
     settings: &RenderSettings,
+    environment: Option<&pathfarm_common::scene::EnvironmentImage>,
     out: &Path,
     png: Option<&Path>,
 ) -> anyhow::Result<()> {
     let t0 = Instant::now();
-    let folder = args.scene.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let environment = load_job_environment(folder, settings, &LoadOptions::default())?;
-    let renderer = Renderer::with_environment(scene, settings, environment)?;
+    let renderer = Renderer::with_environment(scene, settings, environment.cloned())?;
     let prep = t0.elapsed();
     let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
     bar.set_style(
