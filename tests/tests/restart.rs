@@ -11,6 +11,21 @@ use pathfarm_coordinator::client::Client;
 use std::time::{Duration, Instant};
 use support::*;
 
+/// Path tracing in 32-px tiles and 16-spp passes: units long enough for kills to land inside.
+fn settings(width: u32, height: u32, spp: u32, seed: u64) -> RenderSettings {
+    let mut s = RenderSettings::new(width, height, spp);
+    s.seed = seed;
+    s.tile_size = 32;
+    s.passes = PassSchedule::Fixed { spp: 16 };
+    s.integrator = IntegratorSettings::Path {
+        max_depth: 5,
+        rr_depth: 3,
+        mis: MisHeuristic::Power,
+        light_sampling: LightSampling::SolidAngle,
+    };
+    s
+}
+
 #[test]
 fn a_job_survives_repeated_coordinator_kills() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -20,16 +35,7 @@ fn a_job_survives_repeated_coordinator_kills() {
     let addr = coord.url.trim_start_matches("http://").to_string();
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_demo_glb();
-    let mut s = RenderSettings::new(96, 96, 192);
-    s.seed = 3;
-    s.tile_size = 32;
-    s.passes = PassSchedule::Fixed { spp: 16 };
-    s.integrator = IntegratorSettings::Path {
-        max_depth: 5,
-        rr_depth: 3,
-        mis: MisHeuristic::Power,
-        light_sampling: LightSampling::SolidAngle,
-    };
+    let s = settings(96, 96, 192, 3);
     let created = client.upload_scene(scene.clone()).expect("upload");
     let id = client
         .submit(&JobRequest {
@@ -141,16 +147,7 @@ fn a_sequence_resumes_its_frames_after_a_coordinator_kill() {
     let addr = coord.url.trim_start_matches("http://").to_string();
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_demo_glb();
-    let mut s = RenderSettings::new(96, 64, 128);
-    s.seed = 5;
-    s.tile_size = 32;
-    s.passes = PassSchedule::Fixed { spp: 16 };
-    s.integrator = IntegratorSettings::Path {
-        max_depth: 5,
-        rr_depth: 3,
-        mis: MisHeuristic::Power,
-        light_sampling: LightSampling::SolidAngle,
-    };
+    let s = settings(96, 64, 128, 5);
     let created = client.upload_scene(scene.clone()).expect("upload");
     let id = client
         .submit(&JobRequest {

@@ -21,15 +21,6 @@ import argparse
 import os
 import subprocess
 
-
-def worker_env():
-    """The environment for pathfarm-worker processes: the library path its OIDN needs, which the
-    test runner keeps out of this Python (bpy's SYCL runtime must not see it)."""
-    env = dict(os.environ)
-    if os.environ.get("PATHFARM_WORKER_LD_LIBRARY_PATH"):
-        env["LD_LIBRARY_PATH"] = os.environ["PATHFARM_WORKER_LD_LIBRARY_PATH"]
-    return env
-
 import sys
 import tempfile
 import zipfile
@@ -63,7 +54,7 @@ def install_addon(tmp):
 
 def renders_frames(worker):
     """Whether this `pathfarm-worker render` takes `--frame` (glTF animation)."""
-    out = subprocess.run([worker, "render", "--help"], check=True, capture_output=True, text=True, env=worker_env()).stdout
+    out = subprocess.run([worker, "render", "--help"], check=True, capture_output=True, text=True, env=testscene.worker_env()).stdout
     return "--frame" in out
 
 
@@ -72,7 +63,7 @@ def local_render(worker, glb, out, frame):
     cmd += ["--integrator", "path", "--max-depth", "6", "--threads", "1", "--out", out]
     if frame is not None and renders_frames(worker):
         cmd += ["--frame", str(frame), "--fps", "24"]
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=worker_env())
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=testscene.worker_env())
     with open(out, "rb") as f:
         return f.read()
 

@@ -16,15 +16,6 @@ import json
 import os
 import subprocess
 
-
-def worker_env():
-    """The environment for pathfarm-worker processes: the library path its OIDN needs, which the
-    test runner keeps out of this Python (bpy's SYCL runtime must not see it)."""
-    env = dict(os.environ)
-    if os.environ.get("PATHFARM_WORKER_LD_LIBRARY_PATH"):
-        env["LD_LIBRARY_PATH"] = os.environ["PATHFARM_WORKER_LD_LIBRARY_PATH"]
-    return env
-
 import sys
 import time
 
@@ -124,7 +115,7 @@ def render_cycles(path, size, spp, threads):
 def render_pathfarm(worker, glb, exr, size, spp, threads):
     cmd = [worker, "render", glb, "--width", str(size), "--height", str(size), "--spp", str(spp)]
     cmd += ["--integrator", "path", "--max-depth", str(BOUNCES + 1), "--threads", str(threads), "--out", exr]
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=worker_env())
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=testscene.worker_env())
     return read_rgb(exr)
 
 

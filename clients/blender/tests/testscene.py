@@ -10,11 +10,21 @@ light is what the glTF export carries.
 """
 
 import math
+import os
 
 import bmesh
 import bpy
 
 LIGHTS = ("point", "sun", "panel")
+
+
+def worker_env():
+    """The environment for pathfarm-worker processes: the library path its OIDN needs, which the
+    test runner keeps out of this Python (bpy's SYCL runtime must not see it)."""
+    env = dict(os.environ)
+    if os.environ.get("PATHFARM_WORKER_LD_LIBRARY_PATH"):
+        env["LD_LIBRARY_PATH"] = os.environ["PATHFARM_WORKER_LD_LIBRARY_PATH"]
+    return env
 
 
 def reset():
