@@ -1,54 +1,96 @@
-//! The film: per-pixel sums in exact fixed point, their merge, and EXR / PNG encoding.
+//! The film: per-pixel sums, their merge, and EXR / PNG encoding.
 //!
-//! Every sample's contribution is rounded once to a 96.32 fixed-point number ([`Fixed`]).
-//! Integer addition is associative and commutative, so the sum over a pixel's samples is the
-//! same bits however the samples were split into tiles, passes, workers or threads, and in
-//! whatever order the parts arrive. That is what makes the farm's image bit-identical to a local
-//! render (DESIGN.md, "Work units and the merge"). The rounding error is 2^-33 per sample,
-//! far below f32 precision for any visible value.
+//! A pixel is a [`PixelSums`] of 64 bytes (asserted by a test from the type's size), so a film
+//! costs 64 bytes per pixel, BDPT's light-tracing splats included: 506 MiB for 3840 x 2160
+//! ([`Film::bytes_for`]). Two kinds of channels, with two different guarantees:
+//!
+//! * **Exact channels** (radiance RGB, camera-sample luminance, squared luminance, sample weight
+//!   and hit count) are unsigned integers. Every sample's radiance is clamped to
+//!   `[0, `[`MAX_SAMPLE_VALUE`]`]` and rounded once to a fixed-point number with [`FRAC_BITS`]
+//!   fractional bits (squared luminance: [`LUM_SQ_FRAC_BITS`]); sums are saturating unsigned
+//!   additions. Saturating addition of non-negative integers is `min(sum, MAX)`, which is
+//!   associative and commutative, so a pixel's sums are the same bits however its samples were
+//!   split into tiles, passes, workers or threads and in whatever order the parts arrive. The
+//!   bound: one pixel's camera samples add at most `max_spp * MAX_SAMPLE_VALUE * 2^FRAC_BITS =
+//!   2^20 * 2^19 * 2^24 = 2^63 < 2^64` (Limits' default `max_spp` is 2^20; a larger limit is
+//!   refused by [`check_spp_bound`]), so radiance never saturates from camera samples; only
+//!   BDPT splats (whose count per pixel is not bounded by the pixel's samples) or squared
+//!   luminance (`lum^2` of very bright samples) can reach `u64::MAX`, where the sum stays
+//!   (never wraps) and [`Film::resolve`] reports it: radiance as the saturated value, the
+//!   variance layer as `+inf`, and [`Film::saturated_pixels`] counts them.
+//!   One sample's rounding is at most 2^-25 absolute (3e-8), so a mean's error is at most
+//!   2^-25: below an 8-bit display step (1/255 / 12.92 = 3e-4 linear, the sRGB step at black)
+//!   by four orders of magnitude and below f32's resolution for every value above 0.5.
+//! * **AOV channels** (albedo, normal, depth) are per-pixel means: albedo as 16-bit unsigned
+//!   fixed point (2^-15, range [0, 2)), the normal as 16-bit signed normalized (1/32767, range
+//!   [-1, 1]), depth (over the samples that hit) as f32. A mean is merged with another by their
+//!   weights in f64 and rounded once; that is commutative but not associative, so the AOVs are the same
+//!   bits only when the parts are folded in the same order. The renderer accumulates a unit's
+//!   samples in f64 in sample order ([`PixelAccum`]), and both the farm and a local render fold
+//!   each tile's passes in pass order (the coordinator holds a pass that arrives early until the
+//!   tile's earlier passes are merged: DESIGN.md, "Work units and the merge"), so the AOVs are
+//!   bit-identical too. Their error is half a step (1.5e-5) per merge; they guide the denoiser
+//!   and need no more.
+//!
+//! BDPT's light-tracing splats (t = 1) land on any pixel. They are added into the same radiance
+//! sums as the camera samples (exact, order-independent) when the unit that traced them is
+//! merged, and divided by the pixel's sample weight like the camera samples: once every pixel
+//! has all its samples (the finished image) that is the light-path count per pixel, pbrt's
+//! divisor. A preview while tiles are at different passes divides some splats by a slightly
+//! different count; the finished image is exact. The camera samples' own luminance sum is kept
+//! apart (`lum`), so the variance layer stays the camera samples' variance.
 
 use crate::job::TileRect;
 use std::path::Path;
 
-/// A fixed-point sum with [`FRAC_BITS`] fractional bits.
-pub type Fixed = i128;
+/// A fixed-point sum: an unsigned integer in units of 2^-[`FRAC_BITS`] (squared luminance:
+/// 2^-[`LUM_SQ_FRAC_BITS`]).
+pub type Fixed = u64;
 
-/// Fractional bits of [`Fixed`].
-pub const FRAC_BITS: u32 = 32;
+/// Fractional bits of the radiance and luminance sums.
+pub const FRAC_BITS: u32 = 24;
+/// Fractional bits of the squared-luminance sum.
+pub const LUM_SQ_FRAC_BITS: u32 = 20;
 const SCALE: f64 = (1u64 << FRAC_BITS) as f64;
+const LUM_SQ_SCALE: f64 = (1u64 << LUM_SQ_FRAC_BITS) as f64;
 
-/// Converts one sample value to fixed point. Non-finite values become 0 (the caller counts them).
-#[inline]
-pub fn to_fixed(v: f32) -> Fixed {
-    if v.is_finite() { (f64::from(v) * SCALE).round() as Fixed } else { 0 }
+/// The largest value one sample (or one splat) adds to a radiance channel; larger ones are
+/// clamped to it, negative ones to 0.
+pub const MAX_SAMPLE_VALUE: f32 = (1u32 << 19) as f32;
+
+/// The most samples per pixel whose radiance sums cannot saturate:
+/// `2^64 / (MAX_SAMPLE_VALUE * 2^FRAC_BITS) = 2^21` (with a factor 2 of margin: 2^20).
+pub const MAX_EXACT_SPP: u32 = 1 << 20;
+
+/// Refuses a per-pixel sample count the exact channels are not sized for (a `Limits` with a
+/// larger `max_spp` than [`MAX_EXACT_SPP`]).
+pub fn check_spp_bound(spp: u32) -> Result<(), String> {
+    if spp > MAX_EXACT_SPP {
+        return Err(format!(
+            "spp {spp} exceeds {MAX_EXACT_SPP}, the most samples per pixel whose fixed-point sums cannot overflow"
+        ));
+    }
+    Ok(())
 }
 
-/// Converts a fixed-point sum back to a float.
+/// Converts one sample value to fixed point with `frac` fractional bits: clamped to
+/// `[0, MAX_SAMPLE_VALUE]` (squared luminance: `[0, MAX_SAMPLE_VALUE^2]`); non-finite values
+/// become 0 (the caller counts them).
+#[inline]
+fn quantize(v: f32, scale: f64, max: f64) -> Fixed {
+    if v.is_finite() && v > 0.0 { (f64::from(v).min(max) * scale).round() as Fixed } else { 0 }
+}
+
+/// Converts one radiance sample value to fixed point (see [`quantize`]'s clamping).
+#[inline]
+pub fn to_fixed(v: f32) -> Fixed {
+    quantize(v, SCALE, f64::from(MAX_SAMPLE_VALUE))
+}
+
+/// Converts a radiance or luminance fixed-point sum back to a float.
 #[inline]
 pub fn from_fixed(v: Fixed) -> f64 {
     v as f64 / SCALE
-}
-
-/// Channels of a pixel's sums.
-pub mod ch {
-    pub const R: usize = 0;
-    pub const G: usize = 1;
-    pub const B: usize = 2;
-    /// Sum of squared luminance of the radiance samples (for `variance.Y`).
-    pub const LUM_SQ: usize = 3;
-    pub const ALBEDO_R: usize = 4;
-    pub const ALBEDO_G: usize = 5;
-    pub const ALBEDO_B: usize = 6;
-    pub const NORMAL_X: usize = 7;
-    pub const NORMAL_Y: usize = 8;
-    pub const NORMAL_Z: usize = 9;
-    /// Sum of first-hit distances over the samples that hit something.
-    pub const DEPTH: usize = 10;
-    /// Number of samples that hit something.
-    pub const HITS: usize = 11;
-    /// Sample weight (box filter: 1 per sample).
-    pub const WEIGHT: usize = 12;
-    pub const COUNT: usize = 13;
 }
 
 /// What one camera sample contributes to its pixel.
@@ -67,66 +109,293 @@ pub fn luminance(rgb: [f32; 3]) -> f32 {
     0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
 }
 
-/// Sums of a rectangle of pixels, channel-interleaved (`pixel * ch::COUNT + channel`).
+/// One pixel's sums: 64 bytes. The integer fields are exact sums (see the module doc); the
+/// AOVs are means in fixed point (depth: `f32` bits, so that equality is bitwise).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct PixelSums {
+    /// Radiance sums (camera samples and BDPT splats), units of 2^-[`FRAC_BITS`].
+    pub rgb: [Fixed; 3],
+    /// Luminance sum of the camera samples (no splats), units of 2^-[`FRAC_BITS`].
+    pub lum: Fixed,
+    /// Sum of the camera samples' squared luminance, units of 2^-[`LUM_SQ_FRAC_BITS`].
+    pub lum_sq: Fixed,
+    /// Sample weight (box filter: 1 per sample).
+    pub weight: u32,
+    /// Samples that hit something.
+    pub hits: u32,
+    /// Mean first-hit distance over the `hits` samples (`f32` bits; 0 without hits).
+    pub depth: u32,
+    /// Mean albedo over the `weight` samples, units of 2^-15 (`[0, 2)`).
+    pub albedo: [u16; 3],
+    /// Mean shading normal over the `weight` samples, units of 1/32767 (`[-1, 1]`; not
+    /// renormalized).
+    pub normal: [i16; 3],
+}
+
+/// Bytes of one pixel in a film, a tile accumulator and on the wire.
+pub const PIXEL_BYTES: usize = std::mem::size_of::<PixelSums>();
+
+const _: () = assert!(PIXEL_BYTES == 64);
+
+const ALBEDO_SCALE: f64 = (1u32 << 15) as f64;
+const NORMAL_SCALE: f64 = i16::MAX as f64;
+
+/// An albedo mean to its fixed point (clamped to the range; NaN to 0).
+#[inline]
+fn albedo_code(v: f64) -> u16 {
+    // Truncation of a non-negative number + 0.5 rounds (and is fast: no libm call).
+    ((v * ALBEDO_SCALE).clamp(0.0, f64::from(u16::MAX)) + 0.5) as u16
+}
+
+/// A normal component mean to its fixed point (clamped to [-1, 1]; NaN to 0).
+#[inline]
+fn normal_code(v: f64) -> i16 {
+    let c = (v * NORMAL_SCALE).clamp(-NORMAL_SCALE, NORMAL_SCALE);
+    ((c + NORMAL_SCALE + 0.5) as i32 - i16::MAX as i32) as i16
+}
+
+/// Weighted mean of two means in f64 (`inv` = 1 / (wa + wb)): commutative, as IEEE addition
+/// and multiplication are.
+#[inline]
+fn blend(a: f64, wa: f64, b: f64, wb: f64, inv: f64) -> f64 {
+    (a * wa + b * wb) * inv
+}
+
+impl PixelSums {
+    /// The sums of one sample.
+    pub fn from_sample(s: &SampleValue) -> Self {
+        let mut a = PixelAccum::default();
+        a.add(s);
+        a.finish()
+    }
+
+    /// Adds `other` (see the module doc: exact channels in any order, AOVs in canonical order).
+    #[inline]
+    pub fn merge(&mut self, o: &PixelSums) {
+        for c in 0..3 {
+            self.rgb[c] = self.rgb[c].saturating_add(o.rgb[c]);
+        }
+        self.lum = self.lum.saturating_add(o.lum);
+        self.lum_sq = self.lum_sq.saturating_add(o.lum_sq);
+        if o.weight > 0 {
+            if self.weight == 0 {
+                self.albedo = o.albedo;
+                self.normal = o.normal;
+            } else {
+                let (wa, wb) = (f64::from(self.weight), f64::from(o.weight));
+                let inv = 1.0 / (wa + wb);
+                for c in 0..3 {
+                    let a = blend(f64::from(self.albedo[c]), wa, f64::from(o.albedo[c]), wb, inv);
+                    self.albedo[c] = (a + 0.5) as u16;
+                    let n = blend(f64::from(self.normal[c]), wa, f64::from(o.normal[c]), wb, inv);
+                    self.normal[c] = normal_code(n / NORMAL_SCALE);
+                }
+            }
+        }
+        if o.hits > 0 {
+            if self.hits == 0 {
+                self.depth = o.depth;
+            } else {
+                let (ha, hb) = (f64::from(self.hits), f64::from(o.hits));
+                let (da, db) = (f64::from(f32::from_bits(self.depth)), f64::from(f32::from_bits(o.depth)));
+                let d = blend(da, ha, db, hb, 1.0 / (ha + hb));
+                self.depth = (d as f32).to_bits();
+            }
+        }
+        self.weight = self.weight.saturating_add(o.weight);
+        self.hits = self.hits.saturating_add(o.hits);
+    }
+
+    /// Sample weight.
+    pub fn weight(&self) -> f64 {
+        f64::from(self.weight)
+    }
+
+    /// Radiance sums (camera samples and splats).
+    pub fn radiance_sum(&self) -> [f64; 3] {
+        self.rgb.map(from_fixed)
+    }
+
+    /// Sum of the camera samples' luminance.
+    pub fn luminance_sum(&self) -> f64 {
+        from_fixed(self.lum)
+    }
+
+    /// Sum of the camera samples' squared luminance (`+inf` once saturated).
+    pub fn luminance_sq_sum(&self) -> f64 {
+        if self.lum_sq == Fixed::MAX { f64::INFINITY } else { self.lum_sq as f64 / LUM_SQ_SCALE }
+    }
+
+    /// Mean albedo.
+    pub fn albedo(&self) -> [f32; 3] {
+        self.albedo.map(|v| (f64::from(v) / ALBEDO_SCALE) as f32)
+    }
+
+    /// Mean normal.
+    pub fn normal(&self) -> [f32; 3] {
+        self.normal.map(|v| (f64::from(v) / NORMAL_SCALE) as f32)
+    }
+
+    /// Mean first-hit distance, `+inf` without hits.
+    pub fn depth(&self) -> f32 {
+        if self.hits > 0 { f32::from_bits(self.depth) } else { f32::INFINITY }
+    }
+
+    /// A radiance or luminance sum reached `u64::MAX` (splats or squared luminance).
+    pub fn is_saturated(&self) -> bool {
+        self.rgb.contains(&Fixed::MAX) || self.lum == Fixed::MAX || self.lum_sq == Fixed::MAX
+    }
+
+    /// Variance of the pixel mean's luminance (sample variance / n) from the camera samples;
+    /// `+inf` when the squared sum saturated, 0 below two samples.
+    pub fn variance_of_mean(&self) -> f64 {
+        let w = self.weight();
+        if w <= 1.0 {
+            return 0.0;
+        }
+        let sq = self.luminance_sq_sum();
+        if sq.is_infinite() {
+            return f64::INFINITY;
+        }
+        let mean = self.luminance_sum() / w;
+        ((sq / w - mean * mean).max(0.0) * w / (w - 1.0)) / w
+    }
+
+    /// The encoded little-endian bytes of this pixel (the wire and checkpoint layout: the
+    /// fields in declaration order).
+    #[inline]
+    pub fn write_le(&self, out: &mut [u8; PIXEL_BYTES]) {
+        let mut o = 0;
+        let mut put = |b: &[u8]| {
+            out[o..o + b.len()].copy_from_slice(b);
+            o += b.len();
+        };
+        for v in self.rgb {
+            put(&v.to_le_bytes());
+        }
+        put(&self.lum.to_le_bytes());
+        put(&self.lum_sq.to_le_bytes());
+        put(&self.weight.to_le_bytes());
+        put(&self.hits.to_le_bytes());
+        put(&self.depth.to_le_bytes());
+        for v in self.albedo {
+            put(&v.to_le_bytes());
+        }
+        for v in self.normal {
+            put(&v.to_le_bytes());
+        }
+    }
+
+    /// Parses [`write_le`](Self::write_le)'s layout. Any 64 bytes are some pixel (a hostile body
+    /// can give nonsense sums, never a panic).
+    #[inline]
+    pub fn read_le(b: &[u8; PIXEL_BYTES]) -> Self {
+        let u64_at = |i: usize| u64::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3], b[i + 4], b[i + 5], b[i + 6], b[i + 7]]);
+        let u32_at = |i: usize| u32::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
+        let u16_at = |i: usize| u16::from_le_bytes([b[i], b[i + 1]]);
+        Self {
+            rgb: [u64_at(0), u64_at(8), u64_at(16)],
+            lum: u64_at(24),
+            lum_sq: u64_at(32),
+            weight: u32_at(40),
+            hits: u32_at(44),
+            depth: u32_at(48),
+            albedo: [u16_at(52), u16_at(54), u16_at(56)],
+            normal: [u16_at(58), u16_at(60), u16_at(62)].map(|v| v as i16),
+        }
+    }
+}
+
+/// A pixel's samples of one unit as the renderer accumulates them: the exact channels as in
+/// [`PixelSums`], the AOVs as f64 sums (so that thousands of samples lose nothing), rounded to
+/// means once by [`finish`](Self::finish).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PixelAccum {
+    exact: PixelSums,
+    albedo: [f64; 3],
+    normal: [f64; 3],
+    depth: f64,
+}
+
+impl PixelAccum {
+    /// Adds one sample (radiance clamped and rounded as [`to_fixed`] says).
+    #[inline]
+    pub fn add(&mut self, s: &SampleValue) {
+        let rgb = s.radiance.map(|v| if v.is_finite() { v.clamp(0.0, MAX_SAMPLE_VALUE) } else { 0.0 });
+        let lum = luminance(rgb);
+        let e = &mut self.exact;
+        for c in 0..3 {
+            e.rgb[c] = e.rgb[c].saturating_add(to_fixed(rgb[c]));
+        }
+        e.lum = e.lum.saturating_add(to_fixed(lum));
+        e.lum_sq = e.lum_sq.saturating_add(quantize(lum * lum, LUM_SQ_SCALE, f64::MAX));
+        for c in 0..3 {
+            self.albedo[c] += f64::from(s.albedo[c]);
+            self.normal[c] += f64::from(s.normal[c]);
+        }
+        if let Some(d) = s.depth {
+            self.depth += f64::from(d);
+            e.hits = e.hits.saturating_add(1);
+        }
+        e.weight = e.weight.saturating_add(1);
+    }
+
+    /// The pixel's sums, AOVs as means.
+    pub fn finish(&self) -> PixelSums {
+        let mut p = self.exact;
+        if p.weight > 0 {
+            let w = f64::from(p.weight);
+            p.albedo = self.albedo.map(|v| albedo_code(v / w));
+            p.normal = self.normal.map(|v| normal_code(v / w));
+        }
+        if p.hits > 0 {
+            p.depth = ((self.depth / f64::from(p.hits)) as f32).to_bits();
+        }
+        p
+    }
+}
+
+/// Adds one sample to a pixel's sums (as a one-sample part: for tests and one-off use; the
+/// renderer accumulates a unit in [`PixelAccum`]).
+#[inline]
+pub fn add_sample(pixel: &mut PixelSums, s: &SampleValue) {
+    pixel.merge(&PixelSums::from_sample(s));
+}
+
+/// Sums of a rectangle of pixels, row-major.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TileAccum {
     pub rect: TileRect,
-    pub sums: Vec<Fixed>,
+    pub sums: Vec<PixelSums>,
 }
 
 impl TileAccum {
     pub fn new(rect: TileRect) -> Self {
-        Self { rect, sums: vec![0; rect.pixel_count() * ch::COUNT] }
+        Self { rect, sums: vec![PixelSums::default(); rect.pixel_count()] }
     }
 
     /// The sums of pixel `(x, y)` in tile-local coordinates.
-    pub fn pixel_mut(&mut self, x: u32, y: u32) -> &mut [Fixed] {
-        let i = (y * self.rect.width() + x) as usize * ch::COUNT;
-        &mut self.sums[i..i + ch::COUNT]
+    pub fn pixel_mut(&mut self, x: u32, y: u32) -> &mut PixelSums {
+        &mut self.sums[(y * self.rect.width() + x) as usize]
     }
 
     /// Adds another accumulator of the same rectangle.
     pub fn merge(&mut self, other: &TileAccum) {
         assert_eq!(self.rect, other.rect, "merging tiles of different rectangles");
         for (a, b) in self.sums.iter_mut().zip(&other.sums) {
-            *a = a.wrapping_add(*b);
+            a.merge(b);
         }
     }
 }
 
-/// Adds one sample to a pixel's sums.
-#[inline]
-pub fn add_sample(pixel: &mut [Fixed], s: &SampleValue) {
-    let lum = luminance(s.radiance);
-    let vals = [
-        s.radiance[0],
-        s.radiance[1],
-        s.radiance[2],
-        lum * lum,
-        s.albedo[0],
-        s.albedo[1],
-        s.albedo[2],
-        s.normal[0],
-        s.normal[1],
-        s.normal[2],
-    ];
-    for (p, v) in pixel.iter_mut().zip(vals) {
-        *p = p.wrapping_add(to_fixed(v));
-    }
-    if let Some(d) = s.depth {
-        pixel[ch::DEPTH] = pixel[ch::DEPTH].wrapping_add(to_fixed(d));
-        pixel[ch::HITS] = pixel[ch::HITS].wrapping_add(to_fixed(1.0));
-    }
-    pixel[ch::WEIGHT] = pixel[ch::WEIGHT].wrapping_add(to_fixed(1.0));
-}
-
-/// Full-frame RGB sums of light-tracing splats (BDPT `t = 1`), divided by the sample count at
-/// resolve time.
+/// Full-frame RGB sums of light-tracing splats (BDPT `t = 1`) of one unit, on their way to a
+/// film's radiance sums ([`Film::add_splats`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct SplatBuffer {
     pub width: u32,
     pub height: u32,
-    /// `(y * width + x) * 3 + c`.
+    /// `(y * width + x) * 3 + c`, units of 2^-[`FRAC_BITS`].
     pub sums: Vec<Fixed>,
 }
 
@@ -135,12 +404,13 @@ impl SplatBuffer {
         Self { width, height, sums: vec![0; width as usize * height as usize * 3] }
     }
 
+    /// Adds a splat (each channel clamped as [`to_fixed`] says; the sum saturates).
     #[inline]
     pub fn add(&mut self, x: u32, y: u32, rgb: [f32; 3]) {
         if x < self.width && y < self.height {
             let i = (y as usize * self.width as usize + x as usize) * 3;
             for (sum, v) in self.sums[i..i + 3].iter_mut().zip(rgb) {
-                *sum = sum.wrapping_add(to_fixed(v));
+                *sum = sum.saturating_add(to_fixed(v));
             }
         }
     }
@@ -148,7 +418,7 @@ impl SplatBuffer {
     pub fn merge(&mut self, other: &SplatBuffer) {
         assert_eq!((self.width, self.height), (other.width, other.height), "splat buffer size");
         for (a, b) in self.sums.iter_mut().zip(&other.sums) {
-            *a = a.wrapping_add(*b);
+            *a = a.saturating_add(*b);
         }
     }
 
@@ -162,12 +432,9 @@ impl SplatBuffer {
 pub struct Film {
     pub width: u32,
     pub height: u32,
-    pub sums: Vec<Fixed>,
-    pub splats: SplatBuffer,
-    /// Samples per pixel that the splats are divided by (the pass-complete sample count).
-    pub splat_spp: u32,
+    /// Row-major.
+    pub sums: Vec<PixelSums>,
 }
-
 /// How previews (PNG) are exposed: `ev` stops, added to the automatic exposure when `auto`.
 /// From a job's `exposure` and `auto_exposure`; the EXR is never affected.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -198,32 +465,38 @@ pub struct ImageLayers {
     pub denoised: Option<Vec<[f32; 3]>>,
 }
 
+
 impl Film {
-    /// Bytes a film of this size holds: the channel sums and the splat sums, 128 bits each.
+    /// Bytes a film of this size holds: [`PIXEL_BYTES`] per pixel, splats included.
     pub fn bytes_for(width: u32, height: u32) -> u64 {
-        u64::from(width) * u64::from(height) * (ch::COUNT as u64 + 3) * std::mem::size_of::<Fixed>() as u64
+        u64::from(width) * u64::from(height) * PIXEL_BYTES as u64
     }
 
     pub fn new(width: u32, height: u32) -> Self {
-        Self {
-            width,
-            height,
-            sums: vec![0; width as usize * height as usize * ch::COUNT],
-            splats: SplatBuffer::new(width, height),
-            splat_spp: 0,
-        }
+        Self { width, height, sums: vec![PixelSums::default(); width as usize * height as usize] }
     }
 
-    /// Adds a tile's sums (any order: the sums are exact).
+    /// Adds a tile's sums. The exact channels in any order; the AOV means are bit-identical
+    /// when every tile's passes are added in pass order (module doc).
     pub fn add_tile(&mut self, tile: &TileAccum) {
         let r = tile.rect;
         assert!(r.x1 <= self.width && r.y1 <= self.height, "tile outside the film");
-        let row = r.width() as usize * ch::COUNT;
+        let row = r.width() as usize;
         for y in r.y0..r.y1 {
             let src = (y - r.y0) as usize * row;
-            let dst = (y as usize * self.width as usize + r.x0 as usize) * ch::COUNT;
+            let dst = y as usize * self.width as usize + r.x0 as usize;
             for (a, b) in self.sums[dst..dst + row].iter_mut().zip(&tile.sums[src..src + row]) {
-                *a = a.wrapping_add(*b);
+                a.merge(b);
+            }
+        }
+    }
+
+    /// Adds a unit's light-tracing splats to the radiance sums (exact, any order).
+    pub fn add_splats(&mut self, splats: &SplatBuffer) {
+        assert_eq!((self.width, self.height), (splats.width, splats.height), "splat buffer size");
+        for (p, s) in self.sums.iter_mut().zip(splats.sums.chunks_exact(3)) {
+            for c in 0..3 {
+                p.rgb[c] = p.rgb[c].saturating_add(s[c]);
             }
         }
     }
@@ -231,13 +504,25 @@ impl Film {
     /// Copies the film's sums of `rect` into a tile accumulator.
     pub fn tile(&self, rect: TileRect) -> TileAccum {
         let mut t = TileAccum::new(rect);
-        let row = rect.width() as usize * ch::COUNT;
+        let row = rect.width() as usize;
         for y in rect.y0..rect.y1 {
-            let src = (y as usize * self.width as usize + rect.x0 as usize) * ch::COUNT;
+            let src = y as usize * self.width as usize + rect.x0 as usize;
             let dst = (y - rect.y0) as usize * row;
             t.sums[dst..dst + row].copy_from_slice(&self.sums[src..src + row]);
         }
         t
+    }
+
+    /// A copy of rows `y0..y1` as a film of their own (rows past the end are left out).
+    pub fn band(&self, y0: u32, y1: u32) -> Film {
+        let (y0, y1) = (y0.min(self.height), y1.min(self.height).max(y0.min(self.height)));
+        let w = self.width as usize;
+        Film { width: self.width, height: y1 - y0, sums: self.sums[y0 as usize * w..y1 as usize * w].to_vec() }
+    }
+
+    /// Pixels whose radiance or luminance sums saturated (see the module doc).
+    pub fn saturated_pixels(&self) -> usize {
+        self.sums.iter().filter(|p| p.is_saturated()).count()
     }
 
     /// Per-pixel means and AOVs as floats.
@@ -246,46 +531,34 @@ impl Film {
         let mut out = ImageLayers {
             width: self.width,
             height: self.height,
-            rgb: vec![[0.0; 3]; n],
-            albedo: vec![[0.0; 3]; n],
-            normal: vec![[0.0; 3]; n],
-            depth: vec![f32::INFINITY; n],
-            samples: vec![0.0; n],
-            variance: vec![0.0; n],
+            rgb: Vec::with_capacity(n),
+            albedo: Vec::with_capacity(n),
+            normal: Vec::with_capacity(n),
+            depth: Vec::with_capacity(n),
+            samples: Vec::with_capacity(n),
+            variance: Vec::with_capacity(n),
             denoised: None,
         };
-        let splat_scale = if self.splat_spp > 0 { 1.0 / f64::from(self.splat_spp) } else { 0.0 };
-        for i in 0..n {
-            let p = &self.sums[i * ch::COUNT..(i + 1) * ch::COUNT];
-            let w = from_fixed(p[ch::WEIGHT]);
-            let splat = |c: usize| from_fixed(self.splats.sums[i * 3 + c]) * splat_scale;
-            out.samples[i] = w as f32;
+        for p in &self.sums {
+            let w = p.weight();
+            out.samples.push(w as f32);
             if w > 0.0 {
-                let mean = |c: usize| from_fixed(p[c]) / w;
-                out.rgb[i] =
-                    [(mean(ch::R) + splat(0)) as f32, (mean(ch::G) + splat(1)) as f32, (mean(ch::B) + splat(2)) as f32];
-                out.albedo[i] = [mean(ch::ALBEDO_R) as f32, mean(ch::ALBEDO_G) as f32, mean(ch::ALBEDO_B) as f32];
-                out.normal[i] = [mean(ch::NORMAL_X) as f32, mean(ch::NORMAL_Y) as f32, mean(ch::NORMAL_Z) as f32];
-                let hits = from_fixed(p[ch::HITS]);
-                if hits > 0.0 {
-                    out.depth[i] = (from_fixed(p[ch::DEPTH]) / hits) as f32;
-                }
-                let lum = f64::from(luminance([mean(ch::R) as f32, mean(ch::G) as f32, mean(ch::B) as f32]));
-                // Variance of the pixel mean: sample variance / n.
-                let var = if w > 1.0 {
-                    ((from_fixed(p[ch::LUM_SQ]) / w - lum * lum).max(0.0) * w / (w - 1.0)) / w
-                } else {
-                    0.0
-                };
-                out.variance[i] = var as f32;
+                out.rgb.push(p.radiance_sum().map(|v| (v / w) as f32));
+                out.albedo.push(p.albedo());
+                out.normal.push(p.normal());
+                out.depth.push(p.depth());
+                out.variance.push(p.variance_of_mean() as f32);
             } else {
-                out.rgb[i] = [splat(0) as f32, splat(1) as f32, splat(2) as f32];
+                out.rgb.push([0.0; 3]);
+                out.albedo.push([0.0; 3]);
+                out.normal.push([0.0; 3]);
+                out.depth.push(f32::INFINITY);
+                out.variance.push(0.0);
             }
         }
         out
     }
 }
-
 /// Errors writing or reading images.
 #[derive(Debug, thiserror::Error)]
 pub enum ImageError {
@@ -472,6 +745,7 @@ pub fn read_exr(path: &Path) -> Result<ExrChannels, ImageError> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
 
     #[test]
     fn a_failed_atomic_write_leaves_no_temporary_file() {
@@ -491,8 +765,6 @@ mod tests {
         assert!(left.iter().all(|n| !n.ends_with(".tmp")), "temporary files left: {left:?}");
         assert_eq!(std::fs::read(&target).expect("read"), b"one");
     }
-
-    use super::*;
 
     fn uniform(width: u32, height: u32, rgb: [f32; 3]) -> ImageLayers {
         let n = (width * height) as usize;
@@ -528,37 +800,155 @@ mod tests {
         assert!((ev - bright.auto_exposure() - 100f32.log2()).abs() < 0.01);
     }
 
-    #[test]
-    fn fixed_point_merge_is_order_independent() {
-        let rect = TileRect { x0: 0, y0: 0, x1: 2, y1: 1 };
-        let samples: Vec<SampleValue> = (0..50)
+    /// xorshift64: the tests' fixed random numbers.
+    fn rng(seed: u64) -> impl FnMut() -> f32 {
+        let mut x = seed | 1;
+        move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    fn samples(n: usize, seed: u64) -> Vec<SampleValue> {
+        let mut r = rng(seed);
+        (0..n)
             .map(|i| SampleValue {
-                radiance: [(i as f32 * 0.37).sin().abs() * 10.0, 1e-7 * i as f32, 3.3],
-                depth: Some(i as f32),
-                ..Default::default()
+                radiance: [r() * 10.0, 1e-7 * i as f32, r().powi(8) * 1e4],
+                albedo: [r(), r(), 0.5],
+                normal: [r() * 2.0 - 1.0, 1.0, 0.0],
+                depth: (i % 3 != 0).then(|| r() * 100.0),
             })
-            .collect();
+            .collect()
+    }
+
+    fn unit(samples: &[SampleValue]) -> PixelSums {
+        let mut a = PixelAccum::default();
+        for s in samples {
+            a.add(s);
+        }
+        a.finish()
+    }
+
+    /// The exact channels of a pixel, without the AOV means.
+    fn exact(p: &PixelSums) -> ([u64; 3], u64, u64, u32, u32) {
+        (p.rgb, p.lum, p.lum_sq, p.weight, p.hits)
+    }
+
+    #[test]
+    fn pixels_are_64_bytes_and_a_4k_film_is_506_mib() {
+        assert!(std::mem::size_of::<PixelSums>() <= 64);
+        assert_eq!(PIXEL_BYTES, std::mem::size_of::<PixelSums>());
+        // The film holds nothing per pixel besides its sums (splats go into them).
+        assert_eq!(Film::bytes_for(3840, 2160), 3840 * 2160 * std::mem::size_of::<PixelSums>() as u64);
+        assert_eq!(Film::bytes_for(3840, 2160), 530_841_600);
+        let film = Film::new(64, 32);
+        assert_eq!((film.sums.len() * std::mem::size_of::<PixelSums>()) as u64, Film::bytes_for(64, 32));
+    }
+
+    #[test]
+    fn merge_is_order_independent_for_exact_channels_and_canonical_for_aovs() {
+        let rect = TileRect { x0: 0, y0: 0, x1: 2, y1: 1 };
+        let all = samples(50, 7);
         let mut whole = TileAccum::new(rect);
-        for s in &samples {
-            add_sample(whole.pixel_mut(1, 0), s);
+        *whole.pixel_mut(1, 0) = unit(&all);
+        // Split in three parts, merged in reverse order: the exact channels are the same bits.
+        let parts: Vec<PixelSums> = all.chunks(17).map(unit).collect();
+        let mut reversed = PixelSums::default();
+        for p in parts.iter().rev() {
+            reversed.merge(p);
         }
-        // Split in three parts, merged in reverse order.
-        let mut parts: Vec<TileAccum> = samples
-            .chunks(17)
-            .map(|c| {
-                let mut t = TileAccum::new(rect);
-                for s in c {
-                    add_sample(t.pixel_mut(1, 0), s);
-                }
-                t
-            })
-            .collect();
-        parts.reverse();
-        let mut merged = TileAccum::new(rect);
-        for p in &parts {
-            merged.merge(p);
+        assert_eq!(exact(&reversed), exact(&whole.sums[1]));
+        // Folded in the canonical order twice: every bit the same, AOVs included.
+        let fold = || {
+            let mut t = TileAccum::new(rect);
+            for p in &parts {
+                let mut u = TileAccum::new(rect);
+                *u.pixel_mut(1, 0) = *p;
+                t.merge(&u);
+            }
+            t
+        };
+        assert_eq!(fold(), fold());
+        // The AOV means of the parts agree with the whole's within the fixed point's rounding.
+        let (a, b) = (fold().sums[1], whole.sums[1]);
+        for c in 0..3 {
+            assert!((a.albedo()[c] - b.albedo()[c]).abs() <= 1e-4, "{a:?} {b:?}");
+            assert!((a.normal()[c] - b.normal()[c]).abs() <= 1e-4, "{a:?} {b:?}");
         }
-        assert_eq!(whole, merged);
+        assert!((a.depth() - b.depth()).abs() <= 1e-5 * b.depth());
+    }
+
+    #[test]
+    fn camera_samples_cannot_saturate_within_the_spp_bound_and_splats_saturate_without_wrapping() {
+        // The largest per-sample value times the largest per-pixel sample count fits in u64.
+        let per_sample = u128::from(to_fixed(MAX_SAMPLE_VALUE));
+        assert_eq!(per_sample, 1u128 << (19 + FRAC_BITS));
+        assert!(per_sample * u128::from(MAX_EXACT_SPP) < u128::from(u64::MAX));
+        assert!(check_spp_bound(MAX_EXACT_SPP).is_ok());
+        let e = check_spp_bound(MAX_EXACT_SPP + 1).expect_err("refused");
+        assert!(e.contains("overflow"), "{e}");
+        assert!(crate::job::Limits::default().max_spp <= MAX_EXACT_SPP);
+        // Out-of-range values are clamped, not wrapped: negative and NaN to 0, huge to the max.
+        assert_eq!(to_fixed(-3.0), 0);
+        assert_eq!(to_fixed(f32::NAN), 0);
+        assert_eq!(to_fixed(1e30), to_fixed(MAX_SAMPLE_VALUE));
+        // 2^20 samples of the largest value: no saturation, the mean is the value.
+        let one = PixelSums::from_sample(&SampleValue { radiance: [1e30; 3], ..Default::default() });
+        let mut p = PixelSums::default();
+        let mut part = one;
+        // Doubling: 2^20 samples in 20 merges.
+        for _ in 0..20 {
+            let copy = part;
+            part.merge(&copy);
+        }
+        p.merge(&part);
+        assert_eq!(p.weight, MAX_EXACT_SPP);
+        assert!(!p.rgb.contains(&u64::MAX));
+        let mut film = Film::new(1, 1);
+        film.sums[0] = p;
+        assert_eq!(film.resolve().rgb[0], [MAX_SAMPLE_VALUE; 3]);
+        // Its squared luminance saturated: the variance says so, the film counts it.
+        assert_eq!(film.saturated_pixels(), 1);
+        assert!(film.resolve().variance[0].is_infinite());
+        // Splats beyond the bound stay at u64::MAX whatever else is added: never wrap.
+        let mut s = SplatBuffer::new(1, 1);
+        s.sums = vec![u64::MAX - 5; 3];
+        film.add_splats(&s);
+        film.add_splats(&s);
+        assert_eq!(film.sums[0].rgb, [u64::MAX; 3]);
+        assert_eq!(film.saturated_pixels(), 1);
+    }
+
+    /// A resolved mean is within the fixed point's rounding bound (2^-25 absolute) plus f32's
+    /// rounding (2^-24 relative) of the f64 mean of the same (clamped) samples.
+    #[test]
+    fn resolved_means_match_an_f64_reference_within_the_rounding_bound() {
+        for (seed, n) in [(1u64, 1usize), (2, 7), (3, 1000), (4, 4096)] {
+            let all = samples(n, seed);
+            let mut film = Film::new(1, 1);
+            // Units of 3 samples, as a farm would merge them.
+            let mut t = TileAccum::new(TileRect { x0: 0, y0: 0, x1: 1, y1: 1 });
+            for c in all.chunks(3) {
+                t.sums[0] = unit(c);
+                film.add_tile(&t);
+            }
+            let img = film.resolve();
+            for c in 0..3 {
+                let reference: f64 = all.iter().map(|s| f64::from(s.radiance[c])).sum::<f64>() / n as f64;
+                let got = f64::from(img.rgb[0][c]);
+                // (A hair of slack for the f64 division.)
+                let bound = (2f64.powi(-25) + reference * 2f64.powi(-24)) * (1.0 + 1e-9);
+                assert!((got - reference).abs() <= bound, "seed {seed} channel {c}: {got} vs {reference}");
+            }
+            let depths: Vec<f64> = all.iter().filter_map(|s| s.depth.map(f64::from)).collect();
+            if !depths.is_empty() {
+                let reference = depths.iter().sum::<f64>() / depths.len() as f64;
+                // An f32 mean rounded once per merge (up to 1366 merges here): 2^-24 relative each.
+                assert!((f64::from(img.depth[0]) - reference).abs() <= 1366.0 * 2f64.powi(-24) * reference, "depth");
+            }
+        }
     }
 
     #[test]
@@ -575,6 +965,21 @@ mod tests {
         // Sample variance of {1, 3} is 2; variance of the mean is 1.
         assert!((img.variance[0] - 1.0).abs() < 1e-5, "{}", img.variance[0]);
         assert!(img.depth[0].is_infinite());
+        // A splat adds to the radiance, not to the camera samples' variance.
+        let mut s = SplatBuffer::new(1, 1);
+        s.add(0, 0, [2.0, 0.0, 0.0]);
+        film.add_splats(&s);
+        let img = film.resolve();
+        assert!((img.rgb[0][0] - 3.0).abs() < 1e-6);
+        assert!((img.variance[0] - 1.0).abs() < 1e-5, "{}", img.variance[0]);
+    }
+
+    #[test]
+    fn pixels_roundtrip_through_their_byte_layout() {
+        let p = unit(&samples(9, 11));
+        let mut b = [0u8; PIXEL_BYTES];
+        p.write_le(&mut b);
+        assert_eq!(PixelSums::read_le(&b), p);
     }
 
     #[test]
@@ -601,5 +1006,57 @@ mod tests {
         assert_eq!(back.get("depth.Z").expect("depth")[5], 2.5);
         assert_eq!(back.get("normal.Y").expect("normal")[5], 1.0);
         assert_eq!(back.channels.len(), 12);
+    }
+}
+
+/// Properties of the merge on random parts.
+#[cfg(test)]
+mod props {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn sample() -> impl Strategy<Value = SampleValue> {
+        (
+            proptest::array::uniform3(prop_oneof![0.0f32..10.0, 0.0f32..1e6, Just(f32::NAN), -1.0f32..0.0]),
+            proptest::array::uniform3(0.0f32..1.0),
+            proptest::array::uniform3(-1.0f32..1.0),
+            proptest::option::of(0.0f32..1e4),
+        )
+            .prop_map(|(radiance, albedo, normal, depth)| SampleValue { radiance, albedo, normal, depth })
+    }
+
+    fn part() -> impl Strategy<Value = PixelSums> {
+        proptest::collection::vec(sample(), 0..6).prop_map(|v| {
+            let mut a = PixelAccum::default();
+            for s in &v {
+                a.add(s);
+            }
+            a.finish()
+        })
+    }
+
+    fn exact(p: &PixelSums) -> ([u64; 3], u64, u64, u32, u32) {
+        (p.rgb, p.lum, p.lum_sq, p.weight, p.hits)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 2000, rng_seed: proptest::test_runner::RngSeed::Fixed(0xf11f), ..ProptestConfig::default() })]
+        /// Exact channels: associative and commutative. AOV means: commutative (bitwise).
+        #[test]
+        fn merge_is_associative_and_commutative(a in part(), b in part(), c in part()) {
+            let m = |x: &PixelSums, y: &PixelSums| { let mut r = *x; r.merge(y); r };
+            prop_assert_eq!(m(&a, &b), m(&b, &a));
+            prop_assert_eq!(exact(&m(&m(&a, &b), &c)), exact(&m(&a, &m(&b, &c))));
+            prop_assert_eq!(exact(&m(&m(&a, &b), &c)), exact(&m(&m(&c, &a), &b)));
+        }
+
+        /// Saturating sums of huge parts stay at the top, in any order.
+        #[test]
+        fn saturated_sums_are_order_independent(x in any::<u64>(), y in any::<u64>(), z in any::<u64>()) {
+            let p = |v: u64| PixelSums { rgb: [v; 3], lum: v, lum_sq: v, ..Default::default() };
+            let m = |x: PixelSums, y: PixelSums| { let mut r = x; r.merge(&y); r };
+            prop_assert_eq!(m(m(p(x), p(y)), p(z)), m(p(x), m(p(y), p(z))));
+            prop_assert_eq!(m(m(p(x), p(y)), p(z)), m(m(p(z), p(y)), p(x)));
+        }
     }
 }

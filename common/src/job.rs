@@ -377,6 +377,8 @@ impl RenderSettings {
         at_most("width x height", u64::from(self.width) * u64::from(self.height), limits.max_pixels)?;
         at_least("spp", self.spp.into(), 1)?;
         at_most("spp", self.spp.into(), limits.max_spp.into())?;
+        // Whatever the configured limit: the film's fixed-point sums are sized for this many.
+        at_most("spp", self.spp.into(), crate::film::MAX_EXACT_SPP.into())?;
         at_least("tile_size", self.tile_size.into(), 8)?;
         at_most("tile_size", self.tile_size.into(), 1024)?;
         match self.passes {

@@ -1,10 +1,11 @@
 //! Wire protocol between clients, the coordinator and workers: the JSON bodies of the REST API
 //! and the binary format of a unit's result.
 //!
-//! JSON is for control (small, debuggable); results are binary because a 64 x 64 tile is 13
-//! channels of 128-bit sums (850 KB raw), which lz4 shrinks several times over.
+//! JSON is for control (small, debuggable); results are binary: a 64 x 64 tile is 4096 pixels of
+//! 64-byte sums (256 KiB), parsed straight into the tile accumulator, and BDPT's splats travel
+//! as sparse entries (only the pixels a unit's light paths reached).
 
-use crate::film::{Fixed, SplatBuffer, TileAccum, ch};
+use crate::film::{PIXEL_BYTES, PixelSums, SplatBuffer, TileAccum};
 use crate::frames::FrameSet;
 use crate::job::{Pass, RenderSettings, TileRect, UnitKey};
 use serde::{Deserialize, Serialize};
@@ -499,8 +500,8 @@ pub struct ResultAccepted {
 // Binary result format
 // ---------------------------------------------------------------------------------------------
 
-/// Magic bytes at the start of a result body.
-pub const RESULT_MAGIC: &[u8; 4] = b"PFR1";
+/// Magic bytes at the start of a result body (`PFR1`, 13 x 128-bit sums per pixel, is refused).
+pub const RESULT_MAGIC: &[u8; 4] = b"PFR2";
 
 /// A unit's result as it travels from worker to coordinator.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -517,7 +518,7 @@ pub struct UnitResultFrame {
 pub enum DecodeError {
     #[error("result body is truncated ({0} bytes)")]
     Truncated(usize),
-    #[error("result body does not start with the magic bytes PFR1")]
+    #[error("result body does not start with the magic bytes PFR2 (PFR1 is the format of older workers)")]
     BadMagic,
     #[error("result checksum mismatch (body says {expected:08x}, computed {actual:08x})")]
     Checksum { expected: u32, actual: u32 },
@@ -534,41 +535,183 @@ struct FrameHeader {
     job_id: JobId,
     unit: UnitKey,
     tile: TileRect,
-    channels: u32,
+    /// Bytes per pixel of the sums section ([`PIXEL_BYTES`]).
+    pixel_bytes: u32,
     splats: Option<(u32, u32)>,
 }
 
-fn fixed_to_bytes(values: &[Fixed]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(values.len() * 16);
-    for v in values {
-        out.extend_from_slice(&v.to_le_bytes());
+/// How a section's bytes are stored.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Codec {
+    /// As they are: the decoder parses them in place, with no copy.
+    Raw = 0,
+    /// An lz4 block (`lz4_flex`, size-prepended).
+    Lz4 = 1,
+}
+
+/// The codec results are sent with. Raw: on the load tool (500 workers, 64 px tiles) raw
+/// sections merge faster end to end than lz4 ones (see ARCHITECTURE.md for the figures).
+pub const RESULT_CODEC: Codec = Codec::Raw;
+
+/// Bytes of one sparse splat entry: u32 pixel index, 3 x u64 sums.
+pub const SPLAT_ENTRY_BYTES: usize = 4 + 3 * 8;
+
+/// Appends a section: u8 codec, u64 stored length, the stored bytes.
+pub fn push_section(out: &mut Vec<u8>, raw: &[u8], codec: Codec) {
+    out.push(codec as u8);
+    match codec {
+        Codec::Raw => {
+            out.extend_from_slice(&(raw.len() as u64).to_le_bytes());
+            out.extend_from_slice(raw);
+        }
+        Codec::Lz4 => {
+            let packed = lz4_flex::compress_prepend_size(raw);
+            out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
+            out.extend_from_slice(&packed);
+        }
+    }
+}
+
+/// Stored size of a section holding `raw` bytes at worst (lz4's worst case included).
+pub fn max_section_bytes(raw: u64) -> u64 {
+    // u8 codec + u64 length + u32 size prefix + lz4_flex's worst case (16 + 4 + 110 % of the input).
+    1 + 8 + 4 + 20 + raw.saturating_mul(110) / 100 + 1
+}
+
+/// Reads a section written by [`push_section`]: raw bytes are borrowed from the body, lz4 ones
+/// decompressed. A section declaring more than `max_raw` bytes is refused before anything is
+/// allocated.
+pub fn read_section<'a>(
+    rest: &mut &'a [u8],
+    max_raw: usize,
+    section: &'static str,
+) -> Result<std::borrow::Cow<'a, [u8]>, DecodeError> {
+    let err = |message: String| DecodeError::Section { section, message };
+    if rest.len() < 9 {
+        return Err(err("missing codec and length".into()));
+    }
+    let codec = rest[0];
+    let mut len = [0u8; 8];
+    len.copy_from_slice(&rest[1..9]);
+    let len = u64::from_le_bytes(len);
+    let tail = &rest[9..];
+    if len > tail.len() as u64 {
+        return Err(err(format!("length {len} exceeds the {} bytes left", tail.len())));
+    }
+    let (stored, tail) = tail.split_at(len as usize);
+    *rest = tail;
+    match codec {
+        0 if stored.len() > max_raw => Err(err(format!("{} bytes, at most {max_raw} expected", stored.len()))),
+        0 => Ok(std::borrow::Cow::Borrowed(stored)),
+        1 => {
+            if stored.len() < 4 {
+                return Err(err("lz4 block without its size".into()));
+            }
+            let raw = u32::from_le_bytes([stored[0], stored[1], stored[2], stored[3]]) as usize;
+            if raw > max_raw {
+                return Err(err(format!("declares {raw} bytes uncompressed, at most {max_raw} expected")));
+            }
+            let mut out = vec![0u8; raw];
+            let n = lz4_flex::decompress_into(&stored[4..], &mut out).map_err(|e| err(format!("lz4: {e}")))?;
+            if n != raw {
+                return Err(err(format!("lz4 block holds {n} bytes, its size says {raw}")));
+            }
+            Ok(std::borrow::Cow::Owned(out))
+        }
+        c => Err(err(format!("unknown codec {c}"))),
+    }
+}
+
+/// The little-endian bytes of pixel sums ([`PixelSums::write_le`]).
+pub fn pixels_to_bytes(pixels: &[PixelSums]) -> Vec<u8> {
+    let mut out = vec![0u8; pixels.len() * PIXEL_BYTES];
+    for (p, chunk) in pixels.iter().zip(out.chunks_exact_mut(PIXEL_BYTES)) {
+        if let Ok(c) = <&mut [u8; PIXEL_BYTES]>::try_from(chunk) {
+            p.write_le(c);
+        }
     }
     out
 }
 
-/// Parses little-endian i128 values; `expected` is the count.
-pub fn bytes_to_fixed(bytes: &[u8], expected: usize, section: &'static str) -> Result<Vec<Fixed>, DecodeError> {
-    if bytes.len() != expected * 16 {
+/// Appends a section of pixel sums.
+pub fn push_pixels(out: &mut Vec<u8>, pixels: &[PixelSums], codec: Codec) {
+    match codec {
+        Codec::Raw => {
+            // Written straight into the body: no intermediate buffer.
+            out.push(Codec::Raw as u8);
+            out.extend_from_slice(&((pixels.len() * PIXEL_BYTES) as u64).to_le_bytes());
+            let at = out.len();
+            out.resize(at + pixels.len() * PIXEL_BYTES, 0);
+            for (p, chunk) in pixels.iter().zip(out[at..].chunks_exact_mut(PIXEL_BYTES)) {
+                if let Ok(c) = <&mut [u8; PIXEL_BYTES]>::try_from(chunk) {
+                    p.write_le(c);
+                }
+            }
+        }
+        Codec::Lz4 => push_section(out, &pixels_to_bytes(pixels), codec),
+    }
+}
+
+/// Reads a section of exactly `count` pixels, parsed straight from the body (raw) or from the
+/// decompressed block (lz4) into the returned vector.
+pub fn read_pixels(rest: &mut &[u8], count: usize, section: &'static str) -> Result<Vec<PixelSums>, DecodeError> {
+    let expected = count.saturating_mul(PIXEL_BYTES);
+    let bytes = read_section(rest, expected, section)?;
+    if bytes.len() != expected {
         return Err(DecodeError::Section {
             section,
-            message: format!("expected {} values ({} bytes), got {} bytes", expected, expected * 16, bytes.len()),
+            message: format!("expected {count} pixels ({expected} bytes), got {} bytes", bytes.len()),
         });
     }
     Ok(bytes
-        .chunks_exact(16)
-        .map(|c| {
-            let mut a = [0u8; 16];
-            a.copy_from_slice(c);
-            i128::from_le_bytes(a)
-        })
+        .chunks_exact(PIXEL_BYTES)
+        .map(|c| <&[u8; PIXEL_BYTES]>::try_from(c).map(PixelSums::read_le).unwrap_or_default())
         .collect())
 }
 
-/// Appends a section: u64 length + size-prefixed lz4 block of little-endian i128 values.
-pub fn push_section(out: &mut Vec<u8>, values: &[Fixed]) {
-    let packed = lz4_flex::compress_prepend_size(&fixed_to_bytes(values));
-    out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
-    out.extend_from_slice(&packed);
+/// Appends a splat section: the nonzero pixels only, as (u32 index, 3 x u64) in index order.
+pub fn push_splats(out: &mut Vec<u8>, splats: &SplatBuffer, codec: Codec) {
+    let mut raw = Vec::new();
+    for (i, s) in splats.sums.chunks_exact(3).enumerate() {
+        if s.iter().any(|&v| v != 0) {
+            raw.extend_from_slice(&(i as u32).to_le_bytes());
+            for v in s {
+                raw.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+    push_section(out, &raw, codec);
+}
+
+/// Reads a splat section into a `width` x `height` buffer; indices must be increasing and
+/// inside the image.
+pub fn read_splats(
+    rest: &mut &[u8],
+    width: u32,
+    height: u32,
+    section: &'static str,
+) -> Result<SplatBuffer, DecodeError> {
+    let err = |message: String| DecodeError::Section { section, message };
+    let n = width as usize * height as usize;
+    let bytes = read_section(rest, n.saturating_mul(SPLAT_ENTRY_BYTES), section)?;
+    if bytes.len() % SPLAT_ENTRY_BYTES != 0 {
+        return Err(err(format!("{} bytes is not a whole number of {SPLAT_ENTRY_BYTES}-byte entries", bytes.len())));
+    }
+    let mut buf = SplatBuffer::new(width, height);
+    let mut last: Option<usize> = None;
+    for e in bytes.chunks_exact(SPLAT_ENTRY_BYTES) {
+        let i = u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as usize;
+        if i >= n || last.is_some_and(|l| i <= l) {
+            return Err(err(format!("entry for pixel {i}: outside the {width} x {height} image or out of order")));
+        }
+        last = Some(i);
+        for c in 0..3 {
+            let mut v = [0u8; 8];
+            v.copy_from_slice(&e[4 + 8 * c..12 + 8 * c]);
+            buf.sums[i * 3 + c] = u64::from_le_bytes(v);
+        }
+    }
+    Ok(buf)
 }
 
 /// Largest JSON header of a result frame the coordinator reads (ours are about 200 bytes).
@@ -576,65 +719,40 @@ pub const MAX_RESULT_HEADER_BYTES: u64 = 4096;
 
 /// The largest body a result for `tile` of an image of `image` (width, height) can be: magic,
 /// header length, a header of at most [`MAX_RESULT_HEADER_BYTES`], the tile's sums and a splat
-/// buffer the size of the image, both at lz4's worst case, and the CRC. The coordinator refuses
-/// a declared `Content-Length` above it before reading the body.
+/// entry for every pixel of the image, both at lz4's worst case, and the CRC. The coordinator
+/// refuses a declared `Content-Length` above it before reading the body.
 pub fn max_result_bytes(tile: TileRect, image: (u32, u32)) -> u64 {
-    let section = |values: u64| {
-        let raw = values.saturating_mul(16);
-        // u64 length + u32 size prefix + lz4_flex's worst case (16 + 4 + 110 % of the input).
-        8 + 4 + 20 + raw.saturating_mul(110) / 100 + 1
-    };
-    let sums = section(tile.pixel_count() as u64 * ch::COUNT as u64);
-    let splats = section(u64::from(image.0) * u64::from(image.1) * 3);
+    let sums = max_section_bytes(tile.pixel_count() as u64 * PIXEL_BYTES as u64);
+    let splats = max_section_bytes(u64::from(image.0) * u64::from(image.1) * SPLAT_ENTRY_BYTES as u64);
     (8 + MAX_RESULT_HEADER_BYTES + 4).saturating_add(sums).saturating_add(splats)
 }
 
-/// Upper bound on a decompressed section (a 16k x 16k splat buffer is 12 GB; refuse above 4 GB).
-const MAX_SECTION_BYTES: usize = 1 << 32;
-
-/// Reads a section written by [`push_section`] and returns its decompressed bytes.
-pub fn read_section(rest: &mut &[u8], section: &'static str) -> Result<Vec<u8>, DecodeError> {
-    let err = |message: String| DecodeError::Section { section, message };
-    if rest.len() < 8 {
-        return Err(err("missing length".into()));
-    }
-    let (len, tail) = rest.split_at(8);
-    let len = u64::from_le_bytes(len.try_into().map_err(|_| err("length".into()))?) as usize;
-    if len > tail.len() {
-        return Err(err(format!("length {len} exceeds the {} bytes left", tail.len())));
-    }
-    let (packed, tail) = tail.split_at(len);
-    *rest = tail;
-    if packed.len() >= 4 {
-        let raw = u32::from_le_bytes([packed[0], packed[1], packed[2], packed[3]]) as usize;
-        if raw > MAX_SECTION_BYTES {
-            return Err(err(format!("declares {raw} bytes uncompressed")));
-        }
-    }
-    lz4_flex::decompress_size_prepended(packed).map_err(|e| err(format!("lz4: {e}")))
-}
-
 impl UnitResultFrame {
-    /// Layout: magic, u32 header length, JSON header, sums section, optional splat section,
-    /// CRC-32 of everything before it. A section is u64 length + lz4 block (size-prefixed) of
-    /// little-endian i128 values.
+    /// Encodes with [`RESULT_CODEC`].
     pub fn encode(&self) -> Vec<u8> {
+        self.encode_with(RESULT_CODEC)
+    }
+
+    /// Layout: magic, u32 header length, JSON header, sums section (the tile's pixels, row-major,
+    /// [`PIXEL_BYTES`] each: [`PixelSums::write_le`]), optional splat section (sparse entries),
+    /// CRC-32 of everything before it. A section is u8 codec, u64 length, the stored bytes.
+    pub fn encode_with(&self, codec: Codec) -> Vec<u8> {
         let header = FrameHeader {
             lease_id: self.lease_id,
             job_id: self.job_id,
             unit: self.unit,
             tile: self.accum.rect,
-            channels: ch::COUNT as u32,
+            pixel_bytes: PIXEL_BYTES as u32,
             splats: self.splats.as_ref().map(|s| (s.width, s.height)),
         };
         let header = serde_json::to_vec(&header).unwrap_or_default();
-        let mut out = Vec::new();
+        let mut out = Vec::with_capacity(8 + header.len() + 9 + self.accum.sums.len() * PIXEL_BYTES + 4);
         out.extend_from_slice(RESULT_MAGIC);
         out.extend_from_slice(&(header.len() as u32).to_le_bytes());
         out.extend_from_slice(&header);
-        push_section(&mut out, &self.accum.sums);
+        push_pixels(&mut out, &self.accum.sums, codec);
         if let Some(s) = &self.splats {
-            push_section(&mut out, &s.sums);
+            push_splats(&mut out, s, codec);
         }
         let crc = crc32fast::hash(&out);
         out.extend_from_slice(&crc.to_le_bytes());
@@ -667,17 +785,22 @@ impl UnitResultFrame {
             return Err(DecodeError::Checksum { expected, actual });
         }
         let hlen = u32::from_le_bytes([body[4], body[5], body[6], body[7]]) as usize;
-        if 8 + hlen > body.len() {
+        if hlen as u64 > MAX_RESULT_HEADER_BYTES || 8 + hlen > body.len() {
             return Err(DecodeError::Truncated(bytes.len()));
         }
         let header: FrameHeader =
             serde_json::from_slice(&body[8..8 + hlen]).map_err(|e| DecodeError::Header(e.to_string()))?;
-        if header.channels != ch::COUNT as u32 {
-            return Err(DecodeError::Header(format!("{} channels, expected {}", header.channels, ch::COUNT)));
+        if header.pixel_bytes != PIXEL_BYTES as u32 {
+            return Err(DecodeError::Header(format!("{} bytes per pixel, expected {PIXEL_BYTES}", header.pixel_bytes)));
         }
         let t = header.tile;
         if t.x1 <= t.x0 || t.y1 <= t.y0 || t.width() > 4096 || t.height() > 4096 {
             return Err(DecodeError::Header(format!("bad tile rectangle {t:?}")));
+        }
+        if let Some((w, h)) = header.splats
+            && (w == 0 || h == 0 || w > 65536 || h > 65536)
+        {
+            return Err(DecodeError::Header(format!("bad splat buffer size {w} x {h}")));
         }
         if let Some((tile, image)) = expect {
             if t != tile {
@@ -690,15 +813,10 @@ impl UnitResultFrame {
             }
         }
         let mut rest = &body[8 + hlen..];
-        let sums = read_section(&mut rest, "sums")?;
-        let sums = bytes_to_fixed(&sums, t.pixel_count() * ch::COUNT, "sums")?;
+        let sums = read_pixels(&mut rest, t.pixel_count(), "sums")?;
         let splats = match header.splats {
             None => None,
-            Some((w, h)) => {
-                let raw = read_section(&mut rest, "splats")?;
-                let n = w as usize * h as usize * 3;
-                Some(SplatBuffer { width: w, height: h, sums: bytes_to_fixed(&raw, n, "splats")? })
-            }
+            Some((w, h)) => Some(read_splats(&mut rest, w, h, "splats")?),
         };
         if !rest.is_empty() {
             return Err(DecodeError::Section { section: "trailer", message: format!("{} extra bytes", rest.len()) });
@@ -734,57 +852,98 @@ mod tests {
     #[test]
     fn roundtrip_with_and_without_splats() {
         for s in [false, true] {
-            let f = frame(s);
-            let bytes = f.encode();
-            assert_eq!(UnitResultFrame::decode(&bytes).expect("decode"), f);
+            for codec in [Codec::Raw, Codec::Lz4] {
+                let f = frame(s);
+                let bytes = f.encode_with(codec);
+                assert_eq!(UnitResultFrame::decode(&bytes).expect("decode"), f);
+            }
         }
     }
 
     #[test]
     fn corruption_is_refused_not_panicking() {
-        let bytes = frame(true).encode();
-        // Every truncation.
-        for n in 0..bytes.len() {
-            assert!(UnitResultFrame::decode(&bytes[..n]).is_err(), "truncated at {n}");
+        for codec in [Codec::Raw, Codec::Lz4] {
+            let bytes = frame(true).encode_with(codec);
+            // Every truncation.
+            for n in 0..bytes.len() {
+                assert!(UnitResultFrame::decode(&bytes[..n]).is_err(), "truncated at {n}");
+            }
+            // Every single-bit flip is caught (by the checksum, or the magic).
+            for i in (0..bytes.len()).step_by(7) {
+                let mut b = bytes.clone();
+                b[i] ^= 0x10;
+                assert!(UnitResultFrame::decode(&b).is_err(), "flip at {i}");
+            }
         }
-        // Every single-bit flip is caught (by the checksum, or the magic).
-        for i in (0..bytes.len()).step_by(7) {
-            let mut b = bytes.clone();
-            b[i] ^= 0x10;
-            assert!(UnitResultFrame::decode(&b).is_err(), "flip at {i}");
+        // A PFR1 body (a worker of the old format) is refused by its magic.
+        assert_eq!(UnitResultFrame::decode(b"PFR1\0\0\0\0\0\0\0\0\0\0"), Err(DecodeError::BadMagic));
+    }
+
+    #[test]
+    fn a_64_px_tile_is_a_quarter_of_a_megabyte_and_splats_are_sparse() {
+        let rect = TileRect { x0: 0, y0: 0, x1: 64, y1: 64 };
+        let mut accum = TileAccum::new(rect);
+        for p in &mut accum.sums {
+            add_sample(p, &SampleValue { radiance: [0.5, 0.25, 2.0], depth: Some(3.0), ..Default::default() });
         }
-        assert_eq!(UnitResultFrame::decode(b"PFR0\0\0\0\0\0\0\0\0\0\0"), Err(DecodeError::BadMagic));
+        let mut splats = SplatBuffer::new(1024, 1024);
+        for i in 0..100 {
+            splats.add(i * 7, i * 3, [1.0, 2.0, 3.0]);
+        }
+        let f = UnitResultFrame { lease_id: 1, job_id: 2, unit: UnitKey { frame: 0, pass: 0, tile: 0 }, accum, splats: Some(splats) };
+        let raw = f.encode_with(Codec::Raw).len();
+        // 4096 pixels x 64 bytes, 100 splat entries, a small header: was 850 KB (13 x 16 bytes x 4096
+        // plus a full-frame lz4 splat section).
+        assert!(raw < 4096 * 64 + 100 * SPLAT_ENTRY_BYTES + 400, "{raw}");
+        assert_eq!(UnitResultFrame::decode(&f.encode_with(Codec::Lz4)).expect("lz4"), f);
     }
 
     #[test]
     fn results_fit_their_size_bound() {
         for s in [false, true] {
-            let f = frame(s);
-            let bound = max_result_bytes(f.accum.rect, (32, 32));
-            assert!(f.encode().len() as u64 <= bound, "{} > {bound}", f.encode().len());
+            for codec in [Codec::Raw, Codec::Lz4] {
+                let f = frame(s);
+                let bound = max_result_bytes(f.accum.rect, (32, 32));
+                assert!(f.encode_with(codec).len() as u64 <= bound, "{} > {bound}", f.encode_with(codec).len());
+            }
         }
-        // Incompressible sums still fit: lz4's worst case is in the bound.
+        // Incompressible sums and a splat on every pixel still fit: lz4's worst case is in the bound.
         let mut f = frame(true);
         let mut x: u64 = 0x1234_5678_9abc_def1;
-        for v in f.accum.sums.iter_mut().chain(f.splats.as_mut().map_or(&mut [][..], |s| &mut s.sums[..])) {
+        let mut next = || {
             x ^= x << 13;
             x ^= x >> 7;
             x ^= x << 17;
-            *v = i128::from(x) << 64 | i128::from(x.rotate_left(17));
+            x | 1
+        };
+        for p in f.accum.sums.iter_mut() {
+            let mut b = [0u8; PIXEL_BYTES];
+            for c in b.chunks_exact_mut(8) {
+                c.copy_from_slice(&next().to_le_bytes());
+            }
+            *p = PixelSums::read_le(&b);
+        }
+        for v in f.splats.as_mut().map_or(&mut [][..], |s| &mut s.sums[..]) {
+            *v = next();
         }
         let bound = max_result_bytes(f.accum.rect, (32, 32));
-        assert!(f.encode().len() as u64 <= bound, "{} > {bound}", f.encode().len());
-        assert!(bound < 2 * (16 * 4 * 13 * 16 + 32 * 32 * 3 * 16) + 8192, "{bound}");
+        for codec in [Codec::Raw, Codec::Lz4] {
+            assert!(f.encode_with(codec).len() as u64 <= bound, "{} > {bound}", f.encode_with(codec).len());
+            assert_eq!(UnitResultFrame::decode(&f.encode_with(codec)).expect("decode"), f);
+        }
+        assert!(bound < 2 * (16 * 4 * 64 + 32 * 32 * 28) + 8192, "{bound}");
     }
 
     #[test]
     fn wrong_size_with_valid_checksum_is_refused() {
         // A well-formed body whose sums section is the wrong length for its tile.
-        let mut f = frame(false);
-        f.accum.sums.pop();
-        let bytes = f.encode();
-        let e = UnitResultFrame::decode(&bytes).expect_err("wrong size");
-        assert!(e.to_string().contains("sums"), "{e}");
+        for codec in [Codec::Raw, Codec::Lz4] {
+            let mut f = frame(false);
+            f.accum.sums.pop();
+            let bytes = f.encode_with(codec);
+            let e = UnitResultFrame::decode(&bytes).expect_err("wrong size");
+            assert!(e.to_string().contains("sums"), "{e}");
+        }
     }
 
     #[test]
@@ -868,14 +1027,47 @@ mod tests {
     }
 }
 
-/// Proptest target: the decoder never panics on arbitrary bytes.
+/// Proptest targets: the decoder never panics on arbitrary bytes, on bodies with a valid magic
+/// and checksum, or on valid results with bytes changed under a recomputed checksum; and every
+/// encoded result decodes to itself.
 #[cfg(test)]
 mod fuzz {
     use super::*;
     use proptest::prelude::*;
 
+    fn reseal(mut body: Vec<u8>) -> Vec<u8> {
+        body.truncate(body.len().saturating_sub(4));
+        let crc = crc32fast::hash(&body);
+        body.extend_from_slice(&crc.to_le_bytes());
+        body
+    }
+
+    fn result(w: u32, h: u32, seed: u64, splats: bool) -> UnitResultFrame {
+        let rect = TileRect { x0: 1, y0: 2, x1: 1 + w, y1: 2 + h };
+        let mut x = seed | 1;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let mut accum = TileAccum::new(rect);
+        for p in &mut accum.sums {
+            let v = (next() % 1000) as f32 / 10.0;
+            crate::film::add_sample(p, &crate::film::SampleValue { radiance: [v, v * 0.5, 0.0], depth: Some(v), ..Default::default() });
+        }
+        let splats = splats.then(|| {
+            let mut s = SplatBuffer::new(16, 16);
+            for _ in 0..(next() % 20) {
+                s.add((next() % 16) as u32, (next() % 16) as u32, [1.0, 0.5, 0.25]);
+            }
+            s
+        });
+        UnitResultFrame { lease_id: next(), job_id: 4, unit: UnitKey { frame: 0, pass: 1, tile: 2 }, accum, splats }
+    }
+
     proptest! {
-        #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+        #![proptest_config(ProptestConfig { cases: 2000, rng_seed: proptest::test_runner::RngSeed::Fixed(0x9f42), ..ProptestConfig::default() })]
         #[test]
         fn decode_never_panics(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
             let _ = UnitResultFrame::decode(&bytes);
@@ -887,6 +1079,30 @@ mod fuzz {
             let crc = crc32fast::hash(&body);
             body.extend_from_slice(&crc.to_le_bytes());
             let _ = UnitResultFrame::decode(&body);
+        }
+
+        /// A valid result with some bytes overwritten (then checksummed again) is decoded or
+        /// refused, never a panic; unchanged it decodes to itself, with either codec.
+        #[test]
+        fn mutated_results_are_refused_or_decoded(
+            w in 1u32..9, h in 1u32..9, seed in any::<u64>(), splats in any::<bool>(), lz4 in any::<bool>(),
+            edits in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..6),
+        ) {
+            let f = result(w, h, seed, splats);
+            let codec = if lz4 { Codec::Lz4 } else { Codec::Raw };
+            let bytes = f.encode_with(codec);
+            let back = UnitResultFrame::decode(&bytes);
+            prop_assert_eq!(back.as_ref(), Ok(&f));
+            prop_assert!(bytes.len() as u64 <= max_result_bytes(f.accum.rect, (16, 16)));
+            let mut m = bytes.clone();
+            for (at, v) in &edits {
+                let i = at % m.len();
+                m[i] = *v;
+            }
+            let m = reseal(m);
+            if let Ok(d) = UnitResultFrame::decode_expecting(&m, f.accum.rect, (16, 16)) {
+                prop_assert_eq!(d.accum.sums.len(), f.accum.sums.len());
+            }
         }
     }
 }

@@ -129,7 +129,7 @@ fn main() {
             bytes = server.state.metrics.bytes_received.load(Ordering::Relaxed) - bytes0;
             assert!(client.image_exr(id).unwrap() == local_exr, "farm image differs from the local render");
         }
-        let raw = settings.tile_size.pow(2) as usize * pathfarm_common::film::ch::COUNT * 16;
+        let raw = settings.tile_size.pow(2) as usize * pathfarm_common::film::PIXEL_BYTES;
         println!(
             "{n:>8} {farm:>10.2} {:>11.3} {:>13.2} ms {:>15} {:>10}",
             local / (n as f64 * farm),

@@ -17,10 +17,11 @@
 //! figures then include the simulated workers). `--url` uses a coordinator that is already
 //! running (no CPU or memory figures).
 //!
-//! A result is a real `PFR1` frame (header, lz4 section of the tile's 13 x 128-bit sums, CRC),
-//! built per lease from a section compressed once per tile size, so the workers cost little.
-//! `--payload noise` (default) puts 3 random low bytes in every value (lz4 shrinks it about as
-//! much as a rendered tile), `--payload zeros` sends all-zero sums.
+//! A result is a real `PFR2` frame (header, the section of the tile's 64-byte pixel sums, CRC),
+//! built per lease from a section encoded once per tile size, so the workers cost little.
+//! `--payload noise` (default) puts 3 random low bytes in every sum and random AOV means,
+//! `--payload zeros` sends all-zero sums; `--codec raw|lz4` stores the section as it is (the
+//! default, `RESULT_CODEC`) or lz4-compressed.
 //!
 //! With `--render-ms 0` (default) every worker asks for its next unit as soon as the last one is
 //! delivered: the coordinator is saturated and lease latency is mostly queueing behind 499
@@ -30,9 +31,11 @@
 #![allow(clippy::print_stdout)]
 
 use anyhow::{Context, bail};
-use pathfarm_common::film::ch;
+use pathfarm_common::film::{PIXEL_BYTES, PixelSums};
 use pathfarm_common::job::TileRect;
-use pathfarm_common::protocol::{API, JobInfo, LeaseGrant, RESULT_MAGIC, Registered, WORKER_SECRET_HEADER};
+use pathfarm_common::protocol::{
+    API, Codec, JobInfo, LeaseGrant, RESULT_CODEC, RESULT_MAGIC, Registered, WORKER_SECRET_HEADER, push_pixels,
+};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -48,6 +51,7 @@ struct Args {
     tile: u32,
     spp: u32,
     payload: String,
+    codec: Codec,
     in_process: bool,
     url: Option<String>,
     threads: usize,
@@ -68,6 +72,7 @@ fn parse_args() -> anyhow::Result<Args> {
         tile: 64,
         spp: 100,
         payload: "noise".into(),
+        codec: RESULT_CODEC,
         in_process: false,
         url: None,
         threads: 2,
@@ -92,6 +97,13 @@ fn parse_args() -> anyhow::Result<Args> {
                 a.spp = units.div_ceil(tiles).max(1) as u32;
             }
             "--payload" => a.payload = val()?,
+            "--codec" => {
+                a.codec = match val()?.as_str() {
+                    "raw" => Codec::Raw,
+                    "lz4" => Codec::Lz4,
+                    other => bail!("--codec raw|lz4, not {other}"),
+                }
+            }
             "--in-process" => a.in_process = true,
             "--url" => a.url = Some(val()?),
             "--client-threads" => a.threads = val()?.parse()?,
@@ -102,7 +114,7 @@ fn parse_args() -> anyhow::Result<Args> {
             "-h" | "--help" => {
                 eprintln!(
                     "load [--workers 500] [--width 1024] [--height 1024] [--tile 64] [--spp 100 | --units N] \
-                     [--payload noise|zeros] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]]"
+                     [--payload noise|zeros] [--codec raw|lz4] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]]"
                 );
                 std::process::exit(0);
             }
@@ -112,44 +124,49 @@ fn parse_args() -> anyhow::Result<Args> {
     Ok(a)
 }
 
-/// Compressed sums sections, one per tile size: `(u64 length, lz4 size-prepended block)`.
-fn section(w: u32, h: u32, noise: bool) -> Vec<u8> {
-    let n = (w * h) as usize * ch::COUNT;
-    let mut raw = Vec::with_capacity(n * 16);
+/// Sums sections, one per tile size (`push_pixels` with `codec`): every pixel one sample
+/// (weight 1; the job's passes are 1 spp and the coordinator checks weights against the pass),
+/// so the image resolves to finite values either way.
+fn section(w: u32, h: u32, noise: bool, codec: Codec) -> Vec<u8> {
     let mut x: u64 = 0x9E37_79B9_7F4A_7C15 ^ u64::from(w * 131 + h);
-    for i in 0..n {
-        let v: i128 = if i % ch::COUNT == ch::WEIGHT {
-            // Exactly one sample per pixel (the job's passes are 1 spp; the coordinator checks
-            // weights against the pass), so the image resolves to finite values either way.
-            1 << 32
-        } else if i % ch::COUNT == ch::HITS {
-            // Every sample hit something: at most the weight.
-            if noise { 1 << 32 } else { 0 }
-        } else if noise {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            ((x >> 40) & 0xFF_FFFF) as i128
-        } else {
-            0
-        };
-        raw.extend_from_slice(&v.to_le_bytes());
-    }
-    let packed = lz4_flex::compress_prepend_size(&raw);
-    let mut out = Vec::with_capacity(8 + packed.len());
-    out.extend_from_slice(&(packed.len() as u64).to_le_bytes());
-    out.extend_from_slice(&packed);
+    let mut next = || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    };
+    let pixels: Vec<PixelSums> = (0..w * h)
+        .map(|_| {
+            let mut p = PixelSums { weight: 1, ..Default::default() };
+            if noise {
+                // One sample's sums: 3 random low bytes (a value of order 1 at 2^-24), random
+                // AOV means.
+                let mut v = || (next() >> 40) & 0xFF_FFFF;
+                p.rgb = [v(), v(), v()];
+                p.lum = v();
+                p.lum_sq = v();
+                p.hits = 1;
+                p.depth = 1.5f32.to_bits();
+                let mut f = || (next() >> 49) as u16;
+                p.albedo = [f(), f(), f()];
+                p.normal = [f() as i16, f() as i16, f() as i16];
+            }
+            p
+        })
+        .collect();
+    let mut out = Vec::new();
+    push_pixels(&mut out, &pixels, codec);
     out
 }
 
-/// A result body for a grant, in the `PFR1` layout of `UnitResultFrame::encode`.
+/// A result body for a grant, in the `PFR2` layout of `UnitResultFrame::encode`.
 fn frame(g: &LeaseGrant, section: &[u8]) -> Vec<u8> {
     let header = serde_json::json!({
         "lease_id": g.lease_id,
         "job_id": g.job_id,
         "unit": g.unit,
         "tile": g.tile,
-        "channels": ch::COUNT,
+        "pixel_bytes": PIXEL_BYTES,
         "splats": null,
     });
     let header = serde_json::to_vec(&header).unwrap_or_default();
@@ -356,7 +373,7 @@ async fn run(a: Args) -> anyhow::Result<()> {
     let scene_id = scene["scene_id"].as_str().context("scene_id")?.to_string();
     let tiles = u64::from(a.width.div_ceil(a.tile)) * u64::from(a.height.div_ceil(a.tile));
     let units = tiles * u64::from(a.spp);
-    let film_mb = f64::from(a.width) * f64::from(a.height) * 13.0 * 16.0 / (1 << 20) as f64;
+    let film_mb = pathfarm_common::film::Film::bytes_for(a.width, a.height) as f64 / (1 << 20) as f64;
     eprintln!(
         "job: {}x{} tile {} spp {} (1 spp per pass) = {tiles} tiles x {} passes = {units} units; film {film_mb:.0} MiB; {} workers, render {} ms",
         a.width, a.height, a.tile, a.spp, a.spp, a.workers, a.render_ms
@@ -367,12 +384,17 @@ async fn run(a: Args) -> anyhow::Result<()> {
     for w in [a.tile, a.width % a.tile] {
         for h in [a.tile, a.height % a.tile] {
             if w > 0 && h > 0 {
-                sections.insert((w, h), section(w, h, noise));
+                sections.insert((w, h), section(w, h, noise, a.codec));
             }
         }
     }
     let full = sections.get(&(a.tile, a.tile)).map_or(0, Vec::len);
-    eprintln!("result body: {} KiB ({} KiB raw)", full / 1024, (a.tile * a.tile) as usize * ch::COUNT * 16 / 1024);
+    eprintln!(
+        "result body: {} bytes ({} KiB raw, {:?}); film {PIXEL_BYTES} bytes per pixel",
+        full,
+        (a.tile * a.tile) as usize * PIXEL_BYTES / 1024,
+        a.codec
+    );
     let sections = Arc::new(sections);
     let stats = Arc::new(Stats {
         lease_us: Mutex::new(Vec::new()),

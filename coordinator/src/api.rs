@@ -638,7 +638,7 @@ const RESOLVE_BAND_ROWS: usize = 16;
 
 /// Resolves a job's film a band of rows at a time, taking the farm lock once per band: a
 /// 1024 x 1024 film takes ~200 ms to resolve, during which leases and merges would wait.
-/// Each band copies its sums, its splats and the splat sample count under one lock, so every
+/// Each band copies its sums (splats included) under one lock, so every
 /// pixel is consistent; bands may be a few units apart, as tiles are anyway.
 pub fn resolve_banded(state: &AppState, id: JobId) -> ApiResult<ImageLayers> {
     resolve_film_banded(state, id, None)
@@ -686,7 +686,6 @@ fn with_film<T>(
 
 /// Resolves a film a band of rows at a time (see [`resolve_banded`]); `frame` as in `with_film`.
 pub fn resolve_film_banded(state: &AppState, id: JobId, frame: Option<i32>) -> ApiResult<ImageLayers> {
-    use pathfarm_common::film::{Film, SplatBuffer, ch};
     // A film's size never changes; a frame dropped between bands is refused by `with_film`.
     let (w, h) = {
         let farm = state.farm.lock();
@@ -709,17 +708,7 @@ pub fn resolve_film_banded(state: &AppState, id: JobId, frame: Option<i32>) -> A
         let y1 = (y0 + RESOLVE_BAND_ROWS).min(h);
         let band = {
             let farm = state.farm.lock();
-            with_film(&farm, id, frame, |f| Film {
-                width: w as u32,
-                height: (y1 - y0) as u32,
-                sums: f.sums[y0 * w * ch::COUNT..y1 * w * ch::COUNT].to_vec(),
-                splats: SplatBuffer {
-                    width: w as u32,
-                    height: (y1 - y0) as u32,
-                    sums: f.splats.sums[y0 * w * 3..y1 * w * 3].to_vec(),
-                },
-                splat_spp: f.splat_spp,
-            })?
+            with_film(&farm, id, frame, |f| f.band(y0 as u32, y1 as u32))?
         };
         let r = band.resolve();
         out.rgb.extend(r.rgb);
@@ -1092,7 +1081,7 @@ async fn lease(
     description = "The token, the worker secret, the lease and the declared `Content-Length` are checked before \
         the body is read: a refusal (401/403/409/413) closes the connection without reading the body.",
     params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
-    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR1 magic, u32 header length, JSON header, lz4 sections of i128 sums, CRC-32"),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "Binary frame: PFR2 magic, u32 header length, JSON header, the tile's 64-byte pixel sums (raw or lz4), sparse splats, CRC-32"),
     security(("worker_token" = [])),
     responses((status = 200, description = "Accepted", body = ResultAccepted), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "The declared or actual body is larger than --max-upload-mb or than the largest result of the lease's tile (JSON header, lz4 worst case of the tile's sums and of an image-sized splat buffer); refused before the body is read", body = ErrorBody), (status = 409, description = "The lease is no longer held", body = ErrorBody), (status = 422, description = "Corrupt or mismatched frame", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
 )]
@@ -1709,21 +1698,18 @@ mod tests {
             let mut farm = state.farm.lock();
             let film = farm.job_mut(id).expect("job").film_mut().expect("film");
             let mut x: u64 = 0x1234_5678_9abc_def1;
-            for (i, v) in film.sums.iter_mut().enumerate() {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                // Weights stay positive so most pixels resolve to means.
-                *v = if i % pathfarm_common::film::ch::COUNT == pathfarm_common::film::ch::WEIGHT {
-                    i128::from(x % 5) << 32
-                } else {
-                    i128::from(x >> 20)
-                };
+            for p in film.sums.iter_mut() {
+                let mut b = [0u8; pathfarm_common::film::PIXEL_BYTES];
+                for c in b.chunks_exact_mut(8) {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    c.copy_from_slice(&(x >> 20).to_le_bytes());
+                }
+                *p = pathfarm_common::film::PixelSums::read_le(&b);
+                // Weights stay small so most pixels resolve to means.
+                p.weight %= 5;
             }
-            for (i, v) in film.splats.sums.iter_mut().enumerate() {
-                *v = i as i128 * 12345;
-            }
-            film.splat_spp = 3;
             film.resolve()
         };
         let banded = resolve_banded(&state, id).expect("banded");

@@ -14,7 +14,7 @@ use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{Html, IntoResponse, Json, Response};
 use axum::routing::get;
-use pathfarm_common::film::{Film, ch, from_fixed, luminance};
+use pathfarm_common::film::{Film, luminance};
 use pathfarm_common::protocol::JobId;
 use serde::Serialize;
 use std::collections::HashMap;
@@ -66,23 +66,20 @@ const MAX_MEASURED_PIXELS: usize = 1 << 16;
 /// regular subset of the pixels. The variance is the film's `variance.Y` layer (the same formula
 /// as [`Film::resolve`]), computed for the chosen pixels only.
 pub fn noise(film: &Film) -> (f64, f64, f64) {
-    let n = film.sums.len() / ch::COUNT;
+    let n = film.sums.len();
     let stride = n.div_ceil(MAX_MEASURED_PIXELS).max(1);
-    let splat_scale = if film.splat_spp > 0 { 1.0 / f64::from(film.splat_spp) } else { 0.0 };
     let (mut var, mut lum, mut spp, mut seen, mut lit) = (0.0f64, 0.0f64, 0.0f64, 0u64, 0u64);
-    for i in (0..n).step_by(stride) {
-        let p = &film.sums[i * ch::COUNT..(i + 1) * ch::COUNT];
-        let w = from_fixed(p[ch::WEIGHT]);
+    for p in film.sums.iter().step_by(stride) {
+        let w = p.weight();
         seen += 1;
         spp += w;
         if w > 0.0 {
-            let mean = |c: usize| from_fixed(p[c]) / w;
-            let l = f64::from(luminance([mean(ch::R) as f32, mean(ch::G) as f32, mean(ch::B) as f32]));
-            if w > 1.0 {
-                var += ((from_fixed(p[ch::LUM_SQ]) / w - l * l).max(0.0) * w / (w - 1.0)) / w;
+            let v = p.variance_of_mean();
+            if v.is_finite() {
+                var += v;
             }
-            let splat = |c: usize| film.splats.sums.get(i * 3 + c).map_or(0.0, |v| from_fixed(*v) * splat_scale);
-            lum += l + f64::from(luminance([splat(0) as f32, splat(1) as f32, splat(2) as f32]));
+            // The mean's luminance, splats included.
+            lum += f64::from(luminance(p.radiance_sum().map(|c| (c / w) as f32)));
             lit += 1;
         }
     }

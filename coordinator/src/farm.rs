@@ -9,9 +9,10 @@
 //! unit is merged exactly once.
 //!
 //! Merge order: a tile folds pass p before pass p+1 (results that arrive early wait in
-//! `waiting`); splats of pass p fold into the film when pass p is complete for every tile. The
-//! film's sums are exact integers, so this order is not needed for the bits; it makes every
-//! progressive image a prefix of the final one (each pixel holds sample indices `[0, s)`).
+//! `waiting`), and a unit's BDPT splats fold into the film's radiance sums with the unit. The
+//! film's radiance sums are exact integers, for which this order is not needed; its AOV means
+//! (albedo, normal, depth) are bit-identical to a local render because of it (film.rs), and it
+//! makes every progressive image a prefix of the final one (each pixel holds samples `[0, s)`).
 
 use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
 use pathfarm_common::frames::FrameSet;
@@ -68,17 +69,14 @@ impl Default for FarmConfig {
 /// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
 /// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
 fn sample_count_mismatch(accum: &TileAccum, spp: u32) -> Option<String> {
-    use pathfarm_common::film::{ch, to_fixed};
-    let weight = to_fixed(1.0).wrapping_mul(i128::from(spp));
-    accum.sums.chunks_exact(ch::COUNT).enumerate().find_map(|(i, p)| {
-        let (w, hits) = (p[ch::WEIGHT], p[ch::HITS]);
-        (w != weight || !(0..=weight).contains(&hits)).then(|| {
+    accum.sums.iter().enumerate().find_map(|(i, p)| {
+        (p.weight != spp || p.hits > spp).then(|| {
             let x = accum.rect.x0 + i as u32 % accum.rect.width();
             let y = accum.rect.y0 + i as u32 / accum.rect.width();
             format!(
                 "pixel ({x}, {y}) holds {:.3} samples and {:.3} hits; the pass has {spp} samples per pixel",
-                pathfarm_common::film::from_fixed(w),
-                pathfarm_common::film::from_fixed(hits)
+                p.weight(),
+                f64::from(p.hits)
             )
         })
     })
@@ -147,8 +145,6 @@ pub struct FrameRun {
     /// Per tile: the next pass to fold.
     next_pass: Vec<u32>,
     waiting: HashMap<usize, (TileAccum, Option<SplatBuffer>)>,
-    /// Splats of passes not yet complete.
-    pending_splats: BTreeMap<u32, SplatBuffer>,
     /// Tiles merged, per pass.
     pass_merged: Vec<u32>,
     pub film: Film,
@@ -168,7 +164,6 @@ impl FrameRun {
             requeued: BTreeSet::new(),
             next_pass: vec![0; plan.tiles.len()],
             waiting: HashMap::new(),
-            pending_splats: BTreeMap::new(),
             pass_merged: vec![0; plan.passes.len()],
             film: Film::new(width, height),
             passes_done: 0,
@@ -668,7 +663,6 @@ impl Job {
                     frame: frames[i],
                     next_pass: f.next_pass.clone(),
                     film: f.film.clone(),
-                    pending_splats: f.pending_splats.clone(),
                 }
             })
             .collect()
@@ -723,7 +717,6 @@ pub struct Checkpoint {
     pub frame: i32,
     pub next_pass: Vec<u32>,
     pub film: Film,
-    pub pending_splats: BTreeMap<u32, SplatBuffer>,
 }
 
 #[derive(Debug)]
@@ -879,7 +872,6 @@ impl Farm {
             }
             run.next_pass = cp.next_pass;
             run.film = cp.film;
-            run.pending_splats = cp.pending_splats;
             while (run.passes_done as usize) < job.plan.passes.len()
                 && run.pass_merged[run.passes_done as usize] == tiles as u32
             {
@@ -1621,12 +1613,7 @@ impl Farm {
             let Some((accum, splats)) = run.waiting.remove(&index) else { break };
             run.film.add_tile(&accum);
             if let Some(s) = splats {
-                match run.pending_splats.get_mut(&next) {
-                    Some(buf) => buf.merge(&s),
-                    None => {
-                        run.pending_splats.insert(next, s);
-                    }
-                }
+                run.film.add_splats(&s);
             }
             run.units[index] = UnitState::Merged;
             run.next_pass[tile] += 1;
@@ -1644,10 +1631,6 @@ impl Farm {
             && run.pass_merged[run.passes_done as usize] == tiles as u32
         {
             let p = run.passes_done;
-            if let Some(s) = run.pending_splats.remove(&p) {
-                run.film.splats.merge(&s);
-            }
-            run.film.splat_spp = job.plan.passes[p as usize].s1;
             run.passes_done += 1;
             if !job.sequence {
                 job.output_dirty = true;

@@ -8,16 +8,15 @@
 
 use crate::farm::{Checkpoint, JobRecord};
 use anyhow::{Context, bail};
-use pathfarm_common::film::{Film, SplatBuffer, ch, write_atomic};
+use pathfarm_common::film::{Film, PIXEL_BYTES, write_atomic};
 use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::RenderSettings;
-use pathfarm_common::protocol::{FrameOrder, JobId, JobState, Notify, bytes_to_fixed, push_section, read_section};
+use pathfarm_common::protocol::{Codec, FrameOrder, JobId, JobState, Notify, push_pixels, read_pixels};
 use rusqlite::{Connection, OptionalExtension, params};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-const CHECKPOINT_MAGIC: &[u8; 4] = b"PFC1";
+const CHECKPOINT_MAGIC: &[u8; 4] = b"PFC2";
 
 /// The SQLite database and the checkpoint folder.
 pub struct Store {
@@ -314,44 +313,49 @@ impl Store {}
 #[serde(deny_unknown_fields)]
 struct CheckpointHeader {
     job_id: JobId,
-    /// The frame number (absent in checkpoints of versions before sequences: frame 0).
-    #[serde(default)]
+    /// The frame number.
     frame: i32,
     width: u32,
     height: u32,
-    splat_spp: u32,
+    /// Bytes per pixel of the film sections.
+    pixel_bytes: u32,
     next_pass: Vec<u32>,
-    pending_splat_passes: Vec<u32>,
 }
 
-/// Encodes a checkpoint: magic, JSON header, film sums, film splats, pending splats, CRC-32.
+/// Pixels per film section of a checkpoint (64 MiB: lz4 blocks stay far below their 4 GiB limit).
+const CHECKPOINT_CHUNK_PIXELS: usize = 1 << 20;
+
+/// Encodes a checkpoint: magic, JSON header, the film's pixels in lz4 sections of at most
+/// [`CHECKPOINT_CHUNK_PIXELS`] ([`PixelSums::write_le`](pathfarm_common::film::PixelSums::write_le)
+/// layout), CRC-32.
 pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
     let header = CheckpointHeader {
         job_id: cp.job_id,
         frame: cp.frame,
         width: cp.film.width,
         height: cp.film.height,
-        splat_spp: cp.film.splat_spp,
+        pixel_bytes: PIXEL_BYTES as u32,
         next_pass: cp.next_pass.clone(),
-        pending_splat_passes: cp.pending_splats.keys().copied().collect(),
     };
     let header = serde_json::to_vec(&header).unwrap_or_default();
     let mut out = Vec::new();
     out.extend_from_slice(CHECKPOINT_MAGIC);
     out.extend_from_slice(&(header.len() as u32).to_le_bytes());
     out.extend_from_slice(&header);
-    push_section(&mut out, &cp.film.sums);
-    push_section(&mut out, &cp.film.splats.sums);
-    for s in cp.pending_splats.values() {
-        push_section(&mut out, &s.sums);
+    for chunk in cp.film.sums.chunks(CHECKPOINT_CHUNK_PIXELS) {
+        push_pixels(&mut out, chunk, Codec::Lz4);
     }
     let crc = crc32fast::hash(&out);
     out.extend_from_slice(&crc.to_le_bytes());
     out
 }
 
-/// Decodes and verifies a checkpoint.
+/// Decodes and verifies a checkpoint. One of an older coordinator (`PFC1`: 13 x 128-bit sums per
+/// pixel) is refused with an error that says so.
 pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
+    if bytes.len() >= 4 && &bytes[..4] == b"PFC1" {
+        bail!("a checkpoint of the PFC1 format (128-bit sums) of an older coordinator is not read: the frame renders again from zero");
+    }
     if bytes.len() < 12 || &bytes[..4] != CHECKPOINT_MAGIC {
         bail!("not a checkpoint");
     }
@@ -365,21 +369,21 @@ pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         bail!("checkpoint header truncated");
     }
     let h: CheckpointHeader = serde_json::from_slice(&body[8..8 + hlen])?;
+    if h.pixel_bytes != PIXEL_BYTES as u32 {
+        bail!("checkpoint has {} bytes per pixel, this coordinator {PIXEL_BYTES}", h.pixel_bytes);
+    }
     let mut rest = &body[8 + hlen..];
     let n = h.width as usize * h.height as usize;
     let mut film = Film::new(h.width, h.height);
-    film.sums = bytes_to_fixed(&read_section(&mut rest, "film")?, n * ch::COUNT, "film")?;
-    film.splats.sums = bytes_to_fixed(&read_section(&mut rest, "splats")?, n * 3, "splats")?;
-    film.splat_spp = h.splat_spp;
-    let mut pending_splats = BTreeMap::new();
-    for p in h.pending_splat_passes {
-        let sums = bytes_to_fixed(&read_section(&mut rest, "pending splats")?, n * 3, "pending splats")?;
-        pending_splats.insert(p, SplatBuffer { width: h.width, height: h.height, sums });
+    for chunk in film.sums.chunks_mut(CHECKPOINT_CHUNK_PIXELS) {
+        let pixels = read_pixels(&mut rest, chunk.len(), "film")?;
+        chunk.copy_from_slice(&pixels);
     }
+    debug_assert_eq!(film.sums.len(), n);
     if !rest.is_empty() {
         bail!("checkpoint has {} trailing bytes", rest.len());
     }
-    Ok(Checkpoint { job_id: h.job_id, frame: h.frame, next_pass: h.next_pass, film, pending_splats })
+    Ok(Checkpoint { job_id: h.job_id, frame: h.frame, next_pass: h.next_pass, film })
 }
 
 /// Writes a checkpoint atomically.
@@ -398,7 +402,7 @@ pub fn read_checkpoint(path: &Path) -> Option<Checkpoint> {
     match decode_checkpoint(&bytes) {
         Ok(cp) => Some(cp),
         Err(e) => {
-            tracing::error!(path = %path.display(), "ignoring a damaged checkpoint: {e:#}");
+            tracing::error!(path = %path.display(), "ignoring a checkpoint that cannot be read (damaged or of an older format): {e:#}");
             None
         }
     }
@@ -412,20 +416,21 @@ mod tests {
     #[test]
     fn checkpoint_roundtrip_and_corruption() {
         let mut film = Film::new(5, 3);
-        film.sums[7] = 123_456_789_012_345;
-        film.splats.sums[2] = -5;
-        film.splat_spp = 4;
-        let mut pending = BTreeMap::new();
-        let mut s = SplatBuffer::new(5, 3);
-        s.sums[1] = 9;
-        pending.insert(3, s);
-        let cp = Checkpoint { job_id: 4, frame: -7, next_pass: vec![1, 2], film, pending_splats: pending };
+        film.sums[7].rgb[1] = 123_456_789_012_345;
+        film.sums[7].weight = 4;
+        film.sums[2].albedo = [1, 2, 3];
+        let cp = Checkpoint { job_id: 4, frame: -7, next_pass: vec![1, 2], film };
         let bytes = encode_checkpoint(&cp);
         assert_eq!(decode_checkpoint(&bytes).expect("decode"), cp);
         let mut bad = bytes.clone();
         bad[20] ^= 1;
         assert!(decode_checkpoint(&bad).is_err());
         assert!(decode_checkpoint(&bytes[..bytes.len() - 1]).is_err());
+        // A checkpoint of the old format is refused, saying why.
+        let mut old = bytes.clone();
+        old[..4].copy_from_slice(b"PFC1");
+        let e = decode_checkpoint(&old).expect_err("PFC1");
+        assert!(e.to_string().contains("PFC1 format"), "{e}");
     }
 
     #[test]

@@ -263,16 +263,16 @@ impl Renderer {
             Integrator::Igi(p) => Some(self.vpls.get(&self.scene, &p, self.settings.sampler, self.settings.seed, pass)),
             _ => None,
         };
-        let row_len = tile.width() as usize * film::ch::COUNT;
-        let rows: Vec<(Vec<film::Fixed>, Vec<Splat>)> = (tile.y0..tile.y1)
+        let rows: Vec<(Vec<film::PixelSums>, Vec<Splat>)> = (tile.y0..tile.y1)
             .into_par_iter()
             .map(|y| {
                 let mut sampler = new_sampler();
-                let mut row = vec![0; row_len];
+                let mut row = Vec::with_capacity(tile.width() as usize);
                 let mut splats = Vec::new();
                 let mut paths = Subpaths::default();
                 for x in tile.x0..tile.x1 {
-                    let i = (x - tile.x0) as usize * film::ch::COUNT;
+                    // The unit's samples of this pixel, AOVs summed in f64, in sample order.
+                    let mut acc = film::PixelAccum::default();
                     let pixel = UVec2::new(x, y);
                     for s in pass.samples() {
                         let v = match &self.integrator {
@@ -320,16 +320,17 @@ impl Renderer {
                                 }
                             }
                         };
-                        film::add_sample(&mut row[i..i + film::ch::COUNT], &v);
+                        acc.add(&v);
                     }
+                    row.push(acc.finish());
                 }
                 (row, splats)
             })
             .collect();
-        let mut accum = TileAccum::new(tile);
+        let mut accum = TileAccum { rect: tile, sums: Vec::with_capacity(tile.pixel_count()) };
         let mut splats = Vec::new();
-        for (dst, (src, sp)) in accum.sums.chunks_mut(row_len).zip(rows) {
-            dst.copy_from_slice(&src);
+        for (src, sp) in rows {
+            accum.sums.extend_from_slice(&src);
             splats.extend(sp);
         }
         (accum, splats)
@@ -366,10 +367,9 @@ pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize))
         let r = renderer.render_unit(plan.tiles[key.tile as usize], plan.passes[key.pass as usize]);
         film.add_tile(&r.accum);
         if let Some(s) = &r.splats {
-            film.splats.merge(s);
+            film.add_splats(s);
         }
         progress(done + 1, total);
     }
-    film.splat_spp = settings.spp;
     film
 }
