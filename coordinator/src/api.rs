@@ -1707,8 +1707,10 @@ mod tests {
                     c.copy_from_slice(&(x >> 20).to_le_bytes());
                 }
                 *p = pathfarm_common::film::PixelSums::read_le(&b);
-                // Weights stay small so most pixels resolve to means.
+                // Weights stay small so most pixels resolve to means; depths are numbers (a NaN
+                // would differ from itself).
                 p.weight %= 5;
+                p.depth = ((x % 1000) as f32 * 0.25).to_bits();
             }
             film.resolve()
         };

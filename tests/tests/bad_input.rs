@@ -304,11 +304,11 @@ fn jobs_beyond_the_memory_budget_are_422() {
     let r = c.submit(&json!({"scene_id": scene, "width": 8192, "height": 8192, "spp": 1_048_576,
         "tile_size": 8, "passes": {"type": "fixed", "spp": 1}}));
     expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["units (tiles x passes)", "4194304"]);
-    // 256 x 256 is 16 MiB of film: four fit in 64 MiB, the fifth does not.
+    // 512 x 512 is 16 MiB of film (64 bytes per pixel): four fit in 64 MiB, the fifth does not.
     for _ in 0..4 {
-        c.submit_ok(&json!({"scene_id": scene, "width": 256, "height": 256, "spp": 1}));
+        c.submit_ok(&json!({"scene_id": scene, "width": 512, "height": 512, "spp": 1}));
     }
-    let r = c.submit(&json!({"scene_id": scene, "width": 256, "height": 256, "spp": 1}));
+    let r = c.submit(&json!({"scene_id": scene, "width": 512, "height": 512, "spp": 1}));
     let msg = expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["16 MiB", "64 MiB", "--film-memory-mb", "4 jobs"]);
     assert!(msg.contains("delete finished jobs"), "{msg}");
     c.assert_serving();
