@@ -291,7 +291,8 @@ impl PixelSums {
     /// can give nonsense sums, never a panic).
     #[inline]
     pub fn read_le(b: &[u8; PIXEL_BYTES]) -> Self {
-        let u64_at = |i: usize| u64::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3], b[i + 4], b[i + 5], b[i + 6], b[i + 7]]);
+        let u64_at =
+            |i: usize| u64::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3], b[i + 4], b[i + 5], b[i + 6], b[i + 7]]);
         let u32_at = |i: usize| u32::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
         let u16_at = |i: usize| u16::from_le_bytes([b[i], b[i + 1]]);
         Self {
@@ -464,7 +465,6 @@ pub struct ImageLayers {
     /// the EXR layer `denoised` and shown by the PNG preview.
     pub denoised: Option<Vec<[f32; 3]>>,
 }
-
 
 impl Film {
     /// Bytes a film of this size holds: [`PIXEL_BYTES`] per pixel, splats included.

@@ -890,7 +890,13 @@ mod tests {
         for i in 0..100 {
             splats.add(i * 7, i * 3, [1.0, 2.0, 3.0]);
         }
-        let f = UnitResultFrame { lease_id: 1, job_id: 2, unit: UnitKey { frame: 0, pass: 0, tile: 0 }, accum, splats: Some(splats) };
+        let f = UnitResultFrame {
+            lease_id: 1,
+            job_id: 2,
+            unit: UnitKey { frame: 0, pass: 0, tile: 0 },
+            accum,
+            splats: Some(splats),
+        };
         let raw = f.encode_with(Codec::Raw).len();
         // 4096 pixels x 64 bytes, 100 splat entries, a small header: was 850 KB (13 x 16 bytes x 4096
         // plus a full-frame lz4 splat section).
@@ -1054,7 +1060,10 @@ mod fuzz {
         let mut accum = TileAccum::new(rect);
         for p in &mut accum.sums {
             let v = (next() % 1000) as f32 / 10.0;
-            crate::film::add_sample(p, &crate::film::SampleValue { radiance: [v, v * 0.5, 0.0], depth: Some(v), ..Default::default() });
+            crate::film::add_sample(
+                p,
+                &crate::film::SampleValue { radiance: [v, v * 0.5, 0.0], depth: Some(v), ..Default::default() },
+            );
         }
         let splats = splats.then(|| {
             let mut s = SplatBuffer::new(16, 16);

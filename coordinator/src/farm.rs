@@ -658,12 +658,7 @@ impl Job {
             .take(limit)
             .map(|(&i, f)| {
                 f.checkpoint_dirty = false;
-                Checkpoint {
-                    job_id: id,
-                    frame: frames[i],
-                    next_pass: f.next_pass.clone(),
-                    film: f.film.clone(),
-                }
+                Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film: f.film.clone() }
             })
             .collect()
     }

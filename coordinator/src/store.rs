@@ -354,7 +354,9 @@ pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
 /// pixel) is refused with an error that says so.
 pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     if bytes.len() >= 4 && &bytes[..4] == b"PFC1" {
-        bail!("a checkpoint of the PFC1 format (128-bit sums) of an older coordinator is not read: the frame renders again from zero");
+        bail!(
+            "a checkpoint of the PFC1 format (128-bit sums) of an older coordinator is not read: the frame renders again from zero"
+        );
     }
     if bytes.len() < 12 || &bytes[..4] != CHECKPOINT_MAGIC {
         bail!("not a checkpoint");
