@@ -13,7 +13,7 @@
 //!   split into tiles, passes, workers or threads and in whatever order the parts arrive. The
 //!   bound: one pixel's camera samples add at most `max_spp * MAX_SAMPLE_VALUE * 2^FRAC_BITS =
 //!   2^20 * 2^19 * 2^24 = 2^63 < 2^64` (Limits' default `max_spp` is 2^20; a larger limit is
-//!   refused by [`check_spp_bound`]), so radiance never saturates from camera samples; only
+//!   refused by `RenderSettings::validate`), so radiance never saturates from camera samples; only
 //!   BDPT splats (whose count per pixel is not bounded by the pixel's samples) or squared
 //!   luminance (`lum^2` of very bright samples) can reach `u64::MAX`, where the sum stays
 //!   (never wraps) and [`Film::resolve`] reports it: radiance as the saturated value, the
@@ -62,17 +62,6 @@ pub const MAX_SAMPLE_VALUE: f32 = (1u32 << 19) as f32;
 /// `2^64 / (MAX_SAMPLE_VALUE * 2^FRAC_BITS) = 2^21` (with a factor 2 of margin: 2^20).
 pub const MAX_EXACT_SPP: u32 = 1 << 20;
 
-/// Refuses a per-pixel sample count the exact channels are not sized for (a `Limits` with a
-/// larger `max_spp` than [`MAX_EXACT_SPP`]).
-pub fn check_spp_bound(spp: u32) -> Result<(), String> {
-    if spp > MAX_EXACT_SPP {
-        return Err(format!(
-            "spp {spp} exceeds {MAX_EXACT_SPP}, the most samples per pixel whose fixed-point sums cannot overflow"
-        ));
-    }
-    Ok(())
-}
-
 /// Converts one sample value to fixed point with `frac` fractional bits: clamped to
 /// `[0, MAX_SAMPLE_VALUE]` (squared luminance: `[0, MAX_SAMPLE_VALUE^2]`); non-finite values
 /// become 0 (the caller counts them).
@@ -81,7 +70,8 @@ fn quantize(v: f32, scale: f64, max: f64) -> Fixed {
     if v.is_finite() && v > 0.0 { (f64::from(v).min(max) * scale).round() as Fixed } else { 0 }
 }
 
-/// Converts one radiance sample value to fixed point (see [`quantize`]'s clamping).
+/// Converts one radiance sample value to fixed point: clamped to `[0, MAX_SAMPLE_VALUE]`, non-finite
+/// values become 0 (the caller counts them).
 #[inline]
 pub fn to_fixed(v: f32) -> Fixed {
     quantize(v, SCALE, f64::from(MAX_SAMPLE_VALUE))
@@ -326,8 +316,8 @@ impl PixelAccum {
         let rgb = s.radiance.map(|v| if v.is_finite() { v.clamp(0.0, MAX_SAMPLE_VALUE) } else { 0.0 });
         let lum = luminance(rgb);
         let e = &mut self.exact;
-        for c in 0..3 {
-            e.rgb[c] = e.rgb[c].saturating_add(to_fixed(rgb[c]));
+        for (sum, v) in e.rgb.iter_mut().zip(rgb) {
+            *sum = sum.saturating_add(to_fixed(v));
         }
         e.lum = e.lum.saturating_add(to_fixed(lum));
         e.lum_sq = e.lum_sq.saturating_add(quantize(lum * lum, LUM_SQ_SCALE, f64::MAX));
@@ -495,8 +485,8 @@ impl Film {
     pub fn add_splats(&mut self, splats: &SplatBuffer) {
         assert_eq!((self.width, self.height), (splats.width, splats.height), "splat buffer size");
         for (p, s) in self.sums.iter_mut().zip(splats.sums.chunks_exact(3)) {
-            for c in 0..3 {
-                p.rgb[c] = p.rgb[c].saturating_add(s[c]);
+            for (sum, v) in p.rgb.iter_mut().zip(s) {
+                *sum = sum.saturating_add(*v);
             }
         }
     }
@@ -886,10 +876,13 @@ mod tests {
         let per_sample = u128::from(to_fixed(MAX_SAMPLE_VALUE));
         assert_eq!(per_sample, 1u128 << (19 + FRAC_BITS));
         assert!(per_sample * u128::from(MAX_EXACT_SPP) < u128::from(u64::MAX));
-        assert!(check_spp_bound(MAX_EXACT_SPP).is_ok());
-        let e = check_spp_bound(MAX_EXACT_SPP + 1).expect_err("refused");
-        assert!(e.contains("overflow"), "{e}");
+        // Job validation refuses more samples per pixel, whatever the configured limit.
         assert!(crate::job::Limits::default().max_spp <= MAX_EXACT_SPP);
+        let limits = crate::job::Limits { max_spp: u32::MAX, ..Default::default() };
+        let ok = crate::job::RenderSettings::new(8, 8, MAX_EXACT_SPP);
+        assert!(ok.validate(&limits).is_ok());
+        let e = crate::job::RenderSettings::new(8, 8, MAX_EXACT_SPP + 1).validate(&limits).expect_err("refused");
+        assert!(e.to_string().contains("spp") && e.to_string().contains("1048576"), "{e}");
         // Out-of-range values are clamped, not wrapped: negative and NaN to 0, huge to the max.
         assert_eq!(to_fixed(-3.0), 0);
         assert_eq!(to_fixed(f32::NAN), 0);

@@ -326,7 +326,7 @@ struct CheckpointHeader {
 const CHECKPOINT_CHUNK_PIXELS: usize = 1 << 20;
 
 /// Encodes a checkpoint: magic, JSON header, the film's pixels in lz4 sections of at most
-/// [`CHECKPOINT_CHUNK_PIXELS`] ([`PixelSums::write_le`](pathfarm_common::film::PixelSums::write_le)
+/// `CHECKPOINT_CHUNK_PIXELS` ([`PixelSums::write_le`](pathfarm_common::film::PixelSums::write_le)
 /// layout), CRC-32.
 pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
     let header = CheckpointHeader {
