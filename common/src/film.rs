@@ -603,3 +603,22 @@ mod tests {
         assert_eq!(back.channels.len(), 12);
     }
 }
+
+/// What adaptive sampling reads of a pixel's sums (`crate::adaptive`): the sample weight, the
+/// mean colour and the sum of squared luminance, as floats.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelStats {
+    /// Samples (box filter: weight 1 each).
+    pub weight: f64,
+    /// Mean radiance (0 without samples).
+    pub mean_rgb: [f64; 3],
+    /// Sum over the samples of their squared luminance.
+    pub lum_sq_sum: f64,
+}
+
+/// [`PixelStats`] of one pixel's sums (`ch::COUNT` values).
+pub fn pixel_stats(p: &[Fixed]) -> PixelStats {
+    let weight = from_fixed(p[ch::WEIGHT]);
+    let mean = |c: usize| if weight > 0.0 { from_fixed(p[c]) / weight } else { 0.0 };
+    PixelStats { weight, mean_rgb: [mean(ch::R), mean(ch::G), mean(ch::B)], lum_sq_sum: from_fixed(p[ch::LUM_SQ]) }
+}
