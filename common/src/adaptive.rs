@@ -119,7 +119,11 @@ impl From<BlockMask> for BlockMaskWire {
         use base64::Engine as _;
         let n = m.block_count().div_ceil(8);
         let bytes: Vec<u8> = m.bits.iter().flat_map(|w| w.to_le_bytes()).take(n).collect();
-        Self { blocks_x: m.blocks_x, blocks_y: m.blocks_y, converged: base64::engine::general_purpose::STANDARD.encode(bytes) }
+        Self {
+            blocks_x: m.blocks_x,
+            blocks_y: m.blocks_y,
+            converged: base64::engine::general_purpose::STANDARD.encode(bytes),
+        }
     }
 }
 
@@ -222,9 +226,7 @@ impl BlockMask {
 
     /// Pixels of `rect` that still get samples.
     pub fn active_pixels(&self, rect: TileRect) -> usize {
-        (0..rect.height())
-            .map(|y| (0..rect.width()).filter(|&x| !self.pixel_converged(x, y)).count())
-            .sum()
+        (0..rect.height()).map(|y| (0..rect.width()).filter(|&x| !self.pixel_converged(x, y)).count()).sum()
     }
 }
 

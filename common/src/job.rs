@@ -781,7 +781,8 @@ mod tests {
         let e = bad.validate(&Limits::default()).expect_err("min_spp > spp").to_string();
         assert!(e.contains("adaptive.min_spp"), "{e}");
         bad = p.clone();
-        bad.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
+        bad.integrator =
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
         let e = bad.validate(&Limits::default()).expect_err("bdpt").to_string();
         assert!(e.contains("adaptive sampling is not available with the bdpt integrator"), "{e}");
     }

@@ -259,7 +259,9 @@ impl Renderer {
                 )));
             }
             if matches!(self.integrator, Integrator::Bdpt(_)) {
-                return Err(RenderError::Settings("adaptive sampling (a block mask) is not available with bdpt".into()));
+                return Err(RenderError::Settings(
+                    "adaptive sampling (a block mask) is not available with bdpt".into(),
+                ));
             }
         }
         Ok(self.render_tile_unit(tile, pass, mask))
@@ -270,9 +272,7 @@ impl Renderer {
         let seed = self.settings.seed;
         let (accum, splats) = match AnySampler::new(self.settings.sampler, seed) {
             AnySampler::Sobol(_) => self.render_tile(tile, pass, mask, || sampler::SobolSampler::new(seed)),
-            AnySampler::Independent(_) => {
-                self.render_tile(tile, pass, mask, || sampler::IndependentSampler::new(seed))
-            }
+            AnySampler::Independent(_) => self.render_tile(tile, pass, mask, || sampler::IndependentSampler::new(seed)),
         };
         let splats = matches!(self.integrator, Integrator::Bdpt(_)).then(|| {
             let mut buf = SplatBuffer::new(self.settings.width, self.settings.height);
