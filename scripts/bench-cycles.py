@@ -7,7 +7,8 @@
         --ours DIR/results.json --scene cornell
 
 Cycles: bpy (Blender 4.5 as a Python module), CPU, the GLB imported by Blender's glTF importer,
-box pixel filter, view transform "Standard", linear float EXR, path segments as ours (max_depth 8
+box pixel filter, view transform "Standard", linear float EXR, our Lambertian (non-metal,
+non-transmissive) materials without the Principled BSDF's default specular layer, path segments as ours (max_depth 8
 = 7 bounces), no clamping. The reference: `--ref-spp` samples, no adaptive sampling, no denoising
 (cached in --out). Then adaptive sampling (`--threshold`, `--min-spp`) and OIDN (albedo + normal,
 prefilter "Accurate") on, at 16, 32, 64, ... samples until the relMSE against the reference
@@ -15,7 +16,8 @@ prefilter "Accurate") on, at 16, 32, 64, ... samples until the relMSE against th
 `--target`, then a bisection of the sample count between the last miss and the first hit. The
 time is the wall time of `bpy.ops.render.render` (scene sync, BVH, render, denoise), the
 counterpart of ours (preparation + render + one denoise). With `--ours`, prints the ratio
-ours / Cycles for the adaptive+oidn configuration of `--scene`.
+ours / Cycles for the same configuration (adaptive+oidn, or adaptive with `--denoise off`) of
+`--scene`.
 """
 
 import argparse
@@ -53,6 +55,14 @@ def setup(glb, size, threads, max_depth):
     if not cams:
         raise SystemExit(f"{glb}: no camera")
     scene.camera = cams[0]
+    # Our Lambertian materials (glTF `extras` say `lambert`, which Blender's importer ignores)
+    # come in as Principled BSDFs with the default dielectric specular layer: make them the
+    # pure Lambertians they are (glass and metals keep theirs).
+    for m in bpy.data.materials:
+        p = m.node_tree.nodes.get("Principled BSDF") if m.use_nodes and m.node_tree else None
+        if p is not None and p.inputs["Metallic"].default_value == 0.0 and \
+                p.inputs["Transmission Weight"].default_value == 0.0:
+            p.inputs["Specular IOR Level"].default_value = 0.0
     scene.render.engine = "CYCLES"
     c = scene.cycles
     c.device = "CPU"
@@ -129,6 +139,7 @@ def main():
     ap.add_argument("--threads", type=int, default=os.cpu_count())
     ap.add_argument("--max-depth", type=int, default=8)
     ap.add_argument("--max-spp", type=int, default=1 << 14)
+    ap.add_argument("--denoise", choices=["on", "off"], default="on", help="OIDN in the timed renders")
     ap.add_argument("--ours", help="clean_frames' results.json: print the ratio")
     ap.add_argument("--scene", help="the scene's name in --ours (default: the GLB's file name)")
     args = ap.parse_args()
@@ -136,7 +147,7 @@ def main():
     name = args.scene or os.path.splitext(os.path.basename(args.glb))[0]
     os.makedirs(out, exist_ok=True)
     scene = setup(args.glb, args.size, args.threads, args.max_depth)
-    ref_path = os.path.join(out, f"{name}_cycles_{args.size}px_{args.ref_spp}spp.exr")
+    ref_path = os.path.join(out, f"{name}_cycles_lambert_{args.size}px_{args.ref_spp}spp.exr")
     if os.path.exists(ref_path):
         reference = read_rgb(ref_path)
     else:
@@ -144,12 +155,14 @@ def main():
         print(f"{name}: Cycles reference {args.ref_spp} spp in {secs:.1f} s", flush=True)
 
     tries = {}
+    denoise = args.denoise == "on"
+    config = "adaptive+oidn" if denoise else "adaptive"
 
     def attempt(spp):
-        secs, img = render(scene, os.path.join(out, f"{name}_cycles_{spp}.exr"), spp, True, True, args)
+        secs, img = render(scene, os.path.join(out, f"{name}_cycles_{spp}.exr"), spp, True, denoise, args)
         e = rel_mse(img, reference)
         tries[spp] = (secs, e)
-        print(f"{name}: Cycles adaptive+oidn {spp} spp: {secs:.2f} s, relMSE {e:.6f}", flush=True)
+        print(f"{name}: Cycles {config} {spp} spp: {secs:.2f} s, relMSE {e:.6f}", flush=True)
         return e < args.target
 
     lo, hi = 0, 16
@@ -165,18 +178,18 @@ def main():
         else:
             lo = mid
     secs, e = tries[hi]
-    result = {"scene": name, "renderer": "cycles", "config": "adaptive+oidn", "size": args.size,
+    result = {"scene": name, "renderer": "cycles", "config": config, "size": args.size,
               "ref_spp": args.ref_spp, "threshold": args.threshold, "min_spp": args.min_spp,
               "target": args.target, "spp_at_quality": hi, "time_to_quality_s": secs, "rel_mse": e,
               "blender": bpy.app.version_string}
     if args.ours:
         with open(args.ours) as f:
-            ours = [r for r in json.load(f) if r["scene"] == name and r["config"] == "adaptive+oidn"]
+            ours = [r for r in json.load(f) if r["scene"] == name and r["config"] == config]
         if ours and ours[0].get("time_to_quality_s"):
             result["ours_time_to_quality_s"] = ours[0]["time_to_quality_s"]
             result["ratio_ours_over_cycles"] = ours[0]["time_to_quality_s"] / secs
     print(json.dumps(result), flush=True)
-    with open(os.path.join(out, f"{name}_cycles.json"), "w") as f:
+    with open(os.path.join(out, f"{name}_cycles_{config}.json"), "w") as f:
         json.dump(result, f, indent=1)
 
 

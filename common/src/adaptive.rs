@@ -157,7 +157,7 @@ impl TryFrom<BlockMaskWire> for BlockMask {
                 u64::from_le_bytes(b)
             })
             .collect();
-        if n % 64 != 0 && mask.bits.last().is_some_and(|w| w >> (n % 64) != 0) {
+        if !n.is_multiple_of(64) && mask.bits.last().is_some_and(|w| w >> (n % 64) != 0) {
             return Err(format!("block mask: bits beyond block {n} are set"));
         }
         Ok(mask)
