@@ -196,6 +196,15 @@ pub struct RenderSettings {
     /// required when `aperture_radius` > 0.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub focus_distance: Option<f32>,
+    /// Adaptive sampling: after each pass (once `min_spp` is reached) 8 x 8 pixel blocks whose
+    /// relative error is at most `threshold` get no more samples (`crate::adaptive`). `None` =
+    /// every pixel gets `spp` samples.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<crate::adaptive::AdaptiveSettings>,
+    /// Also produce a `denoised` layer (Intel Open Image Denoise, from the colour with albedo and
+    /// normal). A request: a farm without a worker that can denoise finishes without the layer.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub denoise: bool,
 }
 
 fn is_zero(v: &f32) -> bool {
@@ -359,6 +368,8 @@ impl RenderSettings {
             environment: None,
             aperture_radius: 0.0,
             focus_distance: None,
+            adaptive: None,
+            denoise: false,
         }
     }
 
@@ -464,6 +475,19 @@ impl RenderSettings {
                 return Err(SettingsError::Invalid(format!(
                     "integrator.strategy [{s}, {t}] does not exist: t >= 1 and s + t >= 2"
                 )));
+            }
+        }
+        if let Some(adaptive) = &self.adaptive {
+            adaptive.validate(self.spp)?;
+            if matches!(self.integrator, IntegratorSettings::Bdpt { .. }) {
+                // Light-tracing splats land anywhere on the image, outside the tile sums the
+                // error is estimated from, and are normalized by a per-pixel sample count that
+                // adaptive sampling makes uneven.
+                return Err(SettingsError::Invalid(
+                    "adaptive sampling is not available with the bdpt integrator (its light-tracing splats \
+                     are not in the per-pixel error estimate): use path, direct or igi, or drop adaptive"
+                        .into(),
+                ));
             }
         }
         if let IntegratorSettings::Igi { vpls, vpl_sets, g_limit, .. } = &self.integrator {
@@ -738,6 +762,31 @@ mod tests {
         assert!(s.validate(&Limits::default()).expect_err("light only").to_string().contains("mis"));
         let json = serde_json::to_string(&p).expect("serialize");
         assert!(!json.contains("strategy"), "{json}");
+    }
+
+    #[test]
+    fn adaptive_and_denoise_default_off_parse_and_validate() {
+        let s = RenderSettings::new(8, 8, 32);
+        let json = serde_json::to_string(&s).expect("json");
+        assert!(!json.contains("adaptive") && !json.contains("denoise"), "{json}");
+        let p: RenderSettings = serde_json::from_str(
+            r#"{"width":8,"height":8,"spp":32,"adaptive":{"threshold":0.02,"min_spp":8},"denoise":true}"#,
+        )
+        .expect("parse");
+        assert_eq!(p.adaptive, Some(crate::adaptive::AdaptiveSettings { threshold: 0.02, min_spp: 8 }));
+        assert!(p.denoise);
+        assert_eq!(p.validate(&Limits::default()), Ok(()));
+        let back: RenderSettings = serde_json::from_str(&serde_json::to_string(&p).expect("json")).expect("parse");
+        assert_eq!(back, p);
+        let mut bad = p.clone();
+        bad.adaptive = Some(crate::adaptive::AdaptiveSettings { threshold: 0.02, min_spp: 64 });
+        let e = bad.validate(&Limits::default()).expect_err("min_spp > spp").to_string();
+        assert!(e.contains("adaptive.min_spp"), "{e}");
+        bad = p.clone();
+        bad.integrator =
+            IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
+        let e = bad.validate(&Limits::default()).expect_err("bdpt").to_string();
+        assert!(e.contains("adaptive sampling is not available with the bdpt integrator"), "{e}");
     }
 
     #[test]

@@ -101,6 +101,12 @@ pub struct JobRequestBody {
     /// f / (2 N)). Not with bdpt.
     #[schema(minimum = 0.0, maximum = 1000000.0)]
     pub aperture_radius: Option<f32>,
+    /// Adaptive sampling `{"threshold": 0.1, "min_spp": 16}`: after each pass (from `min_spp`
+    /// samples on) 8x8 pixel blocks whose relative error is at most `threshold` get no more
+    /// samples; `samples.Y` shows the per-pixel count. Not with bdpt.
+    pub adaptive: Option<pathfarm_common::adaptive::AdaptiveSettings>,
+    /// Also a `denoised` layer (OIDN) in the EXR, shown by the preview, when a worker can denoise.
+    pub denoise: Option<bool>,
     /// Distance in focus along the view axis (scene units); required with an aperture.
     #[schema(exclusive_minimum = 0.0)]
     pub focus_distance: Option<f32>,

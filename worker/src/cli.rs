@@ -117,7 +117,23 @@ pub struct SettingsArgs {
     /// adds to it.
     #[arg(long)]
     pub auto_exposure: bool,
+    /// Adaptive sampling: after each pass, 8x8 pixel blocks whose relative error (standard
+    /// error of the mean luminance over the mean) is at most this get no more samples.
+    #[arg(long)]
+    pub adaptive_threshold: Option<f32>,
+    /// Adaptive sampling: samples every pixel gets before a block may stop (default: 16, or
+    /// spp if smaller).
+    #[arg(long, requires = "adaptive_threshold")]
+    pub min_spp: Option<u32>,
+    /// Also write a `denoised` layer (Intel Open Image Denoise, from colour, albedo and normal);
+    /// the PNG shows it. A local render needs a binary built with the `denoise` feature; a farm
+    /// job asks for it (`"denoise": true`).
+    #[arg(long)]
+    pub denoise: bool,
 }
+
+/// `--min-spp`'s default: 16 samples, or the job's spp if it has fewer.
+pub const DEFAULT_MIN_SPP: u32 = 16;
 
 /// `--environment`: `r,g,b` is a colour, anything else a file.
 fn environment_arg(v: &str, intensity: f32, rotation_deg: f32) -> EnvironmentSettings {
@@ -187,6 +203,11 @@ impl SettingsArgs {
         s.focus_distance = self.focus_distance;
         s.exposure = self.exposure;
         s.auto_exposure = self.auto_exposure;
+        s.adaptive = self.adaptive_threshold.map(|threshold| pathfarm_common::adaptive::AdaptiveSettings {
+            threshold,
+            min_spp: self.min_spp.unwrap_or(DEFAULT_MIN_SPP.min(self.spp)),
+        });
+        s.denoise = self.denoise;
         s
     }
 }
@@ -243,10 +264,6 @@ pub struct RenderArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
-    /// Also write a `denoised` layer (Intel Open Image Denoise, from colour, albedo and normal);
-    /// the PNG shows it. Needs a binary built with the `denoise` feature.
-    #[arg(long)]
-    pub denoise: bool,
 }
 
 /// Runs `pathfarm-worker render`.
@@ -254,7 +271,7 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     if let Some(n) = args.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global().context("thread pool")?;
     }
-    if args.denoise {
+    if args.settings.denoise {
         // Before the render, not after it.
         crate::denoise::ensure_available()?;
     }
@@ -316,9 +333,11 @@ fn render_frame(
     });
     bar.finish_and_clear();
     let secs = t1.elapsed().as_secs_f64();
-    let samples = f64::from(settings.width) * f64::from(settings.height) * f64::from(settings.spp);
     let mut image = film.resolve();
-    if args.denoise {
+    // Adaptive sampling takes fewer than width x height x spp.
+    let samples: f64 = image.samples.iter().map(|&n| f64::from(n)).sum();
+    let uniform = f64::from(settings.width) * f64::from(settings.height) * f64::from(settings.spp);
+    if settings.denoise {
         let t = Instant::now();
         image.denoised = Some(crate::denoise::denoise(&image)?);
         tracing::info!(denoise_s = t.elapsed().as_secs_f64(), "denoised (OIDN)");
@@ -335,6 +354,7 @@ fn render_frame(
         prepare_s = prep.as_secs_f64(),
         render_s = secs,
         msamples_per_s = samples / secs / 1e6,
+        samples_of_uniform = samples / uniform,
         "rendered"
     );
     Ok(())

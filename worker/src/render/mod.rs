@@ -22,6 +22,7 @@ use camera::Camera;
 use glam::{UVec2, Vec2, Vec3A};
 use igi::{IgiParams, VplCache, li_igi};
 use integrator::{PathParams, li_path};
+use pathfarm_common::adaptive::{self, BlockMask};
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
 use pathfarm_common::scene::{self as scene_model, EnvironmentImage, Scene};
@@ -234,11 +235,44 @@ impl Renderer {
     /// Renders the sample indices of `pass` for every pixel of `tile`, in parallel over rows on
     /// the current rayon pool. The result does not depend on the thread count.
     pub fn render_unit(&self, tile: TileRect, pass: Pass) -> UnitResult {
+        self.render_tile_unit(tile, pass, None)
+    }
+
+    /// [`Renderer::render_unit`] for adaptive sampling: pixels in the converged blocks of `mask`
+    /// get no samples (their sums stay zero, so merging the result adds nothing to them).
+    /// `None`, or a mask with nothing converged, renders every pixel. Refused: a mask of another
+    /// tile's block layout, and a mask with the bdpt integrator (whose splats adaptive sampling
+    /// does not handle; settings validation refuses the pair too).
+    pub fn render_unit_masked(
+        &self,
+        tile: TileRect,
+        pass: Pass,
+        mask: Option<&BlockMask>,
+    ) -> Result<UnitResult, RenderError> {
+        let mask = mask.filter(|m| !m.none());
+        if let Some(m) = mask {
+            if !m.fits(tile) {
+                return Err(RenderError::Settings(format!(
+                    "the block mask has {:?} blocks; tile {tile:?} has {:?}",
+                    m.blocks(),
+                    BlockMask::blocks_of(tile)
+                )));
+            }
+            if matches!(self.integrator, Integrator::Bdpt(_)) {
+                return Err(RenderError::Settings(
+                    "adaptive sampling (a block mask) is not available with bdpt".into(),
+                ));
+            }
+        }
+        Ok(self.render_tile_unit(tile, pass, mask))
+    }
+
+    fn render_tile_unit(&self, tile: TileRect, pass: Pass, mask: Option<&BlockMask>) -> UnitResult {
         // One match per unit: the per-sample loop is monomorphized for the concrete sampler.
         let seed = self.settings.seed;
         let (accum, splats) = match AnySampler::new(self.settings.sampler, seed) {
-            AnySampler::Sobol(_) => self.render_tile(tile, pass, || sampler::SobolSampler::new(seed)),
-            AnySampler::Independent(_) => self.render_tile(tile, pass, || sampler::IndependentSampler::new(seed)),
+            AnySampler::Sobol(_) => self.render_tile(tile, pass, mask, || sampler::SobolSampler::new(seed)),
+            AnySampler::Independent(_) => self.render_tile(tile, pass, mask, || sampler::IndependentSampler::new(seed)),
         };
         let splats = matches!(self.integrator, Integrator::Bdpt(_)).then(|| {
             let mut buf = SplatBuffer::new(self.settings.width, self.settings.height);
@@ -257,6 +291,7 @@ impl Renderer {
         &self,
         tile: TileRect,
         pass: Pass,
+        mask: Option<&BlockMask>,
         new_sampler: impl Fn() -> S + Sync,
     ) -> (TileAccum, Vec<Splat>) {
         let vpls = match self.integrator {
@@ -271,6 +306,11 @@ impl Renderer {
                 let mut splats = Vec::new();
                 let mut paths = Subpaths::default();
                 for x in tile.x0..tile.x1 {
+                    if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
+                        // A converged block: no samples, nothing added by the merge.
+                        row.push(film::PixelSums::default());
+                        continue;
+                    }
                     // The unit's samples of this pixel, AOVs summed in f64, in sample order.
                     let mut acc = film::PixelAccum::default();
                     let pixel = UVec2::new(x, y);
@@ -358,16 +398,34 @@ fn environment_spec(
 
 /// Renders a whole job locally, unit by unit in canonical order, exactly as the farm does.
 /// `progress(done, total)` is called after each unit.
+///
+/// With adaptive sampling the passes run in order and, after each pass, every tile's mask comes
+/// from [`adaptive::converged_blocks`] of the film's merged sums of that tile; the next pass
+/// renders with it, and a tile whose blocks have all converged is skipped (counted as done).
 pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize)) -> Film {
     let settings = renderer.settings();
     let plan = settings.plan();
     let mut film = Film::new(settings.width, settings.height);
     let total = plan.unit_count();
+    let mut masks: Vec<Option<BlockMask>> = vec![None; plan.tiles.len()];
     for (done, key) in plan.units().enumerate() {
-        let r = renderer.render_unit(plan.tiles[key.tile as usize], plan.passes[key.pass as usize]);
-        film.add_tile(&r.accum);
-        if let Some(s) = &r.splats {
-            film.add_splats(s);
+        let (tile, pass) = (plan.tiles[key.tile as usize], plan.passes[key.pass as usize]);
+        let mask = masks[key.tile as usize].as_ref();
+        if !mask.is_some_and(BlockMask::all_converged) {
+            let r = if mask.is_some() {
+                // The settings were validated (no bdpt) and the mask is of this tile.
+                renderer.render_unit_masked(tile, pass, mask).unwrap_or_else(|e| unreachable!("{e}"))
+            } else {
+                renderer.render_unit(tile, pass)
+            };
+            film.add_tile(&r.accum);
+            if let Some(s) = &r.splats {
+                film.add_splats(s);
+            }
+        }
+        if let Some(a) = &settings.adaptive {
+            // Judged after the tile's pass is merged, before its next pass.
+            masks[key.tile as usize] = Some(adaptive::converged_blocks(&film.tile(tile).sums, tile, a, pass.s1));
         }
         progress(done + 1, total);
     }
