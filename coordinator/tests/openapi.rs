@@ -15,7 +15,7 @@ const API: &str = "/api/v1";
 
 /// `(path, method)` pairs of the document.
 fn documented() -> BTreeSet<(String, String)> {
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document()).expect("serialize");
     let mut out = BTreeSet::new();
     for (path, item) in doc["paths"].as_object().expect("paths") {
         for method in ["get", "post", "put", "delete", "patch", "head", "options"] {
@@ -112,7 +112,7 @@ fn state() -> (tempfile::TempDir, Arc<AppState>) {
 #[tokio::test]
 async fn every_documented_route_is_served() {
     let (_tmp, state) = state();
-    let app = pathfarm_coordinator::api::router(state);
+    let app = pathfarm_coordinator::http::router(state);
     for (path, method) in documented() {
         let uri = path.replace("{id}", "1");
         let method = Method::from_bytes(method.to_uppercase().as_bytes()).expect("method");
@@ -148,7 +148,7 @@ fn refs(v: &serde_json::Value, out: &mut BTreeSet<String>) {
 #[tokio::test]
 async fn document_is_served_and_self_consistent() {
     let (_tmp, state) = state();
-    let app = pathfarm_coordinator::api::router(state);
+    let app = pathfarm_coordinator::http::router(state);
     let req = Request::builder().uri("/api/v1/openapi.json").body(Body::empty()).expect("request");
     let resp = app.oneshot(req).await.expect("response");
     assert_eq!(resp.status(), StatusCode::OK);
@@ -175,7 +175,7 @@ async fn document_is_served_and_self_consistent() {
 /// frames, the EXR and the PNG.
 #[test]
 fn binary_bodies_are_typed_binary() {
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document()).expect("serialize");
     let expect_binary = |schema: &serde_json::Value, media: &str, at: &str| {
         assert_eq!(schema["type"], "string", "{at}: {schema}");
         assert_eq!(schema["format"], "binary", "{at}: {schema}");
@@ -218,7 +218,7 @@ fn binary_bodies_are_typed_binary() {
 /// length and per-position types.
 #[test]
 fn tuples_are_arrays_of_fixed_length() {
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document_json()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document_json()).expect("serialize");
     let text = doc.to_string();
     assert!(!text.contains(r#""items":false"#), "a tuple is left with items: false");
     let current = &doc["components"]["schemas"]["WorkerInfo"]["properties"]["current"];
@@ -230,7 +230,7 @@ fn tuples_are_arrays_of_fixed_length() {
 fn the_job_body_spells_every_render_setting() {
     // JobRequestBody repeats RenderSettings' fields by hand (see openapi.rs): a new setting
     // must be documented there too.
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document()).expect("serialize");
     let schemas = &doc["components"]["schemas"];
     let names = |schema: &serde_json::Value| -> BTreeSet<String> {
         schema["properties"].as_object().map(|p| p.keys().cloned().collect()).unwrap_or_default()

@@ -7,7 +7,7 @@
 //! a task sends them, a few at once, each with a timeout per attempt and retries with
 //! exponential backoff. Every outcome goes to the job's log.
 
-use crate::server::{AppState, now_ms};
+use crate::service::{AppState, now_ms};
 use hmac::{Hmac, Mac};
 use pathfarm_common::protocol::{JobId, JobInfo, NotifyEvent};
 use sha2::Sha256;

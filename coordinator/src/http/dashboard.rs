@@ -6,9 +6,9 @@
 //! each completed pass, measured from the film's variance layer by a small tracker task that
 //! follows the job events (and on demand, for passes it missed).
 
-use crate::api::ApiError;
-use crate::events::authorize_client;
-use crate::server::AppState;
+use crate::http::ApiError;
+use crate::http::events::authorize_client;
+use crate::service::AppState;
 use axum::Router;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
