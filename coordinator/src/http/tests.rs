@@ -370,3 +370,50 @@ fn banded_resolve_equals_whole_resolve() {
     assert_eq!(banded, expected);
     assert!(matches!(resolve_banded(&state, id + 1), Err(e) if e.kind == crate::service::Failure::NotFound));
 }
+
+/// `Server::shutdown` (the shutdown future of `server::run`) stops accepting and the loops and
+/// writes a final checkpoint: a merged unit and a priority change that no checkpoint loop saw
+/// (its interval is an hour) are there when the data dir is opened again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_writes_a_final_checkpoint() {
+    use pathfarm_common::film::{SampleValue, TileAccum, add_sample};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+    cfg.checkpoint_interval = Duration::from_secs(3600);
+    let server = crate::server::Server::start(cfg.clone()).await.expect("server");
+    let addr = server.addr;
+    let app = router(server.state.clone());
+    let scene = upload(&app, pathfarm_common::scene::demo::cornell_demo_glb()).await;
+    let job = json_of(&app, serde_json::json!({"scene_id": scene, "width": 64, "height": 64, "spp": 8})).await;
+    {
+        let mut farm = server.state.farm.lock();
+        assert!(farm.job(job).expect("job").plan.unit_count() > 1, "the job must stay running");
+        let w = farm.register("w".into(), 1, now_ms());
+        let g = farm.lease(w, now_ms()).expect("lease").expect("a unit");
+        let mut accum = TileAccum::new(g.tile);
+        for y in 0..g.tile.y1 - g.tile.y0 {
+            for x in 0..g.tile.x1 - g.tile.x0 {
+                for _ in g.pass.samples() {
+                    add_sample(accum.pixel_mut(x, y), &SampleValue { radiance: [0.5; 3], ..Default::default() });
+                }
+            }
+        }
+        let frame = UnitResultFrame { lease_id: g.lease_id, job_id: g.job_id, unit: g.unit, accum, splats: None };
+        farm.accept(g.lease_id, frame, now_ms()).expect("accept");
+        farm.set_priority(job, 7).expect("priority");
+    }
+    assert!(!dir.path().join(format!("jobs/{job}/checkpoint.bin")).exists(), "no checkpoint before the shutdown");
+    server.shutdown().await.expect("shutdown");
+    assert!(tokio::net::TcpStream::connect(addr).await.is_err(), "still accepting after the shutdown");
+    assert!(dir.path().join(format!("jobs/{job}/checkpoint.bin")).exists(), "no final checkpoint");
+    let state = AppState::new(cfg).expect("reopen");
+    let farm = state.farm.lock();
+    let j = farm.job(job).expect("job restored");
+    assert_eq!((j.priority, j.units_merged), (7, 1));
+}
+
+async fn json_of(app: &Router, job: serde_json::Value) -> u64 {
+    let (status, created) = send(app, "POST", "/api/v1/jobs", serde_json::to_vec(&job).expect("json")).await;
+    assert_eq!(status, StatusCode::CREATED, "{created}");
+    created["id"].as_u64().expect("id")
+}

@@ -54,58 +54,75 @@ pub async fn checkpoint_loop(state: Arc<AppState>) {
         };
         for id in due {
             let t0 = Instant::now();
-            // One film copy at a time: the lock is held for one copy, and a sequence's frames
-            // in progress that merged units since their last checkpoint are copied and written
-            // one after the other, each to its own file (the job's row with each).
-            let mut outcome = None;
-            loop {
-                let snapshot = {
-                    let mut farm = state.farm.lock();
-                    farm.job_mut(id).ok().map(|j| {
-                        let key = (j.units_merged, j.state, j.priority);
-                        (key, j.record(now_ms()), j.sequence, j.take_checkpoints(false, 1))
-                    })
-                };
-                let Some((key, rec, sequence, cps)) = snapshot else { break };
-                let more = sequence && !cps.is_empty();
-                let st = state.clone();
-                let r = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-                    for cp in &cps {
-                        let path = if sequence {
-                            st.store().frame_checkpoint_path(id, cp.frame)
-                        } else {
-                            st.store().checkpoint_path(id)
-                        };
-                        write_checkpoint(&path, cp)?;
-                    }
-                    // Only a job that still exists gets its row written back: a DELETE that ran
-                    // during the snapshot or the write must not be undone (it came back after a
-                    // restart). Lock order: store, then farm (as in persist_job).
-                    let store = st.store();
-                    if st.farm.lock().job(id).is_ok() {
-                        store.put_job(&rec)?;
-                    } else {
-                        drop(store);
-                        let _ = std::fs::remove_dir_all(st.job_dir(id));
-                    }
-                    Ok(())
-                })
-                .await;
-                let ok = matches!(r, Ok(Ok(())));
-                outcome = Some((key, r));
-                if !ok || !more {
-                    break;
-                }
-            }
-            match outcome {
-                Some((key, Ok(Ok(())))) => {
+            let st = state.clone();
+            match tokio::task::spawn_blocking(move || checkpoint_job(&st, id)).await {
+                Ok(Ok(Some(key))) => {
                     let took = t0.elapsed();
                     seen.insert(id, (key, Instant::now() + took * 9));
                 }
-                Some((_, Ok(Err(e)))) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
-                Some((_, Err(e))) => tracing::error!(job = id, "checkpoint task failed: {e}"),
-                None => {}
+                Ok(Ok(None)) => {}
+                Ok(Err(e)) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
+                Err(e) => tracing::error!(job = id, "checkpoint task failed: {e}"),
             }
         }
     }
+}
+
+/// What a job's checkpoint held: units merged, state, priority.
+pub type CheckpointKey = (u64, JobState, i32);
+
+/// Checkpoints job `id` now (blocking): the films of its frames in progress that merged units
+/// since their last checkpoint, each with its merged set in one atomic file, and the job's row
+/// with each. One film copy at a time: the farm lock is held for one copy. Returns what was
+/// written, `None` when the job is gone.
+pub fn checkpoint_job(state: &AppState, id: JobId) -> anyhow::Result<Option<CheckpointKey>> {
+    let mut written = None;
+    loop {
+        let snapshot = {
+            let mut farm = state.farm.lock();
+            farm.job_mut(id).ok().map(|j| {
+                let key = (j.units_merged, j.state, j.priority);
+                (key, j.record(now_ms()), j.sequence, j.take_checkpoints(false, 1))
+            })
+        };
+        let Some((key, rec, sequence, cps)) = snapshot else { return Ok(written) };
+        let more = sequence && !cps.is_empty();
+        for cp in &cps {
+            let path = if sequence {
+                state.store().frame_checkpoint_path(id, cp.frame)
+            } else {
+                state.store().checkpoint_path(id)
+            };
+            write_checkpoint(&path, cp)?;
+        }
+        // Only a job that still exists gets its row written back: a DELETE that ran during the
+        // snapshot or the write must not be undone (it came back after a restart). Lock order:
+        // store, then farm (as in persist_job).
+        let store = state.store();
+        if state.farm.lock().job(id).is_ok() {
+            store.put_job(&rec)?;
+        } else {
+            drop(store);
+            let _ = std::fs::remove_dir_all(state.job_dir(id));
+        }
+        written = Some(key);
+        if !more {
+            return Ok(written);
+        }
+    }
+}
+
+/// Checkpoints every job (blocking); run at shutdown, once the loops have stopped, so that
+/// nothing merged is lost. Returns the number of jobs written.
+pub fn checkpoint_all(state: &AppState) -> usize {
+    let ids: Vec<JobId> = state.farm.lock().jobs().map(|j| j.id).collect();
+    let mut n = 0;
+    for id in ids {
+        match checkpoint_job(state, id) {
+            Ok(Some(_)) => n += 1,
+            Ok(None) => {}
+            Err(e) => tracing::error!(job = id, "final checkpoint failed: {e:#}"),
+        }
+    }
+    n
 }
