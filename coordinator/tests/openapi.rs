@@ -1,5 +1,5 @@
 //! The OpenAPI document covers the router, both ways:
-//! - every `.route(PATH, METHODS)` registered in the source (api.rs, dashboard.rs) is in the
+//! - every `.route(PATH, METHODS)` registered in the source (http/mod.rs, http/dashboard.rs) is in the
 //!   document with each of its methods (a route added without docs fails here);
 //! - every documented (path, method) is served by the real router (not the fallback);
 //! - every schema reference resolves, and `/api/v1/openapi.json` serves the document.
@@ -28,7 +28,7 @@ fn documented() -> BTreeSet<(String, String)> {
 }
 
 /// `.route("PATH", get(..).post(..))` calls in a source file; `prefix` applies to routes that
-/// come before the line containing `prefix_until` (the nested API routers in api.rs).
+/// come before the line containing `prefix_until` (the nested API routers in http/mod.rs).
 fn routes_in_source(src: &str, prefix: &str, prefix_until: Option<&str>) -> BTreeSet<(String, String)> {
     let boundary = prefix_until.and_then(|m| src.find(m)).unwrap_or(usize::MAX);
     let mut out = BTreeSet::new();
@@ -79,8 +79,8 @@ fn routes_in_source(src: &str, prefix: &str, prefix_until: Option<&str>) -> BTre
 
 fn registered() -> BTreeSet<(String, String)> {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/src/");
-    let api = std::fs::read_to_string(format!("{dir}api.rs")).expect("api.rs");
-    let dash = std::fs::read_to_string(format!("{dir}dashboard.rs")).expect("dashboard.rs");
+    let api = std::fs::read_to_string(format!("{dir}http/mod.rs")).expect("http/mod.rs");
+    let dash = std::fs::read_to_string(format!("{dir}http/dashboard.rs")).expect("http/dashboard.rs");
     let mut all = routes_in_source(&api, API, Some(".nest(API"));
     all.extend(routes_in_source(&dash, "", None));
     all

@@ -149,9 +149,9 @@ async fn track(state: Weak<AppState>, history: Arc<History>) {
     let Some(mut rx) = state.upgrade().map(|s| s.events.subscribe()) else { return };
     loop {
         match rx.recv().await {
-            Ok(ev) if ev.kind == "job" => {
+            Ok(crate::service::Event::Job { id }) => {
                 let Some(s) = state.upgrade() else { return };
-                history.record(&s, ev.id);
+                history.record(&s, id);
             }
             Ok(_) => {}
             Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {

@@ -1,6 +1,6 @@
 //! Live events for dashboards: `GET /api/v1/events`, a server-sent event stream.
 //!
-//! The handlers publish bare [`crate::service::Event`]s (`kind`, `id`) on a broadcast channel;
+//! The handlers publish bare [`crate::service::Event`]s (an enum: job, image, frame, worker) on a broadcast channel;
 //! each connection coalesces them (at most one message per id every [`MIN_GAP`]) and turns them
 //! into JSON messages:
 //!
@@ -114,21 +114,23 @@ impl Coalescer {
         }
     }
 
-    fn note(&mut self, kind: &str, id: u64, frame: Option<i32>) {
-        match kind {
-            "frame" => match frame {
-                Some(frame) if self.pending.frames.len() < MAX_PENDING_FRAMES => {
+    fn note(&mut self, event: crate::service::Event) {
+        use crate::service::Event;
+        match event {
+            Event::Frame { id, frame } => {
+                if self.pending.frames.len() < MAX_PENDING_FRAMES {
                     self.pending.frames.push(FrameWritten { id, frame });
+                } else {
+                    self.pending.resync = true;
                 }
-                _ => self.pending.resync = true,
-            },
-            "job" => {
+            }
+            Event::Job { id } => {
                 self.pending.jobs.insert(id);
             }
-            "image" => {
+            Event::Image { id } => {
                 self.pending.images.insert(id);
             }
-            _ => self.pending.workers = true,
+            Event::Worker { .. } => self.pending.workers = true,
         }
     }
 
@@ -186,7 +188,7 @@ async fn pump(state: Arc<AppState>, mut rx: broadcast::Receiver<crate::service::
         tokio::select! {
             () = tx.closed() => return,
             r = rx.recv() => match r {
-                Ok(ev) => c.note(ev.kind, ev.id, ev.frame),
+                Ok(ev) => c.note(ev),
                 Err(broadcast::error::RecvError::Lagged(_)) => {
                     if tx.send(SseEvent::default().event("resync").data("{}")).await.is_err() {
                         return;
@@ -298,8 +300,8 @@ mod tests {
             tokio::spawn(async move {
                 tokio::time::sleep(Duration::from_millis(50)).await;
                 for _ in 0..500 {
-                    state.publish("job", 7);
-                    state.publish("image", 7);
+                    state.publish(crate::service::Event::Job { id: 7 });
+                    state.publish(crate::service::Event::Image { id: 7 });
                     tokio::task::yield_now().await;
                 }
                 state.publish_frame(7, 12);

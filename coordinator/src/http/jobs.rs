@@ -73,7 +73,7 @@ pub(crate) async fn create_job(
         return Err(e.into());
     }
     state.work_ready.notify_waiters();
-    state.publish("job", id);
+    state.publish(crate::service::Event::Job { id });
     for w in &warnings {
         tracing::warn!(job = id, "{w}");
     }
@@ -215,7 +215,7 @@ pub(crate) async fn job_action(
     // The change is in effect; if it could not be saved, say so (the checkpoint loop retries).
     state.persist_job(id)?;
     state.work_ready.notify_waiters();
-    state.publish("job", id);
+    state.publish(crate::service::Event::Job { id });
     Ok(Json(info))
 }
 
@@ -267,12 +267,6 @@ pub(crate) async fn resume_job(
     job_action(state, id, |f, id, now| f.resume(id, now)).await
 }
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub(crate) struct PriorityBody {
-    priority: i32,
-}
-
 #[utoipa::path(
     put,
     path = "/api/v1/jobs/{id}/priority",
@@ -288,7 +282,7 @@ pub(crate) async fn set_priority(
     Path(id): Path<String>,
     body: Bytes,
 ) -> ApiResult<impl IntoResponse> {
-    let p: PriorityBody = serde_json::from_slice(&body)
+    let p: crate::http::openapi::PriorityBody = serde_json::from_slice(&body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("expected {{\"priority\": N}}: {e}")))?;
     job_action(state, id, move |f, id, _| f.set_priority(id, p.priority)).await
 }
@@ -307,7 +301,7 @@ pub(crate) async fn delete_job(State(state): State<Arc<AppState>>, Path(id): Pat
     state.farm.lock().delete(id)?;
     state.forget_job(id)?;
     state.delete_job_files(id);
-    state.publish("job", id);
+    state.publish(crate::service::Event::Job { id });
     Ok(StatusCode::NO_CONTENT)
 }
 

@@ -106,7 +106,8 @@ pub struct JobRequestBody {
     pub focus_distance: Option<f32>,
 }
 
-/// `PUT /jobs/{id}/priority` body.
+/// `PUT /jobs/{id}/priority` body (the one definition: the handler reads it, the document
+/// shows it).
 #[derive(Debug, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PriorityBody {

@@ -88,7 +88,7 @@ pub(crate) async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiRe
         }
     };
     state.persist_worker(reg.worker_id, &req.name, req.threads);
-    state.publish("worker", reg.worker_id);
+    state.publish(crate::service::Event::Worker { id: reg.worker_id });
     Ok(Json(reg))
 }
 
@@ -148,7 +148,7 @@ pub(crate) async fn lease(
         let grant = state.farm.lock().lease(worker, now_ms())?;
         state.metrics.observe_lease(t0.elapsed());
         if let Some(g) = grant {
-            state.publish("worker", worker);
+            state.publish(crate::service::Event::Worker { id: worker });
             return Ok(Json(g).into_response());
         }
         let left = wait.saturating_sub(start.elapsed());
@@ -229,7 +229,7 @@ pub(crate) async fn upload_result(
     if !outcome.passes_completed.is_empty() || outcome.job_completed {
         state.output_ready.notify_one();
     }
-    state.publish("job", job_id);
+    state.publish(crate::service::Event::Job { id: job_id });
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
 }
 

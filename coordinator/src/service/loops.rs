@@ -21,7 +21,7 @@ pub async fn maintenance_loop(state: Arc<AppState>) {
             if let Err(e) = state.store().delete_workers(&pruned) {
                 tracing::error!("deleting pruned worker rows failed: {e:#}");
             }
-            state.publish("worker", pruned[0]);
+            state.publish(crate::service::Event::Worker { id: pruned[0] });
         }
         if let Some(after) = state.config.scene_gc_after_ms {
             collect_scenes(&state, now_ms().saturating_sub(after));

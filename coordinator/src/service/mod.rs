@@ -186,14 +186,18 @@ impl FarmLock {
     }
 }
 
-/// Live event for dashboards: something about a job or a worker changed.
-#[derive(Clone, Debug, Serialize)]
-pub struct Event {
-    pub kind: &'static str,
-    pub id: u64,
-    /// For `frame` events: the frame number that was written.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub frame: Option<i32>,
+/// Live event for dashboards (`GET /events` coalesces them): what changed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Event {
+    /// A job's state, priority or progress changed (or it was deleted).
+    Job { id: JobId },
+    /// A job's images were written.
+    Image { id: JobId },
+    /// Frame `frame` of a sequence was written.
+    Frame { id: JobId, frame: i32 },
+    /// A worker registered, changed or was pruned.
+    Worker { id: u64 },
 }
 
 /// Everything the handlers share.
@@ -305,14 +309,14 @@ impl AppState {
         self.store().delete_job(id).map_err(|e| database_error(&e, &format!("the deletion of job {id}")))
     }
 
-    pub fn publish(&self, kind: &'static str, id: u64) {
-        let _ = self.events.send(Event { kind, id, frame: None });
+    pub fn publish(&self, event: Event) {
+        let _ = self.events.send(event);
     }
 
     /// Frame `frame` of job `id` is written (and the job's progress changed).
     pub fn publish_frame(&self, id: JobId, frame: i32) {
-        let _ = self.events.send(Event { kind: "frame", id, frame: Some(frame) });
-        self.publish("job", id);
+        self.publish(Event::Frame { id, frame });
+        self.publish(Event::Job { id });
     }
 
     pub fn job_dir(&self, id: JobId) -> PathBuf {

@@ -145,7 +145,7 @@ pub async fn output_loop(state: Arc<AppState>) {
                 Ok(Err(e)) => tracing::error!(job = id, "writing images failed: {e:#}"),
                 Err(e) => tracing::error!(job = id, "image writer panicked: {e}"),
             }
-            state.publish("image", id);
+            state.publish(crate::service::Event::Image { id });
         }
     }
 }
