@@ -1,5 +1,6 @@
-//! The coordinator service: shared state, the background loops (lease expiry, progressive
-//! output) and `serve`.
+//! The service floor: the farm with everything that runs around it: shared state
+//! ([`AppState`]), the store and checkpoints, scenes, progressive output, background loops,
+//! webhooks and metrics. It knows nothing of HTTP (see `crate::http`).
 
 use crate::farm::{Farm, FarmConfig};
 use pathfarm_common::film::{Film, ImageLayers, write_atomic};
