@@ -46,8 +46,6 @@ pub(crate) fn parse_id(kind: &str, raw: &str) -> ApiResult<u64> {
         .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, "bad_id", format!("{kind} id {raw:?} is not a number")))
 }
 
-/// Who a token belongs to.
-
 /// The whole router.
 pub fn router(state: Arc<AppState>) -> Router {
     with_layers(routes(state.clone()), state)
