@@ -195,7 +195,7 @@ fn main() -> anyhow::Result<()> {
     if a.header_timeout_ms == 0 || a.idle_timeout_ms == 0 || a.max_connections == 0 {
         anyhow::bail!("--header-timeout-ms, --idle-timeout-ms and --max-connections must be at least 1");
     }
-    cfg.conn = pathfarm_coordinator::conn::ConnLimits {
+    cfg.conn = pathfarm_coordinator::service::ConnLimits {
         header_timeout: std::time::Duration::from_millis(a.header_timeout_ms),
         idle_timeout: std::time::Duration::from_millis(a.idle_timeout_ms),
         max_connections: a.max_connections,

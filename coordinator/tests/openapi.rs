@@ -1,5 +1,5 @@
 //! The OpenAPI document covers the router, both ways:
-//! - every `.route(PATH, METHODS)` registered in the source (api.rs, dashboard.rs) is in the
+//! - every `.route(PATH, METHODS)` registered in the source (http/mod.rs, http/dashboard.rs) is in the
 //!   document with each of its methods (a route added without docs fails here);
 //! - every documented (path, method) is served by the real router (not the fallback);
 //! - every schema reference resolves, and `/api/v1/openapi.json` serves the document.
@@ -15,7 +15,7 @@ const API: &str = "/api/v1";
 
 /// `(path, method)` pairs of the document.
 fn documented() -> BTreeSet<(String, String)> {
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document()).expect("serialize");
     let mut out = BTreeSet::new();
     for (path, item) in doc["paths"].as_object().expect("paths") {
         for method in ["get", "post", "put", "delete", "patch", "head", "options"] {
@@ -28,7 +28,7 @@ fn documented() -> BTreeSet<(String, String)> {
 }
 
 /// `.route("PATH", get(..).post(..))` calls in a source file; `prefix` applies to routes that
-/// come before the line containing `prefix_until` (the nested API routers in api.rs).
+/// come before the line containing `prefix_until` (the nested API routers in http/mod.rs).
 fn routes_in_source(src: &str, prefix: &str, prefix_until: Option<&str>) -> BTreeSet<(String, String)> {
     let boundary = prefix_until.and_then(|m| src.find(m)).unwrap_or(usize::MAX);
     let mut out = BTreeSet::new();
@@ -79,8 +79,8 @@ fn routes_in_source(src: &str, prefix: &str, prefix_until: Option<&str>) -> BTre
 
 fn registered() -> BTreeSet<(String, String)> {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/src/");
-    let api = std::fs::read_to_string(format!("{dir}api.rs")).expect("api.rs");
-    let dash = std::fs::read_to_string(format!("{dir}dashboard.rs")).expect("dashboard.rs");
+    let api = std::fs::read_to_string(format!("{dir}http/mod.rs")).expect("http/mod.rs");
+    let dash = std::fs::read_to_string(format!("{dir}http/dashboard.rs")).expect("http/dashboard.rs");
     let mut all = routes_in_source(&api, API, Some(".nest(API"));
     all.extend(routes_in_source(&dash, "", None));
     all
@@ -112,7 +112,7 @@ fn state() -> (tempfile::TempDir, Arc<AppState>) {
 #[tokio::test]
 async fn every_documented_route_is_served() {
     let (_tmp, state) = state();
-    let app = pathfarm_coordinator::api::router(state);
+    let app = pathfarm_coordinator::http::router(state);
     for (path, method) in documented() {
         let uri = path.replace("{id}", "1");
         let method = Method::from_bytes(method.to_uppercase().as_bytes()).expect("method");
@@ -148,7 +148,7 @@ fn refs(v: &serde_json::Value, out: &mut BTreeSet<String>) {
 #[tokio::test]
 async fn document_is_served_and_self_consistent() {
     let (_tmp, state) = state();
-    let app = pathfarm_coordinator::api::router(state);
+    let app = pathfarm_coordinator::http::router(state);
     let req = Request::builder().uri("/api/v1/openapi.json").body(Body::empty()).expect("request");
     let resp = app.oneshot(req).await.expect("response");
     assert_eq!(resp.status(), StatusCode::OK);
@@ -175,7 +175,7 @@ async fn document_is_served_and_self_consistent() {
 /// frames, the EXR and the PNG.
 #[test]
 fn binary_bodies_are_typed_binary() {
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document()).expect("serialize");
     let expect_binary = |schema: &serde_json::Value, media: &str, at: &str| {
         assert_eq!(schema["type"], "string", "{at}: {schema}");
         assert_eq!(schema["format"], "binary", "{at}: {schema}");
@@ -218,7 +218,7 @@ fn binary_bodies_are_typed_binary() {
 /// length and per-position types.
 #[test]
 fn tuples_are_arrays_of_fixed_length() {
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document_json()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document_json()).expect("serialize");
     let text = doc.to_string();
     assert!(!text.contains(r#""items":false"#), "a tuple is left with items: false");
     let current = &doc["components"]["schemas"]["WorkerInfo"]["properties"]["current"];
@@ -230,7 +230,7 @@ fn tuples_are_arrays_of_fixed_length() {
 fn the_job_body_spells_every_render_setting() {
     // JobRequestBody repeats RenderSettings' fields by hand (see openapi.rs): a new setting
     // must be documented there too.
-    let doc = serde_json::to_value(pathfarm_coordinator::openapi::document()).expect("serialize");
+    let doc = serde_json::to_value(pathfarm_coordinator::http::openapi::document()).expect("serialize");
     let schemas = &doc["components"]["schemas"];
     let names = |schema: &serde_json::Value| -> BTreeSet<String> {
         schema["properties"].as_object().map(|p| p.keys().cloned().collect()).unwrap_or_default()

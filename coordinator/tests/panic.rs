@@ -7,7 +7,7 @@
 use axum::extract::State;
 use axum::routing::get;
 use pathfarm_common::protocol::{API, ErrorBody};
-use pathfarm_coordinator::api;
+use pathfarm_coordinator::http as api;
 use pathfarm_coordinator::server::{AppState, ServerConfig};
 use std::sync::Arc;
 

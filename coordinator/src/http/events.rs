@@ -1,6 +1,6 @@
 //! Live events for dashboards: `GET /api/v1/events`, a server-sent event stream.
 //!
-//! The handlers publish bare [`crate::server::Event`]s (`kind`, `id`) on a broadcast channel;
+//! The handlers publish bare [`crate::service::Event`]s (an enum: job, image, frame, worker) on a broadcast channel;
 //! each connection coalesces them (at most one message per id every [`MIN_GAP`]) and turns them
 //! into JSON messages:
 //!
@@ -17,8 +17,8 @@
 //! A comment line keeps idle connections open. Browsers' `EventSource` cannot send headers, so
 //! besides `Authorization: Bearer` this route takes the client token as `?token=`.
 
-use crate::api::ApiError;
-use crate::server::{AppState, Auth, now_ms};
+use crate::http::ApiError;
+use crate::service::{AppState, Auth, now_ms};
 use axum::extract::{Query, State};
 use axum::http::HeaderMap;
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
@@ -61,7 +61,7 @@ pub struct IdOnly {
 
 /// Client-token check that also takes the token from the query string.
 pub fn authorize_client(auth: &Auth, headers: &HeaderMap, query_token: Option<&str>) -> Result<(), ApiError> {
-    crate::api::authorize_token(auth, crate::api::bearer(headers).or(query_token), &[crate::api::Role::Client])
+    crate::http::authorize_token(auth, crate::http::bearer(headers).or(query_token), &[crate::http::Role::Client])
 }
 
 fn message(name: &str, data: &impl Serialize) -> SseEvent {
@@ -114,21 +114,23 @@ impl Coalescer {
         }
     }
 
-    fn note(&mut self, kind: &str, id: u64, frame: Option<i32>) {
-        match kind {
-            "frame" => match frame {
-                Some(frame) if self.pending.frames.len() < MAX_PENDING_FRAMES => {
+    fn note(&mut self, event: crate::service::Event) {
+        use crate::service::Event;
+        match event {
+            Event::Frame { id, frame } => {
+                if self.pending.frames.len() < MAX_PENDING_FRAMES {
                     self.pending.frames.push(FrameWritten { id, frame });
+                } else {
+                    self.pending.resync = true;
                 }
-                _ => self.pending.resync = true,
-            },
-            "job" => {
+            }
+            Event::Job { id } => {
                 self.pending.jobs.insert(id);
             }
-            "image" => {
+            Event::Image { id } => {
                 self.pending.images.insert(id);
             }
-            _ => self.pending.workers = true,
+            Event::Worker { .. } => self.pending.workers = true,
         }
     }
 
@@ -178,7 +180,7 @@ impl Coalescer {
 }
 
 /// Feeds one connection until the client goes away.
-async fn pump(state: Arc<AppState>, mut rx: broadcast::Receiver<crate::server::Event>, tx: mpsc::Sender<SseEvent>) {
+async fn pump(state: Arc<AppState>, mut rx: broadcast::Receiver<crate::service::Event>, tx: mpsc::Sender<SseEvent>) {
     let mut c = Coalescer::new();
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -186,7 +188,7 @@ async fn pump(state: Arc<AppState>, mut rx: broadcast::Receiver<crate::server::E
         tokio::select! {
             () = tx.closed() => return,
             r = rx.recv() => match r {
-                Ok(ev) => c.note(ev.kind, ev.id, ev.frame),
+                Ok(ev) => c.note(ev),
                 Err(broadcast::error::RecvError::Lagged(_)) => {
                     if tx.send(SseEvent::default().event("resync").data("{}")).await.is_err() {
                         return;
@@ -225,7 +227,7 @@ pub async fn events(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::server::ServerConfig;
+    use crate::service::ServerConfig;
     use axum::body::Body;
     use axum::http::{Request, StatusCode, header};
     use futures_util::StreamExt;
@@ -282,7 +284,7 @@ mod tests {
         let mut cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), tmp.path().to_path_buf());
         cfg.auth = auth();
         let state = Arc::new(AppState::new(cfg).expect("state"));
-        let app = crate::api::router(state.clone());
+        let app = crate::http::router(state.clone());
 
         let req = Request::builder().uri("/api/v1/events").body(Body::empty()).expect("request");
         assert_eq!(app.clone().oneshot(req).await.expect("response").status(), StatusCode::UNAUTHORIZED);
@@ -298,8 +300,8 @@ mod tests {
             tokio::spawn(async move {
                 tokio::time::sleep(Duration::from_millis(50)).await;
                 for _ in 0..500 {
-                    state.publish("job", 7);
-                    state.publish("image", 7);
+                    state.publish(crate::service::Event::Job { id: 7 });
+                    state.publish(crate::service::Event::Image { id: 7 });
                     tokio::task::yield_now().await;
                 }
                 state.publish_frame(7, 12);

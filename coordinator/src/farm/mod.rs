@@ -82,6 +82,12 @@ fn sample_count_mismatch(accum: &TileAccum, spp: u32) -> Option<String> {
     })
 }
 
+/// Constant-time comparison; an empty token never matches (not even an empty one configured).
+pub fn token_matches(given: &str, expected: &str) -> bool {
+    use subtle::ConstantTimeEq;
+    !expected.is_empty() && given.len() == expected.len() && bool::from(given.as_bytes().ct_eq(expected.as_bytes()))
+}
+
 pub use pathfarm_common::frames::MAX_FRAMES;
 
 /// Errors of farm operations; the API maps each to a status code.
@@ -1253,7 +1259,7 @@ impl Farm {
     pub fn check_worker(&self, worker: WorkerId, secret: Option<&str>) -> Result<(), FarmError> {
         let w = self.workers.get(&worker).ok_or(FarmError::NoWorker(worker))?;
         match secret {
-            Some(s) if crate::api::token_matches(s, &w.secret) => Ok(()),
+            Some(s) if crate::farm::token_matches(s, &w.secret) => Ok(()),
             Some(_) => Err(FarmError::WrongWorker(format!(
                 "the worker secret is not worker {worker}'s: a worker may only act for itself"
             ))),
@@ -1267,7 +1273,7 @@ impl Farm {
         let secret = secret.ok_or_else(missing_secret)?;
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
         match self.workers.get(&l.worker) {
-            Some(w) if crate::api::token_matches(secret, &w.secret) => Ok(()),
+            Some(w) if crate::farm::token_matches(secret, &w.secret) => Ok(()),
             _ => Err(FarmError::WrongWorker(format!(
                 "lease {lease_id} is held by another worker: only the worker it was granted to may deliver, \
                  release or renew it"

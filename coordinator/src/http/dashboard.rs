@@ -6,9 +6,9 @@
 //! each completed pass, measured from the film's variance layer by a small tracker task that
 //! follows the job events (and on demand, for passes it missed).
 
-use crate::api::ApiError;
-use crate::events::authorize_client;
-use crate::server::AppState;
+use crate::http::ApiError;
+use crate::http::events::authorize_client;
+use crate::service::AppState;
 use axum::Router;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -146,9 +146,9 @@ async fn track(state: Weak<AppState>, history: Arc<History>) {
     let Some(mut rx) = state.upgrade().map(|s| s.events.subscribe()) else { return };
     loop {
         match rx.recv().await {
-            Ok(ev) if ev.kind == "job" => {
+            Ok(crate::service::Event::Job { id }) => {
                 let Some(s) = state.upgrade() else { return };
-                history.record(&s, ev.id);
+                history.record(&s, id);
             }
             Ok(_) => {}
             Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {

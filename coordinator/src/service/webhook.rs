@@ -7,7 +7,7 @@
 //! a task sends them, a few at once, each with a timeout per attempt and retries with
 //! exponential backoff. Every outcome goes to the job's log.
 
-use crate::server::{AppState, now_ms};
+use crate::service::{AppState, now_ms};
 use hmac::{Hmac, Mac};
 use pathfarm_common::protocol::{JobId, JobInfo, NotifyEvent};
 use sha2::Sha256;
@@ -115,7 +115,7 @@ pub fn enqueue_pending(state: &AppState) {
             let line = format!("notification {} dropped: the webhook queue is full", d.event.as_str());
             tracing::warn!(job = d.job, event = d.event.as_str(), "{line}");
             state.farm.lock().log_job(d.job, line);
-            state.publish("job", d.job);
+            state.publish(crate::service::Event::Job { id: d.job });
         }
     }
 }
@@ -154,7 +154,7 @@ async fn deliver(state: &AppState, client: &reqwest::Client, cfg: &WebhookConfig
     let attempts = cfg.attempts.max(1);
     let log = |line: String| {
         state.farm.lock().log_job(d.job, line);
-        state.publish("job", d.job);
+        state.publish(crate::service::Event::Job { id: d.job });
     };
     let mut last_error = String::new();
     for attempt in 1..=attempts {

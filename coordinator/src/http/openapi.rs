@@ -4,8 +4,8 @@
 //! closures or by other modules are described by the stubs below. `coordinator/tests/openapi.rs`
 //! fails when a route registered in the router is missing here.
 
-use crate::dashboard::{Convergence, ConvergencePoint};
-use crate::events::{FrameWritten, IdOnly, Snapshot};
+use crate::http::dashboard::{Convergence, ConvergencePoint};
+use crate::http::events::{FrameWritten, IdOnly, Snapshot};
 use axum::http::header;
 use axum::response::IntoResponse;
 use pathfarm_common::job::{
@@ -112,7 +112,8 @@ pub struct JobRequestBody {
     pub focus_distance: Option<f32>,
 }
 
-/// `PUT /jobs/{id}/priority` body.
+/// `PUT /jobs/{id}/priority` body (the one definition: the handler reads it, the document
+/// shows it).
 #[derive(Debug, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PriorityBody {
@@ -160,7 +161,7 @@ fn openapi_doc() {}
         (`{}`: messages were dropped, fetch again). Bursts are coalesced to at most one message \
         per job every 250 ms; a comment line every 15 s keeps the connection open. The client \
         token may be passed as `?token=` because EventSource cannot set headers.",
-    params(crate::events::EventsQuery),
+    params(crate::http::events::EventsQuery),
     security(("client_token" = [])),
     responses(
         (status = 200, description = "Event stream; `snapshot` data shown", body = Snapshot, content_type = "text/event-stream"),
@@ -179,7 +180,7 @@ fn events() {}
     description = "Measured from the film's variance layer (variance of each pixel's mean) when \
         a pass completes: `rmse` is the root mean square standard error of pixel luminance. \
         Takes `?token=` like /events.",
-    params(("id" = u64, Path, description = "Job id"), crate::events::EventsQuery),
+    params(("id" = u64, Path, description = "Job id"), crate::http::events::EventsQuery),
     security(("client_token" = [])),
     responses(
         (status = 200, description = "Noise per pass", body = Convergence),
@@ -305,31 +306,31 @@ fn open_tuples(v: &mut serde_json::Value) {
             required only when the coordinator is started with them."
     ),
     paths(
-        crate::api::upload_scene,
-        crate::api::download_scene,
-        crate::api::delete_scene,
-        crate::api::create_job,
-        crate::api::list_jobs,
-        crate::api::get_job,
-        crate::api::delete_job,
-        crate::api::cancel_job,
-        crate::api::pause_job,
-        crate::api::resume_job,
-        crate::api::set_priority,
-        crate::api::job_log,
-        crate::api::job_tiles,
-        crate::api::job_exr,
-        crate::api::job_png,
-        crate::api::job_frames,
-        crate::api::frame_exr,
-        crate::api::frame_png,
-        crate::api::list_workers,
-        crate::api::register,
-        crate::api::heartbeat,
-        crate::api::lease,
-        crate::api::upload_result,
-        crate::api::release,
-        crate::api::metrics,
+        crate::http::upload_scene,
+        crate::http::download_scene,
+        crate::http::delete_scene,
+        crate::http::create_job,
+        crate::http::list_jobs,
+        crate::http::get_job,
+        crate::http::delete_job,
+        crate::http::cancel_job,
+        crate::http::pause_job,
+        crate::http::resume_job,
+        crate::http::set_priority,
+        crate::http::job_log,
+        crate::http::job_tiles,
+        crate::http::job_exr,
+        crate::http::job_png,
+        crate::http::job_frames,
+        crate::http::frame_exr,
+        crate::http::frame_png,
+        crate::http::list_workers,
+        crate::http::register,
+        crate::http::heartbeat,
+        crate::http::lease,
+        crate::http::upload_result,
+        crate::http::release,
+        crate::http::metrics,
         healthz,
         openapi_doc,
         events,

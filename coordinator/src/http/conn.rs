@@ -19,7 +19,7 @@
 //! is handling a request, the new one waits up to a second for a slot and is closed otherwise.
 //! The same eviction frees a descriptor when `accept` fails (EMFILE).
 
-use crate::server::AppState;
+use crate::service::{AppState, ConnLimits};
 use axum::Router;
 use axum::body::{Body, Bytes};
 use hyper::body::Incoming;
@@ -34,23 +34,6 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{Notify, Semaphore};
 use tower::ServiceExt;
-
-/// Connection limits (`--header-timeout-ms`, `--idle-timeout-ms`, `--max-connections`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ConnLimits {
-    /// Time a request head may take (from the accept for a connection's first request).
-    pub header_timeout: Duration,
-    /// Time a connection may stay quiet between requests.
-    pub idle_timeout: Duration,
-    /// Open connections at most.
-    pub max_connections: usize,
-}
-
-impl Default for ConnLimits {
-    fn default() -> Self {
-        Self { header_timeout: Duration::from_secs(10), idle_timeout: Duration::from_secs(60), max_connections: 4096 }
-    }
-}
 
 /// Descriptors kept for everything but connections (SQLite, scenes, checkpoints, images).
 const FD_RESERVE: u64 = 128;

@@ -1,0 +1,128 @@
+//! Background loops: lease expiry and maintenance, checkpoints.
+
+use super::*;
+
+/// Expires leases every `expiry_tick_ms` (a quarter second), prunes workers, wakes lease waiters
+/// when units came back, collects old scenes and queues the jobs' webhook events.
+pub async fn maintenance_loop(state: Arc<AppState>) {
+    let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
+    loop {
+        tick.tick().await;
+        let (expired, pruned) = {
+            let mut farm = state.farm.lock();
+            let now = now_ms();
+            (farm.expire(now), farm.prune_workers(now))
+        };
+        if expired > 0 {
+            tracing::warn!(expired, "leases expired; units are pending again");
+            state.work_ready.notify_waiters();
+        }
+        if !pruned.is_empty() {
+            if let Err(e) = state.store().delete_workers(&pruned) {
+                tracing::error!("deleting pruned worker rows failed: {e:#}");
+            }
+            state.publish(crate::service::Event::Worker { id: pruned[0] });
+        }
+        if let Some(after) = state.config.scene_gc_after_ms {
+            collect_scenes(&state, now_ms().saturating_sub(after));
+        }
+        super::webhook::enqueue_pending(&state);
+    }
+}
+
+/// Checkpoints every job whose merged units or state changed: the film with its merged set
+/// (atomically, one file), then the job's row.
+pub async fn checkpoint_loop(state: Arc<AppState>) {
+    // Per job: what the last checkpoint held, and when the next one may start. A checkpoint
+    // copies the film under the farm lock and compresses it; for big films that is costly, so
+    // the next one waits at least nine times as long as the last took (at most ~10% of a core),
+    // unless the job's state or priority changed.
+    let mut seen: HashMap<JobId, ((u64, JobState, i32), Instant)> = HashMap::new();
+    loop {
+        tokio::time::sleep(state.config.checkpoint_interval).await;
+        let due: Vec<JobId> = {
+            let farm = state.farm.lock();
+            farm.jobs()
+                .filter(|j| match seen.get(&j.id) {
+                    None => true,
+                    Some(((merged, st, prio), next)) => {
+                        (*st, *prio) != (j.state, j.priority) || (*merged != j.units_merged && Instant::now() >= *next)
+                    }
+                })
+                .map(|j| j.id)
+                .collect()
+        };
+        for id in due {
+            let t0 = Instant::now();
+            let st = state.clone();
+            match tokio::task::spawn_blocking(move || checkpoint_job(&st, id)).await {
+                Ok(Ok(Some(key))) => {
+                    let took = t0.elapsed();
+                    seen.insert(id, (key, Instant::now() + took * 9));
+                }
+                Ok(Ok(None)) => {}
+                Ok(Err(e)) => tracing::error!(job = id, "checkpoint failed: {e:#}"),
+                Err(e) => tracing::error!(job = id, "checkpoint task failed: {e}"),
+            }
+        }
+    }
+}
+
+/// What a job's checkpoint held: units merged, state, priority.
+pub type CheckpointKey = (u64, JobState, i32);
+
+/// Checkpoints job `id` now (blocking): the films of its frames in progress that merged units
+/// since their last checkpoint, each with its merged set in one atomic file, and the job's row
+/// with each. One film copy at a time: the farm lock is held for one copy. Returns what was
+/// written, `None` when the job is gone.
+pub fn checkpoint_job(state: &AppState, id: JobId) -> anyhow::Result<Option<CheckpointKey>> {
+    let mut written = None;
+    loop {
+        let snapshot = {
+            let mut farm = state.farm.lock();
+            farm.job_mut(id).ok().map(|j| {
+                let key = (j.units_merged, j.state, j.priority);
+                (key, j.record(now_ms()), j.sequence, j.take_checkpoints(false, 1))
+            })
+        };
+        let Some((key, rec, sequence, cps)) = snapshot else { return Ok(written) };
+        let more = sequence && !cps.is_empty();
+        for cp in &cps {
+            let path = if sequence {
+                state.store().frame_checkpoint_path(id, cp.frame)
+            } else {
+                state.store().checkpoint_path(id)
+            };
+            write_checkpoint(&path, cp)?;
+        }
+        // Only a job that still exists gets its row written back: a DELETE that ran during the
+        // snapshot or the write must not be undone (it came back after a restart). Lock order:
+        // store, then farm (as in persist_job).
+        let store = state.store();
+        if state.farm.lock().job(id).is_ok() {
+            store.put_job(&rec)?;
+        } else {
+            drop(store);
+            let _ = std::fs::remove_dir_all(state.job_dir(id));
+        }
+        written = Some(key);
+        if !more {
+            return Ok(written);
+        }
+    }
+}
+
+/// Checkpoints every job (blocking); run at shutdown, once the loops have stopped, so that
+/// nothing merged is lost. Returns the number of jobs written.
+pub fn checkpoint_all(state: &AppState) -> usize {
+    let ids: Vec<JobId> = state.farm.lock().jobs().map(|j| j.id).collect();
+    let mut n = 0;
+    for id in ids {
+        match checkpoint_job(state, id) {
+            Ok(Some(_)) => n += 1,
+            Ok(None) => {}
+            Err(e) => tracing::error!(job = id, "final checkpoint failed: {e:#}"),
+        }
+    }
+    n
+}
