@@ -864,15 +864,12 @@ impl<'a> Loader<'a> {
                     ));
                 }
                 if v.thickness_factor.0 > 0.0 {
+                    mat.thin_walled = false;
                     if distance.is_finite() {
                         // A colour of 0 absorbs everything: a large finite coefficient.
                         let c = color.max(Vec3::splat(1e-6)).min(Vec3::ONE);
                         mat.attenuation = -Vec3::new(c.x.ln(), c.y.ln(), c.z.ln()) / distance;
                     }
-                } else if mat.transmission > 0.0 {
-                    self.warn(format!(
-                        "{owner}: KHR_materials_volume thicknessFactor 0 (thin-walled): rendered as solid glass"
-                    ));
                 }
             }
             mat.unlit = ext.unlit.is_some();

@@ -129,6 +129,11 @@ pub struct Material {
     /// KHR_materials_volume: Beer-Lambert attenuation coefficient inside a transmissive object,
     /// per scene unit, `-ln(attenuationColor) / attenuationDistance` (zero: clear).
     pub attenuation: Vec3,
+    /// glTF's thin-walled transmission: without KHR_materials_volume, or with thicknessFactor 0,
+    /// a transmissive surface is an infinitely thin sheet: light passes straight through it,
+    /// tinted by the base colour, and is not refracted. `false` when the volume has a thickness:
+    /// the mesh bounds a solid that refracts.
+    pub thin_walled: bool,
 }
 
 /// glTF `alphaMode`: how the base colour's alpha makes a surface transparent to every ray.
@@ -166,6 +171,7 @@ impl Default for Material {
             double_sided: false,
             alpha_mode: AlphaMode::Opaque,
             attenuation: Vec3::ZERO,
+            thin_walled: true,
         }
     }
 }

@@ -2,7 +2,8 @@
 //!
 //! One-sided materials (glTF `doubleSided: false`) are black from behind, as in Mitsuba; the
 //! surface still blocks light. Double-sided materials flip their normals toward the viewer.
-//! Glass (transmission) keeps its true orientation so that entering and leaving differ.
+//! Glass (transmission) keeps its true orientation so that entering and leaving differ. glTF
+//! transmission without a volume (or thicknessFactor 0) is a thin-walled sheet: no refraction.
 
 use super::bsdf::{Bsdf, Bxdf};
 use super::geometry::Frame;
@@ -90,10 +91,11 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
             let roughness = (m.roughness * tex(&m.metallic_roughness_texture).y).clamp(0.0, 1.0);
             let alpha = roughness * roughness;
             let eta = m.ior.max(1.0001);
-            if alpha >= SMOOTH_ALPHA {
-                Bxdf::RoughDielectric { eta, tint: base, alpha }
-            } else {
-                Bxdf::Dielectric { eta, tint: base }
+            match (m.thin_walled, alpha >= SMOOTH_ALPHA) {
+                (true, true) => Bxdf::RoughThinDielectric { eta, tint: base, alpha },
+                (true, false) => Bxdf::ThinDielectric { eta, tint: base },
+                (false, true) => Bxdf::RoughDielectric { eta, tint: base, alpha },
+                (false, false) => Bxdf::Dielectric { eta, tint: base },
             }
         }
         MaterialModel::Gltf => {
