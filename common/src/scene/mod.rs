@@ -134,6 +134,18 @@ pub struct Material {
     /// tinted by the base colour, and is not refracted. `false` when the volume has a thickness:
     /// the mesh bounds a solid that refracts.
     pub thin_walled: bool,
+    /// KHR_materials_clearcoat: a GGX dielectric coat of index 1.5 over the material, of weight
+    /// `clearcoat` x texture (R) and roughness `clearcoat_roughness` x texture (G); 0: no coat.
+    pub clearcoat: f32,
+    pub clearcoat_texture: Option<TextureRef>,
+    pub clearcoat_roughness: f32,
+    pub clearcoat_roughness_texture: Option<TextureRef>,
+    /// KHR_materials_sheen: colour (linear; texture sRGB-decoded, RGB) and roughness (texture A)
+    /// of a Charlie sheen over the material; colour 0: no sheen.
+    pub sheen_color: Vec3,
+    pub sheen_color_texture: Option<TextureRef>,
+    pub sheen_roughness: f32,
+    pub sheen_roughness_texture: Option<TextureRef>,
 }
 
 /// glTF `alphaMode`: how the base colour's alpha makes a surface transparent to every ray.
@@ -172,6 +184,14 @@ impl Default for Material {
             alpha_mode: AlphaMode::Opaque,
             attenuation: Vec3::ZERO,
             thin_walled: true,
+            clearcoat: 0.0,
+            clearcoat_texture: None,
+            clearcoat_roughness: 0.0,
+            clearcoat_roughness_texture: None,
+            sheen_color: Vec3::ZERO,
+            sheen_color_texture: None,
+            sheen_roughness: 0.0,
+            sheen_roughness_texture: None,
         }
     }
 }
