@@ -142,3 +142,29 @@ fn a_thin_sheet_does_not_shift_what_is_behind_it() {
         assert!(bare.rgb[16 * 32 + 2][0] > 0.99 && bare.rgb[16 * 32 + 29][0] == 0.0);
     }
 }
+
+#[test]
+fn igi_refuses_rough_transmission_and_glossy_layers_over_smooth_bases() {
+    // igi gathers on the viewer's side of the first non-specular surface: rough transmission
+    // (solid or thin) and a sheen over a smooth base would render wrongly, so they are refused
+    // with the material's name; smooth glass and smooth thin sheets are delta and pass.
+    let igi = IntegratorSettings::Igi { vpls: 8, vpl_sets: 2, g_limit: 1.0, bias_compensation: true, max_depth: 8 };
+    let mut s = RenderSettings::new(8, 8, 1);
+    s.integrator = igi;
+    let solid = Some(serde_json::json!({"thicknessFactor": 1.0}));
+    for (roughness, volume) in [(0.0, None), (0.0, solid.clone())] {
+        let scene = scene(Some(sheet_material(Vec3::ONE, roughness, volume)), true);
+        assert!(Renderer::new(&scene, &s).is_ok());
+    }
+    for (roughness, volume) in [(0.4, None), (0.4, solid)] {
+        let scene = scene(Some(sheet_material(Vec3::ONE, roughness, volume)), true);
+        let e = Renderer::new(&scene, &s).err().expect("refused");
+        assert!(e.to_string().contains("rough transmission") && e.to_string().contains("sheet"), "{e}");
+    }
+    let velvet = serde_json::json!({"name": "velvet", "pbrMetallicRoughness": {"metallicFactor": 1.0, "roughnessFactor": 0.0},
+        "extensions": {"KHR_materials_sheen": {"sheenColorFactor": [1.0, 1.0, 1.0], "sheenRoughnessFactor": 0.5}}});
+    let e = Renderer::new(&scene(Some(velvet), true), &s).err().expect("refused");
+    assert!(e.to_string().contains("sheen") && e.to_string().contains("velvet"), "{e}");
+    s.integrator = path();
+    assert!(Renderer::new(&scene(Some(sheet_material(Vec3::ONE, 0.4, None)), true), &s).is_ok());
+}

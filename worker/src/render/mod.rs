@@ -194,6 +194,9 @@ impl Renderer {
                 })
             }
             IntegratorSettings::Igi { vpls, vpl_sets, g_limit, bias_compensation, max_depth } => {
+                if let Some(why) = igi::unsupported_material(&scene.materials) {
+                    return Err(RenderError::Settings(why));
+                }
                 Integrator::Igi(IgiParams { vpls, vpl_sets, g_limit, bias_compensation, max_depth })
             }
         };
