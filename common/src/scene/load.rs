@@ -893,8 +893,10 @@ impl<'a> Loader<'a> {
                 mat.sheen_color_texture = self.texture_ref(sh.sheen_color_texture.as_ref(), true, &owner)?;
                 mat.sheen_roughness = sh.sheen_roughness_factor;
                 mat.sheen_roughness_texture = self.texture_ref(sh.sheen_roughness_texture.as_ref(), false, &owner)?;
-                if !(mat.sheen_color.min_element() >= 0.0 && mat.sheen_color.max_element() <= 1.0)
-                    || !(0.0..=1.0).contains(&mat.sheen_roughness)
+                let in_range = |v: f32| (0.0..=1.0).contains(&v);
+                if !(in_range(mat.sheen_color.min_element())
+                    && in_range(mat.sheen_color.max_element())
+                    && in_range(mat.sheen_roughness))
                 {
                     return Err(self.invalid(&owner, "KHR_materials_sheen: factors must be in [0, 1]"));
                 }
