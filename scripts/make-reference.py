@@ -120,7 +120,12 @@ def glb_scene_dict(path, ply_dir, res, max_depth):
             if transmission != 1 or rough != 0 or metallic != 0:
                 sys.exit(f"material {name}: only smooth, fully transmissive glass is converted")
             ior = ext.get("KHR_materials_ior", {}).get("ior", 1.5)
-            return {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
+            if ext.get("KHR_materials_volume", {}).get("thicknessFactor", 0.0) > 0:
+                return {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
+            # glTF without a volume (or thickness 0): thin-walled, Mitsuba's thin dielectric.
+            if base != [1, 1, 1]:
+                sys.exit(f"material {name}: a thin-walled sheet must be white (Mitsuba's is untinted)")
+            return {"type": "thindielectric", "int_ior": ior, "ext_ior": 1.0}
         if metallic == 1 and rough == 0:
             if base != [1, 1, 1]:
                 sys.exit(f"material {name}: a mirror must have base colour 1 (Schlick = 1 at every angle)")

@@ -209,12 +209,14 @@ fn the_environment_image_travels_in_the_bundle() {
     assert!(e.to_string().contains("nope.exr"), "{e}");
 }
 
-/// A cube of glass (KHR_materials_transmission, ior 1.5) of `roughness` seen from above and aside.
+/// A solid cube of glass (KHR_materials_transmission, ior 1.5, KHR_materials_volume) of
+/// `roughness` seen from above and aside.
 fn glass_cube(roughness: f32) -> Scene {
     let mut b = GltfBuilder::new();
     let m = b.material(serde_json::json!({"name": "glass",
         "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": roughness},
-        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5}}}));
+        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5},
+            "KHR_materials_volume": {"thicknessFactor": 1.0}}}));
     turned_box(&mut b, "cube", Vec3::ZERO, Vec3::ONE, 0.6, m);
     b.camera(Vec3::new(1.2, 1.5, 2.5), Vec3::ZERO, Vec3::Y, 0.7, 1.0);
     load_scene_from_slice(&b.to_glb(), "glass.glb", None, &LoadOptions::default()).expect("loads")

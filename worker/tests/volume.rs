@@ -75,11 +75,13 @@ fn volume_settings_are_read_and_checked() {
     let a = s.materials[0].attenuation;
     let expected = Vec3::new(0.5f32.ln(), 0.0, 0.25f32.ln()) / -4.0;
     assert!((a - expected).abs().max_element() < 1e-6, "{a} vs {expected}");
-    // Thin-walled (thickness 0) keeps no attenuation and says so.
+    assert!(!s.materials[0].thin_walled, "a volume with a thickness is solid");
+    // Thin-walled (thickness 0) keeps no attenuation.
     let thin = slab(
         1.0,
         serde_json::json!({"thicknessFactor": 0.0, "attenuationColor": [0.5, 0.5, 0.5], "attenuationDistance": 1.0}),
     );
     assert_eq!(thin.materials[0].attenuation, Vec3::ZERO);
-    assert!(thin.warnings.iter().any(|w| w.contains("thin-walled")), "{:?}", thin.warnings);
+    assert!(thin.materials[0].thin_walled);
+    assert!(!thin.warnings.iter().any(|w| w.contains("thin")), "{:?}", thin.warnings);
 }

@@ -99,6 +99,20 @@ def sphere(name, center, radius, mat):
     return ob
 
 
+def solid(mat, thickness):
+    """Marks a transmissive material as a solid of `thickness` for Blender's glTF exporter (the
+    "glTF Material Output" node group's Thickness), which then writes KHR_materials_volume: glTF
+    transmission without it is a thin-walled sheet, while Cycles renders a solid."""
+    group = bpy.data.node_groups.get("glTF Material Output")
+    if group is None:
+        group = bpy.data.node_groups.new("glTF Material Output", "ShaderNodeTree")
+        group.interface.new_socket(name="Thickness", in_out="INPUT", socket_type="NodeSocketFloat")
+    node = mat.node_tree.nodes.new("ShaderNodeGroup")
+    node.node_tree = group
+    node.inputs["Thickness"].default_value = thickness
+    return mat
+
+
 def cornell(lights=LIGHTS, panel_strength=8.0, size=(48, 48), default_walls=False):
     """Builds the box (see the module's doc) into the current, emptied file, rendering at
     `size` pixels (the exporter writes the camera's aspect ratio from it); returns the scene.
@@ -116,7 +130,7 @@ def cornell(lights=LIGHTS, panel_strength=8.0, size=(48, 48), default_walls=Fals
     red = principled("red", (0.6, 0.05, 0.05), **wall)
     green = principled("green", (0.1, 0.4, 0.08), **wall)
     metal = principled("gold metal", (0.9, 0.65, 0.3), roughness=0.3, metallic=1.0, specular=0.5)
-    glass = principled("glass", (1.0, 1.0, 1.0), roughness=0.0, specular=0.5, transmission=1.0)
+    glass = solid(principled("glass", (1.0, 1.0, 1.0), roughness=0.0, specular=0.5, transmission=1.0), 0.8)
     strength = panel_strength if "panel" in lights else 0.0
     emitter = principled("panel", (0.0, 0.0, 0.0), emission=((1.0, 0.9, 0.75), strength))
 

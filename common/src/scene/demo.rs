@@ -568,7 +568,7 @@ pub fn furnace_glb(le: f32, rho: f32) -> Vec<u8> {
     b.to_glb()
 }
 
-/// A lossless glass sphere (ior 1.5, radius 0.3) at the centre of an emitting, non-reflecting
+/// A lossless solid glass sphere (ior 1.5, radius 0.3, `KHR_materials_volume`) at the centre of an emitting, non-reflecting
 /// enclosure of radiance `le`: every camera ray, however often it reflects or refracts, ends on
 /// the enclosure, so every pixel reads `le`. The camera (0, 0, 0.9) sees the whole sphere with
 /// its grazing rim.
@@ -577,7 +577,8 @@ pub fn glass_furnace_glb(le: f32) -> Vec<u8> {
     let wall = b.material(emitter("furnace", Vec3::ZERO, Vec3::splat(le)));
     let glass = b.material(json!({"name": "glass",
         "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.0},
-        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5}}}));
+        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5},
+            "KHR_materials_volume": {"thicknessFactor": 0.6}}}));
     let (p, n, i) = inward_sphere(2.0, 3);
     b.mesh("enclosure", &p, &n, &i, wall);
     let (p, n, i) = inward_sphere(0.3, 4);
@@ -601,14 +602,15 @@ pub fn point_furnace_glb(intensity: f32, rho: f32, r: f32) -> Vec<u8> {
     b.to_glb()
 }
 
-/// Caustics: a glass sphere on a diffuse floor lit by a small, bright area light, in a box.
+/// Caustics: a solid glass sphere (`KHR_materials_volume`) on a diffuse floor lit by a small, bright area light, in a box.
 pub fn caustics_glb() -> Vec<u8> {
     let mut b = GltfBuilder::new();
     let white = b.material(lambert("white", Vec3::splat(0.75)));
     let light = b.material(emitter("light", Vec3::splat(0.75), Vec3::splat(400.0)));
     let glass = b.material(json!({"name": "glass",
         "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.0},
-        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5}}}));
+        "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5},
+            "KHR_materials_volume": {"thicknessFactor": 0.7}}}));
     let v = Vec3::new;
     quad(&mut b, "floor", [v(-1., -1., 1.), v(1., -1., 1.), v(1., -1., -1.), v(-1., -1., -1.)], white);
     quad(&mut b, "ceiling", [v(-1., 1., -1.), v(1., 1., -1.), v(1., 1., 1.), v(-1., 1., 1.)], white);

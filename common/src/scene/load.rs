@@ -66,6 +66,8 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_materials_emissive_strength",
     "KHR_materials_specular",
     "KHR_materials_volume",
+    "KHR_materials_clearcoat",
+    "KHR_materials_sheen",
     // The accessor reader converts every component type, which is all this extension asks.
     "KHR_mesh_quantization",
     // Camera, light and material properties (see `anim`); unknown pointers are skipped with a
@@ -75,14 +77,8 @@ const SUPPORTED_EXTENSIONS: &[&str] = &[
 
 /// Extensions we ignore with a warning even when required: the still image stays meaningful
 /// without them (material refinements, variants).
-const IGNORABLE_EXTENSIONS: &[&str] = &[
-    "KHR_materials_sheen",
-    "KHR_materials_clearcoat",
-    "KHR_materials_iridescence",
-    "KHR_materials_anisotropy",
-    "KHR_materials_dispersion",
-    "KHR_materials_variants",
-];
+const IGNORABLE_EXTENSIONS: &[&str] =
+    &["KHR_materials_iridescence", "KHR_materials_anisotropy", "KHR_materials_dispersion", "KHR_materials_variants"];
 
 /// Deepest node hierarchy we follow; deeper means a cycle or a hostile file.
 const MAX_NODE_DEPTH: usize = 512;
@@ -864,18 +860,47 @@ impl<'a> Loader<'a> {
                     ));
                 }
                 if v.thickness_factor.0 > 0.0 {
+                    mat.thin_walled = false;
                     if distance.is_finite() {
                         // A colour of 0 absorbs everything: a large finite coefficient.
                         let c = color.max(Vec3::splat(1e-6)).min(Vec3::ONE);
                         mat.attenuation = -Vec3::new(c.x.ln(), c.y.ln(), c.z.ln()) / distance;
                     }
-                } else if mat.transmission > 0.0 {
-                    self.warn(format!(
-                        "{owner}: KHR_materials_volume thicknessFactor 0 (thin-walled): rendered as solid glass"
-                    ));
                 }
             }
             mat.unlit = ext.unlit.is_some();
+            if let Some(v) = ext.others.get("KHR_materials_clearcoat") {
+                let c: ClearcoatJson = serde_json::from_value(v.clone())
+                    .map_err(|e| self.invalid(&owner, format!("KHR_materials_clearcoat: {e}")))?;
+                mat.clearcoat = c.clearcoat_factor;
+                mat.clearcoat_texture = self.texture_ref(c.clearcoat_texture.as_ref(), false, &owner)?;
+                mat.clearcoat_roughness = c.clearcoat_roughness_factor;
+                mat.clearcoat_roughness_texture =
+                    self.texture_ref(c.clearcoat_roughness_texture.as_ref(), false, &owner)?;
+                if c.clearcoat_normal_texture.is_some() {
+                    self.warn(format!(
+                        "{owner}: KHR_materials_clearcoat clearcoatNormalTexture is not read (the coat uses the base's normal)"
+                    ));
+                }
+                if !(0.0..=1.0).contains(&mat.clearcoat) || !(0.0..=1.0).contains(&mat.clearcoat_roughness) {
+                    return Err(self.invalid(&owner, "KHR_materials_clearcoat: factors must be in [0, 1]"));
+                }
+            }
+            if let Some(v) = ext.others.get("KHR_materials_sheen") {
+                let sh: SheenJson = serde_json::from_value(v.clone())
+                    .map_err(|e| self.invalid(&owner, format!("KHR_materials_sheen: {e}")))?;
+                mat.sheen_color = Vec3::from(sh.sheen_color_factor);
+                mat.sheen_color_texture = self.texture_ref(sh.sheen_color_texture.as_ref(), true, &owner)?;
+                mat.sheen_roughness = sh.sheen_roughness_factor;
+                mat.sheen_roughness_texture = self.texture_ref(sh.sheen_roughness_texture.as_ref(), false, &owner)?;
+                let in_range = |v: f32| (0.0..=1.0).contains(&v);
+                if !(in_range(mat.sheen_color.min_element())
+                    && in_range(mat.sheen_color.max_element())
+                    && in_range(mat.sheen_roughness))
+                {
+                    return Err(self.invalid(&owner, "KHR_materials_sheen: factors must be in [0, 1]"));
+                }
+            }
         }
         let cutoff = match mat.alpha_mode {
             AlphaMode::Mask { cutoff } => cutoff,
@@ -1487,8 +1512,48 @@ fn material_textures(m: &json::Material) -> Vec<usize> {
             e.volume.as_ref().and_then(|s| s.thickness_texture.as_ref()),
         ];
         v.extend(infos.into_iter().flatten().map(|i| i.index.value()));
+        for name in ["KHR_materials_clearcoat", "KHR_materials_sheen"] {
+            if let Some(x) = e.others.get(name) {
+                v.extend(layer_textures(x));
+            }
+        }
     }
     v
+}
+
+/// KHR_materials_clearcoat's JSON (gltf-json has no type for it).
+#[derive(serde::Deserialize)]
+#[serde(rename_all = "camelCase")]
+struct ClearcoatJson {
+    #[serde(default)]
+    clearcoat_factor: f32,
+    clearcoat_texture: Option<json::texture::Info>,
+    #[serde(default)]
+    clearcoat_roughness_factor: f32,
+    clearcoat_roughness_texture: Option<json::texture::Info>,
+    clearcoat_normal_texture: Option<serde_json::Value>,
+}
+
+/// KHR_materials_sheen's JSON.
+#[derive(serde::Deserialize)]
+#[serde(rename_all = "camelCase")]
+struct SheenJson {
+    #[serde(default)]
+    sheen_color_factor: [f32; 3],
+    sheen_color_texture: Option<json::texture::Info>,
+    #[serde(default)]
+    sheen_roughness_factor: f32,
+    sheen_roughness_texture: Option<json::texture::Info>,
+}
+
+/// Texture indices in a layer extension's JSON (`*Texture.index`), for the image budget.
+fn layer_textures(v: &serde_json::Value) -> impl Iterator<Item = usize> + '_ {
+    v.as_object()
+        .into_iter()
+        .flat_map(|o| o.iter())
+        .filter(|(k, _)| k.ends_with("Texture"))
+        .filter_map(|(_, t)| t.get("index").and_then(serde_json::Value::as_u64))
+        .map(|i| usize::try_from(i).unwrap_or(usize::MAX))
 }
 
 /// Whether `mikktspace` 0.3 can run without panicking (found by the fuzz tests):

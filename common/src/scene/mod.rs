@@ -129,6 +129,23 @@ pub struct Material {
     /// KHR_materials_volume: Beer-Lambert attenuation coefficient inside a transmissive object,
     /// per scene unit, `-ln(attenuationColor) / attenuationDistance` (zero: clear).
     pub attenuation: Vec3,
+    /// glTF's thin-walled transmission: without KHR_materials_volume, or with thicknessFactor 0,
+    /// a transmissive surface is an infinitely thin sheet: light passes straight through it,
+    /// tinted by the base colour, and is not refracted. `false` when the volume has a thickness:
+    /// the mesh bounds a solid that refracts.
+    pub thin_walled: bool,
+    /// KHR_materials_clearcoat: a GGX dielectric coat of index 1.5 over the material, of weight
+    /// `clearcoat` x texture (R) and roughness `clearcoat_roughness` x texture (G); 0: no coat.
+    pub clearcoat: f32,
+    pub clearcoat_texture: Option<TextureRef>,
+    pub clearcoat_roughness: f32,
+    pub clearcoat_roughness_texture: Option<TextureRef>,
+    /// KHR_materials_sheen: colour (linear; texture sRGB-decoded, RGB) and roughness (texture A)
+    /// of a Charlie sheen over the material; colour 0: no sheen.
+    pub sheen_color: Vec3,
+    pub sheen_color_texture: Option<TextureRef>,
+    pub sheen_roughness: f32,
+    pub sheen_roughness_texture: Option<TextureRef>,
 }
 
 /// glTF `alphaMode`: how the base colour's alpha makes a surface transparent to every ray.
@@ -166,6 +183,15 @@ impl Default for Material {
             double_sided: false,
             alpha_mode: AlphaMode::Opaque,
             attenuation: Vec3::ZERO,
+            thin_walled: true,
+            clearcoat: 0.0,
+            clearcoat_texture: None,
+            clearcoat_roughness: 0.0,
+            clearcoat_roughness_texture: None,
+            sheen_color: Vec3::ZERO,
+            sheen_color_texture: None,
+            sheen_roughness: 0.0,
+            sheen_roughness_texture: None,
         }
     }
 }

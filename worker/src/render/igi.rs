@@ -37,6 +37,39 @@ use pathfarm_common::job::{LightSampling, MisHeuristic, Pass, SamplerKind};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
+/// Why igi cannot render a material of the scene, naming it, or `None`. igi gathers at the first
+/// non-specular surface a camera path meets, over the side its viewer is on: a rough
+/// transmitting surface (KHR_materials_transmission with roughness, solid or thin-walled) would
+/// lose what it lets through from the other side, and a glossy layer (sheen, rough clearcoat)
+/// over a smooth base mixes a delta lobe into a non-delta BSDF, whose delta part the gather
+/// cannot see. Rather than render those wrongly, igi refuses them.
+pub fn unsupported_material(materials: &[pathfarm_common::scene::Material]) -> Option<String> {
+    use super::microfacet::SMOOTH_ALPHA;
+    use pathfarm_common::scene::MaterialModel;
+    for m in materials.iter().filter(|m| m.model == MaterialModel::Gltf && !m.unlit) {
+        // Textures only scale the factors down: the factors bound what a hit can see.
+        let rough = m.roughness * m.roughness >= SMOOTH_ALPHA;
+        if m.transmission > 0.0 && rough {
+            return Some(format!(
+                "igi cannot gather light through rough transmission (material \"{}\": transmission with roughness {}): \
+                 use the path or bdpt integrator",
+                m.name, m.roughness
+            ));
+        }
+        let glossy_layer = m.sheen_color.max_element() > 0.0
+            || m.clearcoat > 0.0 && m.clearcoat_roughness * m.clearcoat_roughness >= SMOOTH_ALPHA;
+        let smooth_somewhere = !rough || m.metallic_roughness_texture.is_some();
+        if glossy_layer && smooth_somewhere {
+            return Some(format!(
+                "igi cannot render a sheen or rough clearcoat over a smooth surface (material \"{}\"): use the path or \
+                 bdpt integrator",
+                m.name
+            ));
+        }
+    }
+    None
+}
+
 /// Parameters of the IGI integrator.
 #[derive(Clone, Copy, Debug)]
 pub struct IgiParams {

@@ -2,11 +2,12 @@
 //!
 //! One-sided materials (glTF `doubleSided: false`) are black from behind, as in Mitsuba; the
 //! surface still blocks light. Double-sided materials flip their normals toward the viewer.
-//! Glass (transmission) keeps its true orientation so that entering and leaving differ.
+//! Glass (transmission) keeps its true orientation so that entering and leaving differ. glTF
+//! transmission without a volume (or thicknessFactor 0) is a thin-walled sheet: no refraction.
 
-use super::bsdf::{Bsdf, Bxdf};
+use super::bsdf::{Bsdf, Bxdf, Layers};
 use super::geometry::Frame;
-use super::microfacet::{Fresnel, MicrofacetDistribution, SMOOTH_ALPHA};
+use super::microfacet::{Fresnel, MicrofacetDistribution, SMOOTH_ALPHA, Sheen};
 use super::scene::{RenderScene, SurfaceInteraction, sample_texture};
 use glam::{Vec3A, Vec4Swizzles};
 use pathfarm_common::scene::MaterialModel;
@@ -67,6 +68,7 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
     };
     // The albedo AOV of the whole material, whichever lobe a smooth glTF surface picked.
     let mut albedo = None;
+    let mut layers = None;
     let bxdf = match m.model {
         MaterialModel::Lambert => Bxdf::Lambertian { r: base },
         MaterialModel::Mirror => Bxdf::Mirror { r: base },
@@ -90,10 +92,11 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
             let roughness = (m.roughness * tex(&m.metallic_roughness_texture).y).clamp(0.0, 1.0);
             let alpha = roughness * roughness;
             let eta = m.ior.max(1.0001);
-            if alpha >= SMOOTH_ALPHA {
-                Bxdf::RoughDielectric { eta, tint: base, alpha }
-            } else {
-                Bxdf::Dielectric { eta, tint: base }
+            match (m.thin_walled, alpha >= SMOOTH_ALPHA) {
+                (true, true) => Bxdf::RoughThinDielectric { eta, tint: base, alpha },
+                (true, false) => Bxdf::ThinDielectric { eta, tint: base },
+                (false, true) => Bxdf::RoughDielectric { eta, tint: base, alpha },
+                (false, false) => Bxdf::Dielectric { eta, tint: base },
             }
         }
         MaterialModel::Gltf => {
@@ -101,19 +104,61 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
             let metallic = (m.metallic * mr.z).clamp(0.0, 1.0);
             let roughness = (m.roughness * mr.y).clamp(0.0, 1.0);
             let specular_factor = m.specular_factor.clamp(0.0, 1.0);
+            let cos_o = frame.z.dot(wo);
+            // What is left of `u_lobe` after the transmission choice picks a smooth coat's
+            // mirror, then a smooth surface's (roughness^2 below SMOOTH_ALPHA) mirror or diffuse
+            // lobe.
+            let mut u = if transmission > 0.0 { (u_lobe - transmission) / (1.0 - transmission) } else { u_lobe };
+            u = u.clamp(0.0, 1.0);
+            layers = gltf_layers(m, &tex);
+            if let Some(l) = &mut layers
+                && l.clearcoat > 0.0
+                && l.coat_alpha < SMOOTH_ALPHA
+            {
+                let p = Layers::coat_mirror_probability(l.clearcoat, cos_o);
+                if u < p {
+                    let r = Vec3A::splat(l.coat_albedo(cos_o) / p);
+                    let b = Bxdf::gltf(base, metallic, roughness, specular_factor);
+                    let s = Shading { bsdf: Some(Bsdf::new(frame, Bxdf::Mirror { r })), ng, albedo: b.albedo(), ns };
+                    return s;
+                }
+                u = ((u - p) / (1.0 - p)).clamp(0.0, 1.0);
+                l.under_weight = 1.0 / (1.0 - p);
+            }
             if metallic == 0.0 && specular_factor == 0.0 {
                 // KHR_materials_specular factor 0: no dielectric specular layer.
                 Bxdf::Lambertian { r: base }
             } else {
-                // A smooth surface (roughness^2 below SMOOTH_ALPHA) picks its mirror or its
-                // diffuse lobe with what is left of `u_lobe` after the transmission choice.
-                let u = if transmission > 0.0 { (u_lobe - transmission) / (1.0 - transmission) } else { u_lobe };
-                let cos_o = frame.z.dot(wo);
                 albedo = Some(Bxdf::gltf(base, metallic, roughness, specular_factor).albedo());
-                Bxdf::gltf_lobe(base, metallic, roughness, specular_factor, cos_o, u.clamp(0.0, 1.0))
+                Bxdf::gltf_lobe(base, metallic, roughness, specular_factor, cos_o, u)
             }
         }
     };
     let albedo = albedo.unwrap_or_else(|| bxdf.albedo());
-    Shading { bsdf: Some(Bsdf::new(frame, bxdf)), ng, albedo, ns }
+    Shading { bsdf: Some(Bsdf::new(frame, bxdf).with_layers(layers)), ng, albedo, ns }
+}
+
+/// The clearcoat and sheen of an opaque glTF material at a hit, `None` without either.
+fn gltf_layers(
+    m: &pathfarm_common::scene::Material,
+    tex: &dyn Fn(&Option<pathfarm_common::scene::TextureRef>) -> glam::Vec4,
+) -> Option<Layers> {
+    let clearcoat = if m.clearcoat > 0.0 { (m.clearcoat * tex(&m.clearcoat_texture).x).clamp(0.0, 1.0) } else { 0.0 };
+    let sheen_color = if m.sheen_color.max_element() > 0.0 {
+        (Vec3A::from(m.sheen_color) * Vec3A::from(tex(&m.sheen_color_texture).xyz())).clamp(Vec3A::ZERO, Vec3A::ONE)
+    } else {
+        Vec3A::ZERO
+    };
+    if !(clearcoat > 0.0) && !(sheen_color.max_element() > 0.0) {
+        return None;
+    }
+    let coat_roughness = (m.clearcoat_roughness * tex(&m.clearcoat_roughness_texture).y).clamp(0.0, 1.0);
+    let sheen_roughness = (m.sheen_roughness * tex(&m.sheen_roughness_texture).w).clamp(0.0, 1.0);
+    Some(Layers {
+        clearcoat,
+        coat_alpha: coat_roughness * coat_roughness,
+        sheen_color,
+        sheen: Sheen::new(sheen_roughness),
+        under_weight: 1.0,
+    })
 }

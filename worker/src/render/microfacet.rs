@@ -438,6 +438,134 @@ fn fr_complex(cos_theta_i: f32, eta: Complex) -> f32 {
     0.5 * (r_parl.norm() + r_perp.norm())
 }
 
+/// Smallest sheen roughness used (the glTF sample viewer's floor): below it the Charlie
+/// distribution's `sin^(1 / alpha)` is too peaked for `f32` and for the albedo table.
+const SHEEN_MIN_ROUGHNESS: f32 = 0.07;
+
+/// The "Charlie" sheen microfacet lobe of KHR_materials_sheen (Estevez and Kulla 2017,
+/// "Production Friendly Microfacet Sheen BRDF"): `D(h) = (2 + 1 / alpha) sin^(1 / alpha)(theta_h) / (2 pi)`
+/// with `alpha = roughness^2`, and their Smith-style masking-shadowing
+/// `G = 1 / (1 + Lambda(mu_o) + Lambda(mu_i))` with the fitted `Lambda` (as the glTF sample viewer
+/// writes it). `f = D G / (4 mu_o mu_i)`, no Fresnel; white, so its directional albedo is at
+/// most 1 ([`SheenAlbedo`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sheen {
+    /// Perceptual roughness, clamped to [`SHEEN_MIN_ROUGHNESS`, 1].
+    pub roughness: f32,
+}
+
+impl Sheen {
+    pub fn new(roughness: f32) -> Self {
+        Self { roughness: roughness.clamp(SHEEN_MIN_ROUGHNESS, 1.0) }
+    }
+
+    fn alpha(&self) -> f32 {
+        self.roughness * self.roughness
+    }
+
+    /// `D(wm)` for an upper-side `wm`.
+    pub fn d(&self, wm: Vec3A) -> f32 {
+        let inv = 1.0 / self.alpha();
+        let sin2 = (1.0 - wm.z * wm.z).max(0.0);
+        (2.0 + inv) * sin2.powf(0.5 * inv) * (0.5 * FRAC_1_PI)
+    }
+
+    /// Estevez and Kulla's fitted `Lambda(mu)`.
+    fn lambda(&self, mu: f32) -> f32 {
+        let t = (1.0 - self.alpha()).powi(2);
+        let lerp = |a: f32, b: f32| a + (b - a) * t;
+        let l = |x: f32| {
+            let (a, b, c) = (lerp(21.5473, 25.3245), lerp(3.82987, 3.32435), lerp(0.19823, 0.16801));
+            let (d, e) = (lerp(-1.97760, -1.27393), lerp(-4.32054, -4.85967));
+            a / (1.0 + b * x.max(0.0).powf(c)) + d * x + e
+        };
+        let mu = mu.abs().min(1.0);
+        if mu < 0.5 { l(mu).exp() } else { (2.0 * l(0.5) - l(1.0 - mu)).exp() }
+    }
+
+    /// `D G / (4 mu_o mu_i)` for upper-side `wo`, `wi`.
+    pub fn f(&self, wo: Vec3A, wi: Vec3A) -> f32 {
+        if !(wo.z > 0.0) || !(wi.z > 0.0) {
+            return 0.0;
+        }
+        let h = wo + wi;
+        let len2 = h.length_squared();
+        if !(len2 > 0.0) {
+            return 0.0;
+        }
+        let g = 1.0 / (1.0 + self.lambda(wo.z) + self.lambda(wi.z));
+        let f = self.d(h / len2.sqrt()) * g / (4.0 * wo.z * wi.z);
+        if f.is_finite() { f } else { 0.0 }
+    }
+}
+
+/// Outgoing cosines of the sheen albedo table (`mu = x^2`, `x` uniform) and its roughnesses
+/// (uniform on [`SHEEN_MIN_ROUGHNESS`, 1]).
+const SHEEN_COS: usize = 32;
+const SHEEN_ROUGHNESS: usize = 16;
+/// Quadrature of one entry: `x_i` (with `mu_i = x_i^2`) by `phi` in [0, pi] (the lobe is
+/// symmetric about the plane of incidence).
+const SHEEN_QUADRATURE: (usize, usize) = (96, 48);
+
+/// Directional albedo `E(mu, roughness)` of the white [`Sheen`] lobe, tabulated at start-up by a
+/// deterministic midpoint quadrature, interpolated bilinearly; the albedo scaling of the layers
+/// under a sheen (glTF's `1 - max(sheenColor) E(mu)`) reads it.
+pub struct SheenAlbedo {
+    e: Vec<f32>,
+}
+
+impl SheenAlbedo {
+    /// The table, computed once per process.
+    pub fn get() -> &'static Self {
+        static TABLE: std::sync::OnceLock<SheenAlbedo> = std::sync::OnceLock::new();
+        TABLE.get_or_init(Self::compute)
+    }
+
+    fn roughness_at(r: usize) -> f32 {
+        SHEEN_MIN_ROUGHNESS + (1.0 - SHEEN_MIN_ROUGHNESS) * r as f32 / (SHEEN_ROUGHNESS - 1) as f32
+    }
+
+    fn compute() -> Self {
+        let mut e = vec![0.0f32; SHEEN_COS * SHEEN_ROUGHNESS];
+        let (nx, np) = SHEEN_QUADRATURE;
+        for r in 0..SHEEN_ROUGHNESS {
+            let sheen = Sheen::new(Self::roughness_at(r));
+            for c in 0..SHEEN_COS {
+                let mu = (c as f32 / (SHEEN_COS - 1) as f32).powi(2).max(1e-4);
+                let wo = Vec3A::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
+                let mut sum = 0.0f64;
+                for i in 0..nx {
+                    // mu_i = x^2: d mu_i = 2 x dx.
+                    let x = (i as f32 + 0.5) / nx as f32;
+                    let mu_i = x * x;
+                    let sin_i = (1.0 - mu_i * mu_i).max(0.0).sqrt();
+                    for j in 0..np {
+                        let phi = PI * (j as f32 + 0.5) / np as f32;
+                        let wi = Vec3A::new(sin_i * phi.cos(), sin_i * phi.sin(), mu_i);
+                        sum += f64::from(sheen.f(wo, wi) * mu_i * 2.0 * x);
+                    }
+                }
+                // Both halves of phi: 2 pi / np per cell; dx = 1 / nx.
+                e[r * SHEEN_COS + c] = (sum * 2.0 * std::f64::consts::PI / (np * nx) as f64) as f32;
+            }
+        }
+        Self { e }
+    }
+
+    /// `E(mu, roughness)` (`mu` by its absolute value).
+    pub fn e(&self, mu: f32, roughness: f32) -> f32 {
+        let y = (roughness.clamp(SHEEN_MIN_ROUGHNESS, 1.0) - SHEEN_MIN_ROUGHNESS) / (1.0 - SHEEN_MIN_ROUGHNESS)
+            * (SHEEN_ROUGHNESS - 1) as f32;
+        let r = (y as usize).min(SHEEN_ROUGHNESS - 2);
+        let tr = y - r as f32;
+        let x = mu.abs().min(1.0).sqrt() * (SHEEN_COS - 1) as f32;
+        let c = (x as usize).min(SHEEN_COS - 2);
+        let tc = x - c as f32;
+        let at = |r: usize| self.e[r * SHEEN_COS + c] * (1.0 - tc) + self.e[r * SHEEN_COS + c + 1] * tc;
+        at(r) * (1.0 - tr) + at(r + 1) * tr
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;

@@ -195,6 +195,9 @@ impl Renderer {
                 })
             }
             IntegratorSettings::Igi { vpls, vpl_sets, g_limit, bias_compensation, max_depth } => {
+                if let Some(why) = igi::unsupported_material(&scene.materials) {
+                    return Err(RenderError::Settings(why));
+                }
                 Integrator::Igi(IgiParams { vpls, vpl_sets, g_limit, bias_compensation, max_depth })
             }
         };

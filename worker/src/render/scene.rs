@@ -584,3 +584,111 @@ impl RenderScene {
 pub fn luminance(c: Vec3A) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::chi2::TestRng;
+    use pathfarm_common::job::LightSampling;
+    use pathfarm_common::scene::demo::{GltfBuilder, emitter};
+    use pathfarm_common::scene::{LoadOptions, load_scene_from_slice};
+
+    /// 4096 small emissive triangles facing down from y = 1 over [-2, 2]^2: 64 meshes of 64
+    /// triangles, mesh `k` of radiance `10^(4 k / 63)` (1 to 10^4), triangle `j` of it with edges
+    /// `0.0008 (1 + j)` (within its grid cell of 0.0625), so the lights' powers span 7 decades.
+    fn many_lights() -> RenderScene {
+        let mut b = GltfBuilder::new();
+        for k in 0..64 {
+            let le = 10f32.powf(4.0 * k as f32 / 63.0);
+            let m = b.material(emitter(&format!("e{k}"), Vec3::ZERO, Vec3::splat(le)));
+            let (mut p, mut n, mut idx) = (Vec::new(), Vec::new(), Vec::new());
+            for j in 0..64u32 {
+                // Scatter the lights over the grid (1031 is odd: a permutation of the 4096
+                // cells), so that bright and dim, large and small lights mix everywhere.
+                let cell = (j * 64 + k as u32) * 1031 % 4096;
+                let (x, z) =
+                    (-2.0 + 4.0 * ((cell % 64) as f32 + 0.5) / 64.0, -2.0 + 4.0 * ((cell / 64) as f32 + 0.5) / 64.0);
+                let s = 0.0008 * (1.0 + j as f32);
+                let base = p.len() as u32;
+                // Counter-clockwise seen from below: the normal is -Y.
+                p.extend([Vec3::new(x, 1.0, z), Vec3::new(x + s, 1.0, z), Vec3::new(x, 1.0, z + s)]);
+                n.extend([Vec3::NEG_Y; 3]);
+                idx.extend([base, base + 1, base + 2]);
+            }
+            b.mesh(&format!("lights {k}"), &p, &n, &idx, m);
+        }
+        b.camera(Vec3::new(0.0, 0.5, 3.0), Vec3::ZERO, Vec3::Y, 0.7, 1.0);
+        let scene = load_scene_from_slice(&b.to_glb(), "lights.glb", None, &LoadOptions::default()).expect("loads");
+        RenderScene::new(&scene)
+    }
+
+    #[test]
+    fn light_selection_follows_power_and_beats_uniform() {
+        // The pmf of every light is its power's luminance over the total (relative 1e-3, plus
+        // 1e-7 for the f32 CDF the smallest shares are differences of), and
+        // picking by stratified u hits each light as often as its pmf says (within one of 1e6
+        // strata). The next-event estimate of the irradiance at the origin (normal +Y, no
+        // occluders) with power selection and with uniform selection agree in mean (4 sigma),
+        // and power selection's variance is at least 8x lower (measured: 1.71e5 vs 2.06e6, 12.0x;
+        // area sampling of each triangle). 4e5 samples each, seed 2100.
+        let scene = many_lights();
+        assert_eq!(scene.lights.len(), 4096);
+        let powers: Vec<f64> = scene.lights.iter().map(|l| f64::from(luminance(l.power()))).collect();
+        let total: f64 = powers.iter().sum();
+        let (lo, hi) = powers.iter().fold((f64::MAX, 0.0f64), |(a, b), &p| (a.min(p), b.max(p)));
+        assert!(hi / lo > 1e7, "powers span {:.1e}", hi / lo);
+        for (i, p) in powers.iter().enumerate() {
+            let pmf = f64::from(scene.light_pmf(i));
+            assert!(
+                (pmf - p / total).abs() <= 1e-3 * p / total + 1e-7,
+                "light {i}: pmf {pmf:e}, power share {:e}",
+                p / total
+            );
+        }
+        let strata = 1_000_000usize;
+        let mut hits = vec![0usize; scene.lights.len()];
+        for s in 0..strata {
+            let (i, _) = scene.pick_light((s as f32 + 0.5) / strata as f32).expect("a light");
+            hits[i] += 1;
+        }
+        for (i, &h) in hits.iter().enumerate() {
+            let expected = f64::from(scene.light_pmf(i)) * strata as f64;
+            assert!(
+                (h as f64 - expected).abs() <= 2.0 + 1e-3 * expected,
+                "light {i}: {h} picks, {expected:.1} expected"
+            );
+        }
+
+        let ctx = LightSampleContext { p: Vec3A::ZERO, n: Vec3A::Y };
+        let estimate = |uniform: bool, rng: &mut TestRng| {
+            let n = scene.lights.len();
+            let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+            let samples = 400_000;
+            for _ in 0..samples {
+                let u = rng.uniform();
+                let (i, pmf) = if uniform {
+                    (((u * n as f32) as usize).min(n - 1), 1.0 / n as f32)
+                } else {
+                    scene.pick_light(u).expect("a light")
+                };
+                let v = scene.lights[i]
+                    .sample_li(&ctx, rng.uniform_2d(), LightSampling::Area)
+                    .map_or(0.0, |ls| f64::from(luminance(ls.l) * ls.wi.y.max(0.0) / (ls.pdf * pmf)));
+                sum += v;
+                sum2 += v * v;
+            }
+            let mean = sum / samples as f64;
+            let var = (sum2 / samples as f64 - mean * mean).max(0.0);
+            (mean, var, (var / samples as f64).sqrt())
+        };
+        let mut rng = TestRng::new(2100);
+        let (mp, vp, sp) = estimate(false, &mut rng);
+        let (mu, vu, su) = estimate(true, &mut rng);
+        eprintln!(
+            "irradiance: power {mp:.4} (variance {vp:.4e}), uniform {mu:.4} (variance {vu:.4e}), ratio {:.1}",
+            vu / vp
+        );
+        assert!((mp - mu).abs() <= 4.0 * (sp * sp + su * su).sqrt(), "power {mp} +- {sp}, uniform {mu} +- {su}");
+        assert!(vu > 8.0 * vp, "uniform variance {vu:e} vs power {vp:e}");
+    }
+}
