@@ -174,7 +174,9 @@ fn a_sequence_resumes_its_frames_after_a_coordinator_kill() {
     }
     let before = wait_for("the coordinator to settle", Duration::from_secs(30), || {
         let a = client.job(id).ok()?;
-        std::thread::sleep(Duration::from_millis(400));
+        // Longer than the checkpoint loop's back-off (nine times the last checkpoint's duration,
+        // which on a loaded machine can pass 400 ms).
+        std::thread::sleep(Duration::from_millis(2000));
         let b = client.job(id).ok()?;
         let settled = a.units_merged == b.units_merged
             && b.frames.current.iter().all(|f| f.state == pathfarm_common::protocol::FrameState::Rendering);
