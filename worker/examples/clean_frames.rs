@@ -2,10 +2,13 @@
 //! without OIDN, on the Mitsuba Cornell box and the caustics scene (`common::scene::demo`).
 //!
 //! ```sh
-//! export OIDN_DIR=<site-packages>/pyoidn/oidn LD_LIBRARY_PATH=$OIDN_DIR/lib
+//! export OIDN_DIR=<site-packages>/pyoidn/oidn
+//! export LD_LIBRARY_PATH=$OIDN_DIR/lib RAYON_NUM_THREADS=2
 //! cargo run --release -p pathfarm-worker --features denoise --example clean_frames -- \
-//!     --size 64 --ref-spp 4096 --budget-s 2 --threshold 0.03 --target 1e-3 --out target/clean_frames
+//!     --size 64 --ref-spp 16384 --budget-s 2 --threshold 0.03 --target 1e-3 --out target/clean_frames
 //! ```
+//!
+//! `scripts/bench-cycles.py` then measures Cycles on the GLB written here (README, Benchmark).
 //!
 //! For each scene it renders (or reuses) a reference of `--ref-spp` uniform samples, then:
 //!
