@@ -91,7 +91,7 @@ fn migrations() -> rusqlite_migration::Migrations<'static> {
     )])
 }
 
-/// The schema version this build writes: the number of [`migrations`].
+/// The schema version this build writes: the number of migrations.
 pub const SCHEMA_VERSION: usize = 1;
 
 /// Brings the database to [`SCHEMA_VERSION`]; refuses one written by a newer version (a higher
