@@ -314,6 +314,19 @@ pub struct Limits {
     pub max_units: u64,
 }
 
+impl Limits {
+    /// No service limit: [`RenderSettings::validate`] against it checks only that the settings
+    /// make sense (and fit the film's fixed-point sums). The renderer uses it: the coordinator
+    /// has already applied its configured limits, which may be above [`Limits::default`].
+    pub const UNBOUNDED: Limits = Limits {
+        max_pixels: u64::MAX,
+        max_dimension: u32::MAX,
+        max_spp: u32::MAX,
+        max_depth: u32::MAX,
+        max_units: u64::MAX,
+    };
+}
+
 impl Default for Limits {
     fn default() -> Self {
         Self { max_pixels: 8192 * 8192, max_dimension: 16384, max_spp: 1 << 20, max_depth: 1024, max_units: 1 << 22 }
@@ -787,6 +800,27 @@ mod tests {
             IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
         let e = bad.validate(&Limits::default()).expect_err("bdpt").to_string();
         assert!(e.contains("adaptive sampling is not available with the bdpt integrator"), "{e}");
+    }
+
+    #[test]
+    fn unbounded_limits_still_refuse_nonsense() {
+        let mut deep = RenderSettings::new(16, 16, 4);
+        deep.integrator = IntegratorSettings::Path {
+            max_depth: 5000,
+            rr_depth: 5,
+            mis: MisHeuristic::default(),
+            light_sampling: Default::default(),
+        };
+        assert!(
+            deep.validate(&Limits::default()).expect_err("deeper than the default").to_string().contains("max_depth")
+        );
+        assert_eq!(deep.validate(&Limits::UNBOUNDED), Ok(()));
+        let big = RenderSettings::new(16384, 16384, 4);
+        assert!(big.validate(&Limits::default()).is_err());
+        assert_eq!(big.validate(&Limits::UNBOUNDED), Ok(()));
+        assert!(RenderSettings::new(16, 16, 0).validate(&Limits::UNBOUNDED).is_err());
+        let over = RenderSettings::new(16, 16, crate::film::MAX_EXACT_SPP + 1);
+        assert!(over.validate(&Limits::UNBOUNDED).is_err());
     }
 
     #[test]

@@ -963,13 +963,11 @@ impl Farm {
         self.jobs.values().map(|j| j.films_held() * Film::bytes_for(j.settings.width, j.settings.height)).sum()
     }
 
-    /// Adds a job: settings, tags, frames x tiles x passes and the film budget are checked
-    /// before anything is allocated. A frame-order job needs one film to fit the budget (more
-    /// frames start only while their films fit); a sequence-preview job needs every frame's.
-    pub fn submit_job(&mut self, spec: JobSpec, now_ms: u64) -> Result<JobId, FarmError> {
-        pathfarm_common::protocol::validate_tags(&spec.requires, "requires").map_err(FarmError::InvalidJob)?;
+    /// The farm's own budgets for a job whose settings are valid (`RenderSettings::validate`
+    /// is the one check of the settings): frames, frames x tiles x passes within `max_units`,
+    /// and the films within `--film-memory-mb`.
+    fn check_budgets(&self, spec: &JobSpec) -> Result<(), FarmError> {
         let settings = &spec.settings;
-        settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
         let frames = spec.frames.as_ref().map_or(1, FrameSet::len) as u64;
         if frames > MAX_FRAMES as u64 || frames == 0 {
             return Err(FarmError::InvalidJob(format!("a job has 1 to {MAX_FRAMES} frames, got {frames}")));
@@ -1017,6 +1015,16 @@ impl Farm {
                 )));
             }
         }
+        Ok(())
+    }
+
+    /// Adds a job: settings, tags, frames x tiles x passes and the film budget are checked
+    /// before anything is allocated. A frame-order job needs one film to fit the budget (more
+    /// frames start only while their films fit); a sequence-preview job needs every frame's.
+    pub fn submit_job(&mut self, spec: JobSpec, now_ms: u64) -> Result<JobId, FarmError> {
+        pathfarm_common::protocol::validate_tags(&spec.requires, "requires").map_err(FarmError::InvalidJob)?;
+        spec.settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
+        self.check_budgets(&spec)?;
         let id = self.next_job;
         self.next_job += 1;
         let mut job = Job::new(id, spec, now_ms);

@@ -166,7 +166,7 @@ async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Nex
     description = "Open unless the coordinator runs with `--metrics-token`; then it takes only that token \
         (`Authorization: Bearer`), not the client or worker token.",
     security((), ("metrics_token" = [])),
-    responses((status = 200, description = "Prometheus text exposition", body = String, content_type = "text/plain; version=0.0.4"), (status = 401, description = "`--metrics-token` is set and the request does not carry it", body = ErrorBody)),
+    responses((status = 200, description = "OpenMetrics text exposition (Prometheus scrapes it), with the standard `process_*` metrics on Linux", body = String, content_type = "application/openmetrics-text; version=1.0.0; charset=utf-8"), (status = 401, description = "`--metrics-token` is set and the request does not carry it", body = ErrorBody)),
 )]
 pub(crate) async fn metrics(State(state): State<Arc<AppState>>, headers: HeaderMap) -> ApiResult<Response> {
     if let Some(expected) = state.config.metrics_token.as_deref() {
@@ -185,7 +185,7 @@ pub(crate) async fn metrics(State(state): State<Arc<AppState>>, headers: HeaderM
         }
     }
     let text = state.metrics_text();
-    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
+    Ok(([(header::CONTENT_TYPE, crate::service::METRICS_CONTENT_TYPE)], text).into_response())
 }
 
 #[cfg(test)]

@@ -36,53 +36,88 @@ fn state_from_str(s: &str) -> anyhow::Result<JobState> {
     })
 }
 
+/// Schema migrations, applied in order by `rusqlite_migration`, which keeps the number applied
+/// in SQLite's `PRAGMA user_version`. Append new ones; never edit one that has shipped.
+///
+/// Migration 1 is the schema of the versions before migrations. Those made their tables with
+/// `CREATE TABLE IF NOT EXISTS` and left `user_version` at 0, so it keeps `IF NOT EXISTS` and
+/// its hook adds the columns that databases older still lack: it adopts such a database with its
+/// rows, and creates a fresh one.
+fn migrations() -> rusqlite_migration::Migrations<'static> {
+    use rusqlite_migration::{HookResult, M, Migrations};
+    fn add_missing_columns(tx: &rusqlite::Transaction<'_>) -> HookResult {
+        let has = |col: &str| tx.prepare(&format!("SELECT {col} FROM jobs LIMIT 0")).is_ok();
+        // Databases of versions before worker tags lack `requires`, ...
+        if !has("requires") {
+            tx.execute_batch("ALTER TABLE jobs ADD COLUMN requires TEXT NOT NULL DEFAULT '[]'")?;
+        }
+        // ... those before webhooks lack `notify` (JSON of the job's `notify`, or NULL), ...
+        if !has("notify") {
+            tx.execute_batch("ALTER TABLE jobs ADD COLUMN notify TEXT")?;
+        }
+        // ... and those before sequences lack `frames` (NULL: one frame) and `frame_order`.
+        if !has("frames") {
+            tx.execute_batch(
+                "ALTER TABLE jobs ADD COLUMN frames TEXT; ALTER TABLE jobs ADD COLUMN frame_order TEXT NOT NULL DEFAULT 'frame'",
+            )?;
+        }
+        Ok(())
+    }
+    Migrations::new(vec![M::up_with_hook(
+        "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+         CREATE TABLE IF NOT EXISTS jobs (
+             id INTEGER PRIMARY KEY,
+             name TEXT NOT NULL,
+             scene_id TEXT NOT NULL,
+             priority INTEGER NOT NULL,
+             settings TEXT NOT NULL,
+             state TEXT NOT NULL,
+             created_ms INTEGER NOT NULL,
+             finished_ms INTEGER,
+             error TEXT,
+             run_ms INTEGER NOT NULL DEFAULT 0,
+             requires TEXT NOT NULL DEFAULT '[]',
+             notify TEXT,
+             frames TEXT,
+             frame_order TEXT NOT NULL DEFAULT 'frame'
+         );
+         CREATE TABLE IF NOT EXISTS workers (
+             id INTEGER PRIMARY KEY,
+             name TEXT NOT NULL,
+             threads INTEGER NOT NULL,
+             registered_ms INTEGER NOT NULL
+         );",
+        add_missing_columns,
+    )])
+}
+
+/// The schema version this build writes: the number of migrations.
+pub const SCHEMA_VERSION: usize = 1;
+
+/// Brings the database to [`SCHEMA_VERSION`]; refuses one written by a newer version (a higher
+/// `user_version`) untouched, since this build cannot know what its schema means.
+fn migrate(conn: &mut Connection) -> anyhow::Result<()> {
+    let found: i64 = conn.pragma_query_value(None, "user_version", |r| r.get(0))?;
+    if found > SCHEMA_VERSION as i64 {
+        bail!(
+            "the database has schema version {found}, newer than this coordinator's {SCHEMA_VERSION}: \
+             it was written by a newer pathfarm; run that version, or start this one with another --data-dir"
+        );
+    }
+    migrations().to_latest(conn)?;
+    Ok(())
+}
+
 impl Store {
     /// Opens (creating if needed) `data_dir/pathfarm.db`.
     pub fn open(data_dir: &Path) -> anyhow::Result<Self> {
         let path = data_dir.join("pathfarm.db");
-        let conn = Connection::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        let mut conn = Connection::open(&path).with_context(|| format!("opening {}", path.display()))?;
         conn.pragma_update(None, "journal_mode", "WAL")?;
         // FULL: a transaction is on disk before the API acknowledges it (NORMAL in WAL mode may
         // lose the last commits on power loss).
         conn.pragma_update(None, "synchronous", "FULL")?;
-        conn.execute_batch(
-            "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
-             CREATE TABLE IF NOT EXISTS jobs (
-                 id INTEGER PRIMARY KEY,
-                 name TEXT NOT NULL,
-                 scene_id TEXT NOT NULL,
-                 priority INTEGER NOT NULL,
-                 settings TEXT NOT NULL,
-                 state TEXT NOT NULL,
-                 created_ms INTEGER NOT NULL,
-                 finished_ms INTEGER,
-                 error TEXT,
-                 run_ms INTEGER NOT NULL DEFAULT 0,
-                 requires TEXT NOT NULL DEFAULT '[]',
-                 notify TEXT
-             );
-             CREATE TABLE IF NOT EXISTS workers (
-                 id INTEGER PRIMARY KEY,
-                 name TEXT NOT NULL,
-                 threads INTEGER NOT NULL,
-                 registered_ms INTEGER NOT NULL
-             );",
-        )?;
-        // Databases of versions before worker tags lack `requires`.
-        if conn.prepare("SELECT requires FROM jobs LIMIT 0").is_err() {
-            conn.execute_batch("ALTER TABLE jobs ADD COLUMN requires TEXT NOT NULL DEFAULT '[]'")?;
-        }
-        // ... and those before webhooks lack `notify` (JSON of the job's `notify`, or NULL).
-        if conn.prepare("SELECT notify FROM jobs LIMIT 0").is_err() {
-            conn.execute_batch("ALTER TABLE jobs ADD COLUMN notify TEXT")?;
-        }
-        // ... and those before sequences lack `frames` (the frame set, NULL: one frame) and
-        // `frame_order`.
-        if conn.prepare("SELECT frames FROM jobs LIMIT 0").is_err() {
-            conn.execute_batch(
-                "ALTER TABLE jobs ADD COLUMN frames TEXT; ALTER TABLE jobs ADD COLUMN frame_order TEXT NOT NULL DEFAULT 'frame'",
-            )?;
-        }
+        migrate(&mut conn).with_context(|| format!("migrating {}", path.display()))?;
         let jobs_dir = data_dir.join("jobs");
         std::fs::create_dir_all(&jobs_dir)?;
         Ok(Self { conn, jobs_dir })
@@ -474,6 +509,92 @@ mod tests {
         assert_eq!(jobs[0].requires, rec.requires);
         assert_eq!(jobs[0].notify, rec.notify);
         assert_eq!((&jobs[0].frames, jobs[0].order), (&rec.frames, rec.order));
+    }
+
+    /// The schema as the versions before migrations left it: made by `CREATE TABLE IF NOT
+    /// EXISTS`, the sequence columns added by `ALTER TABLE`, `user_version` 0 (copied from the
+    /// old `Store::open`).
+    const PRE_MIGRATION_SCHEMA: &str = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+         CREATE TABLE IF NOT EXISTS jobs (
+             id INTEGER PRIMARY KEY,
+             name TEXT NOT NULL,
+             scene_id TEXT NOT NULL,
+             priority INTEGER NOT NULL,
+             settings TEXT NOT NULL,
+             state TEXT NOT NULL,
+             created_ms INTEGER NOT NULL,
+             finished_ms INTEGER,
+             error TEXT,
+             run_ms INTEGER NOT NULL DEFAULT 0,
+             requires TEXT NOT NULL DEFAULT '[]',
+             notify TEXT
+         );
+         CREATE TABLE IF NOT EXISTS workers (
+             id INTEGER PRIMARY KEY,
+             name TEXT NOT NULL,
+             threads INTEGER NOT NULL,
+             registered_ms INTEGER NOT NULL
+         );
+         ALTER TABLE jobs ADD COLUMN frames TEXT; ALTER TABLE jobs ADD COLUMN frame_order TEXT NOT NULL DEFAULT 'frame';";
+
+    fn user_version(dir: &Path) -> i64 {
+        let conn = Connection::open(dir.join("pathfarm.db")).expect("db");
+        conn.pragma_query_value(None, "user_version", |r| r.get(0)).expect("user_version")
+    }
+
+    #[test]
+    fn a_pre_migration_database_opens_with_its_data() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        {
+            let conn = Connection::open(dir.path().join("pathfarm.db")).expect("db");
+            conn.execute_batch(PRE_MIGRATION_SCHEMA).expect("old schema");
+            conn.execute_batch(
+                "INSERT INTO jobs (id, name, scene_id, priority, settings, state, created_ms, run_ms, requires, frames, frame_order)
+                     VALUES (7, 'old job', 'scene-a', 3, '{\"width\":16,\"height\":8,\"spp\":4}', 'paused', 1234, 55,
+                             '[\"gpu\"]', '1-3', 'frame');
+                 INSERT INTO meta (key, value) VALUES ('epoch', 4), ('max_job_id', 9);",
+            )
+            .expect("old rows");
+        }
+        assert_eq!(user_version(dir.path()), 0);
+        for reopen in 0..2 {
+            let store = Store::open(dir.path()).expect("open");
+            assert_eq!(user_version(dir.path()), SCHEMA_VERSION as i64, "reopen {reopen}");
+            let jobs = store.jobs().expect("jobs");
+            assert_eq!(jobs.len(), 1);
+            let j = &jobs[0];
+            assert_eq!((j.id, j.name.as_str(), j.scene_id.as_str(), j.priority), (7, "old job", "scene-a", 3));
+            assert_eq!((j.state, j.created_ms, j.run_ms), (JobState::Paused, 1234, 55));
+            assert_eq!(j.settings, RenderSettings::new(16, 8, 4));
+            assert_eq!(j.requires, vec!["gpu".to_string()]);
+            assert_eq!(j.frames.as_ref().map(|f| f.spec().to_string()).as_deref(), Some("1-3"));
+            assert_eq!(store.max_job_id().expect("max id"), 9);
+            assert_eq!(store.next_epoch().expect("epoch"), 5 + reopen);
+        }
+    }
+
+    #[test]
+    fn a_database_from_a_newer_version_is_refused_untouched() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        drop(Store::open(dir.path()).expect("create"));
+        let newer = SCHEMA_VERSION as i64 + 1;
+        {
+            let conn = Connection::open(dir.path().join("pathfarm.db")).expect("db");
+            conn.execute_batch(&format!(
+                "CREATE TABLE future (x INTEGER); INSERT INTO future VALUES (42); PRAGMA user_version = {newer};"
+            ))
+            .expect("newer schema");
+        }
+        let e = Store::open(dir.path()).err().expect("a newer database must be refused");
+        let msg = format!("{e:#}");
+        assert!(
+            msg.contains(&format!("schema version {newer}, newer than this coordinator's {SCHEMA_VERSION}")),
+            "{msg}"
+        );
+        assert_eq!(user_version(dir.path()), newer);
+        let conn = Connection::open(dir.path().join("pathfarm.db")).expect("db");
+        let x: i64 = conn.query_row("SELECT x FROM future", [], |r| r.get(0)).expect("future row");
+        assert_eq!(x, 42);
     }
 
     #[test]

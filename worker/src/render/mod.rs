@@ -94,8 +94,10 @@ impl Renderer {
         settings: &RenderSettings,
         environment_image: Option<EnvironmentImage>,
     ) -> Result<Self, RenderError> {
+        // The one settings check, without a service's limits: a coordinator may be configured
+        // above the defaults and has applied its own (the CLI applies the defaults before this).
         settings
-            .validate(&pathfarm_common::job::Limits::default())
+            .validate(&pathfarm_common::job::Limits::UNBOUNDED)
             .map_err(|e| RenderError::Settings(e.to_string()))?;
         let names = settings.animations.as_deref();
         if let Some(unknown) = names.and_then(|n| n.iter().find(|n| !scene.animation_names().contains(&n.as_str()))) {
