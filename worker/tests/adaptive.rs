@@ -179,6 +179,7 @@ fn bad_masks_and_bdpt_are_refused() {
 }
 
 /// Relative MSE over pixels and channels: (x - r)^2 / (r^2 + 1e-2).
+#[cfg(feature = "denoise")]
 fn rel_mse(x: &[[f32; 3]], r: &[[f32; 3]]) -> f64 {
     let sum: f64 = x
         .iter()
