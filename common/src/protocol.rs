@@ -479,6 +479,11 @@ pub struct LeaseGrant {
     pub unit: UnitKey,
     pub tile: TileRect,
     pub pass: Pass,
+    /// Adaptive sampling: the tile's blocks that have converged (no samples in this unit; their
+    /// pixels hold empty sums in the result). Absent: every pixel gets the pass's samples.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<crate::adaptive::BlockMaskWire>)]
+    pub mask: Option<crate::adaptive::BlockMask>,
 }
 
 /// `POST /leases/{id}/release` body: give a unit back (shutdown) or report its failure.

@@ -418,8 +418,10 @@ impl Daemon {
                     }
                 }
             });
+            // Adaptive sampling: the lease's mask names the blocks that get no samples; a mask
+            // the renderer refuses (another tile's layout, bdpt) fails the unit.
             let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                this.pool.install(|| renderer.render_unit(grant.tile, grant.pass))
+                this.pool.install(|| renderer.render_unit_masked(grant.tile, grant.pass, grant.mask.as_ref()))
             }));
             drop(done);
             r
@@ -427,7 +429,10 @@ impl Daemon {
         if lost.load(Ordering::Relaxed) {
             self.worker_id = None;
         }
-        result.map_err(|p| format!("the renderer panicked: {}", panic_message(p.as_ref())))
+        match result {
+            Ok(r) => r.map_err(|e| format!("cannot render the unit: {e}")),
+            Err(p) => Err(format!("the renderer panicked: {}", panic_message(p.as_ref()))),
+        }
     }
 
     fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {

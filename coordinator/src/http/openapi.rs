@@ -345,6 +345,7 @@ fn open_tuples(v: &mut serde_json::Value) {
         RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings, EnvironmentSettings,
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
         JobRequestBody, FrameOrder, FrameState, FrameInfo, FramesSummary, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, FrameWritten, Convergence, ConvergencePoint,
+        pathfarm_common::adaptive::BlockMaskWire,
     )),
     modifiers(&SecuritySchemes, &BinaryBodies),
     tags(
