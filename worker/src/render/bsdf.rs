@@ -1133,48 +1133,40 @@ pub(crate) mod tests {
         assert!(failures.is_empty(), "{}", failures.join("\n"));
     }
 
-    #[test]
-    fn chi2_rough_dielectric() {
-        // Reflection and refraction over the whole sphere, from outside (4 angles) and inside
-        // (2 angles, including one beyond the critical angle), two roughnesses, eta 1.5.
+    /// Chi-square cases of a two-sided rough lobe: from outside (the 4 incident angles) and from
+    /// the other side (`below`), two roughnesses; seeds from `seed0`. Returns the case count.
+    fn chi2_two_sided(name: &str, make: impl Fn(f32) -> Bxdf, below: [Vec3A; 2], seed0: u64) -> usize {
         let mut failures = Vec::new();
         let mut k = 0;
         for alpha in [0.1, 0.4] {
-            let bxdf = Bxdf::RoughDielectric { eta: 1.5, tint: Vec3A::ONE, alpha };
-            let inside = [-dir(0.9, 0.3), -dir(0.5, 2.0)];
-            for wo in incident().into_iter().chain(inside) {
+            let bxdf = make(alpha);
+            for wo in incident().into_iter().chain(below) {
                 k += 1;
-                if let Err(e) =
-                    chi2_case(&format!("rough dielectric alpha={alpha}, wo={wo}"), &bxdf, wo, &chi2_opts(900 + k))
-                {
+                if let Err(e) = chi2_case(&format!("{name} alpha={alpha}, wo={wo}"), &bxdf, wo, &chi2_opts(seed0 + k)) {
                     failures.push(e);
                 }
             }
         }
-        assert_eq!(k as usize, ROUGH_DIELECTRIC_CASES);
         assert!(failures.is_empty(), "{}", failures.join("\n"));
+        k as usize
+    }
+
+    #[test]
+    fn chi2_rough_dielectric() {
+        // Reflection and refraction over the whole sphere, from outside (4 angles) and inside
+        // (2 angles, including one beyond the critical angle), two roughnesses, eta 1.5.
+        let make = |alpha| Bxdf::RoughDielectric { eta: 1.5, tint: Vec3A::ONE, alpha };
+        let cases = chi2_two_sided("rough dielectric", make, [-dir(0.9, 0.3), -dir(0.5, 2.0)], 900);
+        assert_eq!(cases, ROUGH_DIELECTRIC_CASES);
     }
 
     #[test]
     fn chi2_rough_thin_dielectric() {
         // Reflection and the mirrored transmission lobe over the whole sphere, from above (4
         // angles) and below (2), two roughnesses, eta 1.5.
-        let mut failures = Vec::new();
-        let mut k = 0;
-        for alpha in [0.1, 0.4] {
-            let bxdf = Bxdf::RoughThinDielectric { eta: 1.5, tint: Vec3A::ONE, alpha };
-            let below = [-dir(0.9, 0.3), -dir(0.3, 2.0)];
-            for wo in incident().into_iter().chain(below) {
-                k += 1;
-                if let Err(e) =
-                    chi2_case(&format!("rough thin alpha={alpha}, wo={wo}"), &bxdf, wo, &chi2_opts(1300 + k))
-                {
-                    failures.push(e);
-                }
-            }
-        }
-        assert_eq!(k as usize, ROUGH_THIN_CASES);
-        assert!(failures.is_empty(), "{}", failures.join("\n"));
+        let make = |alpha| Bxdf::RoughThinDielectric { eta: 1.5, tint: Vec3A::ONE, alpha };
+        let cases = chi2_two_sided("rough thin", make, [-dir(0.9, 0.3), -dir(0.3, 2.0)], 1300);
+        assert_eq!(cases, ROUGH_THIN_CASES);
     }
 
     fn layers(clearcoat: f32, coat_roughness: f32, sheen: f32, sheen_roughness: f32) -> Layers {
