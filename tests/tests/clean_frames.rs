@@ -18,9 +18,7 @@ use support::*;
 fn adaptive_sampling_on_three_workers_gives_the_local_render_bits() {
     let dir = tempfile::tempdir().expect("tempdir");
     let coord = start_coordinator(&dir.path().join("data"), &[]);
-    let workers: Vec<Proc> = (0..3)
-        .map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("cache{i}")), &[]))
-        .collect();
+    let workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "cache", 3);
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_demo_glb();
     let mut s = RenderSettings::new(64, 48, 32);

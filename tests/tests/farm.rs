@@ -52,9 +52,7 @@ fn wait_done(client: &Client, id: JobId, timeout: Duration) -> pathfarm_common::
 fn three_workers_render_the_same_bits_as_a_local_render() {
     let dir = tempfile::tempdir().expect("tempdir");
     let coord = start_coordinator(&dir.path().join("data"), &[]);
-    let workers: Vec<Proc> = (0..3)
-        .map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("cache{i}")), &[]))
-        .collect();
+    let workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "cache", 3);
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_demo_glb();
     let s = settings(64, 48, 24, 16);
@@ -173,8 +171,7 @@ fn the_higher_priority_job_finishes_first() {
     let s = settings(64, 64, 16, 16);
     let low = submit(&client, &scene, &s, 0, "low");
     let high = submit(&client, &scene, &s, 10, "high");
-    let _workers: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let _workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "c", 2);
     let high_info = wait_done(&client, high, Duration::from_secs(120));
     let low_now = client.job(low).expect("low");
     assert_ne!(low_now.state, JobState::Completed, "the low-priority job finished first");
@@ -275,8 +272,7 @@ fn bdpt_and_igi_jobs_are_bit_identical_through_the_farm() {
     // BDPT units carry full-frame light-tracing splats; IGI units share per-sample VPL sets.
     let dir = tempfile::tempdir().expect("tempdir");
     let coord = start_coordinator(&dir.path().join("data"), &[]);
-    let _workers: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let _workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "c", 2);
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_demo_glb();
     let mut bdpt = settings(40, 32, 12, 16);
@@ -338,8 +334,7 @@ fn an_environment_image_in_the_bundle_and_a_thin_lens_render_the_same_bits_throu
     let bundle = pathfarm_common::scene::bundle::tar_bundle(&refs).expect("tar");
     let dir = tempfile::tempdir().expect("tempdir");
     let coord = start_coordinator(&dir.path().join("data"), &[]);
-    let _w: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let _w: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "c", 2);
     let client = Client::new(&coord.url, None).expect("client");
     let mut s = settings(32, 32, 8, 16);
     s.camera = Some(0);

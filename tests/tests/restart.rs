@@ -49,8 +49,7 @@ fn a_job_survives_repeated_coordinator_kills() {
             settings: s.clone(),
         })
         .expect("submit");
-    let _workers: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let _workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "c", 2);
     // Kill points: after these fractions of the job's units are merged (a fixed pseudo-random
     // choice, so the test is repeatable).
     let mut kills = 0;
@@ -161,8 +160,7 @@ fn a_sequence_resumes_its_frames_after_a_coordinator_kill() {
             settings: s.clone(),
         })
         .expect("submit");
-    let mut workers: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let mut workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "c", 2);
     // Frame 1 written, frame 2 under way: stop the workers, let the coordinator settle
     // (checkpoints, writes), then kill it.
     wait_for("frame 1 written and frame 2 under way", Duration::from_secs(120), || {
@@ -193,8 +191,7 @@ fn a_sequence_resumes_its_frames_after_a_coordinator_kill() {
     let log: Vec<String> =
         reqwest::blocking::get(format!("{}{API}/jobs/{id}/log", coord.url)).expect("log").json().expect("json");
     assert!(log.iter().any(|l| l.starts_with("restored") && l.contains("frames written")), "{log:?}");
-    let _workers: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("v{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let _workers: Vec<Proc> = start_workers(&coord.url, "v", dir.path(), "c", 2);
     wait_for("the sequence to be written", Duration::from_secs(180), || {
         let info = client.job(id).ok()?;
         assert_ne!(info.state, JobState::Failed, "{:?}", info.error);

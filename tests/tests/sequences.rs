@@ -65,8 +65,7 @@ fn at_frame(s: &RenderSettings, frame: i32) -> RenderSettings {
 fn frames_of_a_sequence_are_bit_identical_to_local_renders() {
     let dir = tempfile::tempdir().expect("tempdir");
     let coord = start_coordinator(&dir.path().join("data"), &[]);
-    let _workers: Vec<Proc> =
-        (0..2).map(|i| start_worker(&coord.url, &format!("w{i}"), &dir.path().join(format!("c{i}")), &[])).collect();
+    let _workers: Vec<Proc> = start_workers(&coord.url, "w", dir.path(), "c", 2);
     let client = Client::new(&coord.url, None).expect("client");
     let scene = cornell_animated_glb();
     let scene_path = dir.path().join("cornell.glb");

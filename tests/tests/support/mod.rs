@@ -70,6 +70,11 @@ pub fn start_worker(url: &str, name: &str, cache_dir: &Path, extra: &[&str]) -> 
     Proc { child }
 }
 
+/// `n` workers named `{prefix}0..`, each with its cache `{cache}{i}` under `dir`.
+pub fn start_workers(url: &str, prefix: &str, dir: &Path, cache: &str, n: usize) -> Vec<Proc> {
+    (0..n).map(|i| start_worker(url, &format!("{prefix}{i}"), &dir.join(format!("{cache}{i}")), &[])).collect()
+}
+
 /// The EXR a local render of `settings` produces (same plan and merge as the farm).
 pub fn local_exr(scene_bytes: &[u8], settings: &RenderSettings) -> Vec<u8> {
     let dir = tempfile::tempdir().expect("tempdir");
