@@ -1,0 +1,350 @@
+//! Leases: scheduling, expiry, release and the merge of results.
+
+use super::frame_run::{UnitState, sample_count_mismatch};
+use super::{Farm, FarmError, Job, MergeOutcome};
+use pathfarm_common::film::{Film, TileAccum};
+use pathfarm_common::protocol::{
+    FrameOrder, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
+};
+
+#[derive(Clone, Debug)]
+pub(super) struct Lease {
+    pub(super) job: JobId,
+    /// Index of the unit's frame in the job's frame set.
+    pub(super) frame: usize,
+    pub(super) unit: usize,
+    pub(super) worker: WorkerId,
+    pub(super) deadline_ms: u64,
+}
+
+impl Farm {
+    /// Hands the worker the next unit: highest priority first; among equal priorities the job
+    /// with the fewest units in flight (then the fewest served) - a fair share; inside a job,
+    /// canonical (pass-major) order, returned units first.
+    pub fn lease(&mut self, worker: WorkerId, now_ms: u64) -> Result<Option<LeaseGrant>, FarmError> {
+        let w = self.workers.get_mut(&worker).ok_or(FarmError::NoWorker(worker))?;
+        w.last_seen_ms = now_ms;
+        let was_offline = std::mem::replace(&mut w.offline, false);
+        if was_offline {
+            self.note_unservable();
+        }
+        let tags = &self.workers[&worker].tags;
+        // A frame-order sequence whose frames in progress have nothing pending may start its
+        // next frame, while the frames it holds are under the cap and the new film fits.
+        let (budget, max_open) = (self.cfg.film_budget_bytes, self.cfg.max_open_frames.max(1) as u64);
+        let mut held: Option<u64> = None;
+        let jobs = &self.jobs;
+        let mut may_start = |j: &Job| {
+            j.order == FrameOrder::Frame
+                && j.unstarted > 0
+                && j.films_held() < max_open
+                && budget.is_none_or(|b| {
+                    let used = *held.get_or_insert_with(|| {
+                        jobs.values()
+                            .map(|j| j.films_held() * Film::bytes_for(j.settings.width, j.settings.height))
+                            .sum()
+                    });
+                    used.saturating_add(Film::bytes_for(j.settings.width, j.settings.height)) <= b
+                })
+        };
+        let pick = self
+            .jobs
+            .values()
+            .filter(|j| j.accepts_work() && !j.blocklist.contains(&worker))
+            .filter(|j| j.requires.iter().all(|t| tags.contains(t)))
+            .filter(|j| j.has_pending() || may_start(j))
+            .min_by_key(|j| (std::cmp::Reverse(j.priority), j.leased, j.served, j.id))
+            .map(|j| j.id);
+        let Some(job_id) = pick else { return Ok(None) };
+        let lease_id = self.next_lease;
+        self.next_lease += 1;
+        let Some(job) = self.jobs.get_mut(&job_id) else { return Ok(None) };
+        if !job.has_pending()
+            && let Some(next) = job.frame_to_open()
+        {
+            job.open_frame(next);
+            job.log(format!("frame {} started", job.frames.frames()[next]));
+        }
+        let Some((frame, unit)) = job.take_unit() else { return Ok(None) };
+        if let Some(run) = job.open.get_mut(&frame) {
+            run.units[unit] = UnitState::Leased(lease_id);
+        }
+        job.leased += 1;
+        job.served += 1;
+        if job.state == JobState::Queued {
+            job.state = JobState::Running;
+            job.started_ms = Some(now_ms);
+        }
+        if !job.started_notified {
+            job.started_notified = true;
+            if job.notify.as_ref().is_some_and(|n| n.wants(NotifyEvent::Started)) {
+                self.notifications.push((job_id, NotifyEvent::Started));
+            }
+        }
+        let key = job.unit_key(frame, unit);
+        let mut settings = job.settings.clone();
+        settings.frame = key.frame;
+        let mask = job.open.get(&frame).and_then(|run| run.masks[key.tile as usize].clone()).filter(|m| !m.none());
+        let grant = LeaseGrant {
+            mask,
+            lease_id,
+            job_id,
+            scene_id: job.scene_id.clone(),
+            settings,
+            unit: key,
+            tile: job.plan.tiles[key.tile as usize],
+            pass: job.plan.passes[key.pass as usize],
+        };
+        self.leases.insert(
+            lease_id,
+            Lease { job: job_id, frame, unit, worker, deadline_ms: now_ms + self.cfg.lease_timeout_ms },
+        );
+        if let Some(w) = self.workers.get_mut(&worker) {
+            w.leases.insert(lease_id);
+        }
+        self.counters.units_leased += 1;
+        Ok(Some(grant))
+    }
+
+    pub(super) fn take_lease(&mut self, lease_id: LeaseId) -> Option<Lease> {
+        let l = self.leases.remove(&lease_id)?;
+        if let Some(w) = self.workers.get_mut(&l.worker) {
+            w.leases.remove(&lease_id);
+        }
+        if let Some(job) = self.jobs.get_mut(&l.job) {
+            job.leased = job.leased.saturating_sub(1);
+        }
+        Some(l)
+    }
+
+    /// Sends units of expired leases back to pending and marks silent workers offline.
+    /// Returns the number of leases that expired.
+    ///
+    /// `expire` runs every `expiry_tick_ms`. When it runs late by more than half the lease
+    /// timeout, the coordinator stalled (paused, swapped, starved): workers' heartbeats and
+    /// results could not be heard meanwhile, so every lease gets one more lease timeout from
+    /// now before it can expire, and no worker is marked offline or pruned until then.
+    pub fn expire(&mut self, now_ms: u64) -> usize {
+        let timeout = self.cfg.lease_timeout_ms;
+        if let Some(last) = self.last_expire_ms
+            && now_ms.saturating_sub(last) > self.cfg.expiry_tick_ms + timeout / 2
+        {
+            let grace = now_ms + timeout;
+            tracing::warn!(
+                stalled_ms = now_ms.saturating_sub(last),
+                leases = self.leases.len(),
+                grace_ms = timeout,
+                "the coordinator stalled: every lease gets one lease timeout of grace"
+            );
+            for l in self.leases.values_mut() {
+                l.deadline_ms = l.deadline_ms.max(grace);
+            }
+            self.grace_until_ms = grace;
+        }
+        self.last_expire_ms = Some(now_ms);
+        let expired: Vec<LeaseId> =
+            self.leases.iter().filter(|(_, l)| l.deadline_ms < now_ms).map(|(id, _)| *id).collect();
+        for &id in &expired {
+            if let Some(l) = self.take_lease(id) {
+                if let Some(job) = self.jobs.get_mut(&l.job) {
+                    job.requeue(l.frame, l.unit);
+                    let key = job.unit_key(l.frame, l.unit);
+                    job.log(format!(
+                        "lease {id} of worker {} expired: unit frame {} pass {} tile {} is pending again",
+                        l.worker, key.frame, key.pass, key.tile
+                    ));
+                }
+                self.counters.leases_expired += 1;
+            }
+        }
+        if now_ms >= self.grace_until_ms {
+            for w in self.workers.values_mut() {
+                if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
+                    w.offline = true;
+                }
+            }
+        }
+        self.note_unservable();
+        expired.len()
+    }
+
+    /// A worker gives a unit back: on shutdown (`failed = false`) or because rendering failed.
+    pub fn release(&mut self, lease_id: LeaseId, failed: bool, reason: &str, now_ms: u64) -> Result<(), FarmError> {
+        let l = self.take_lease(lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
+        let (max_failures, blocklist_after) = (self.cfg.max_unit_failures, self.cfg.blocklist_after);
+        let Some(job) = self.jobs.get_mut(&l.job) else { return Ok(()) };
+        job.requeue(l.frame, l.unit);
+        if !failed {
+            return Ok(());
+        }
+        self.counters.units_failed += 1;
+        let key = job.unit_key(l.frame, l.unit);
+        let unit_name = if job.sequence {
+            format!("unit frame {} pass {} tile {}", key.frame, key.pass, key.tile)
+        } else {
+            format!("unit pass {} tile {}", key.pass, key.tile)
+        };
+        job.log(format!("worker {} failed {unit_name}: {reason}", l.worker));
+        let unit_failures = job.unit_failures.entry((l.frame, l.unit)).or_insert(0);
+        *unit_failures += 1;
+        let unit_failures = *unit_failures;
+        let worker_failures = job.worker_failures.entry(l.worker).or_insert(0);
+        *worker_failures += 1;
+        if *worker_failures >= blocklist_after && job.blocklist.insert(l.worker) {
+            job.log(format!("worker {} is blocklisted for this job after {blocklist_after} failures", l.worker));
+        }
+        // Fail the job when a unit keeps failing, or when every live worker is blocklisted for
+        // it (nobody is left to try: waiting would leave it queued forever).
+        let workers = &self.workers;
+        let everyone_blocklisted = workers.iter().all(|(id, w)| w.offline || job.blocklist.contains(id));
+        let failure = if unit_failures >= max_failures {
+            Some(format!("{unit_name} failed {unit_failures} times; last error: {reason}"))
+        } else if everyone_blocklisted {
+            Some(format!("every worker is blocklisted for this job after repeated failures; last error: {reason}"))
+        } else {
+            None
+        };
+        if let Some(msg) = failure {
+            let id = job.id;
+            job.log(format!("job failed: {msg}"));
+            self.finish(id, JobState::Failed, Some(msg), now_ms);
+        }
+        Ok(())
+    }
+
+    /// Accepts a unit's result from the worker holding its lease and merges it.
+    pub fn accept(
+        &mut self,
+        lease_id: LeaseId,
+        frame: UnitResultFrame,
+        now_ms: u64,
+    ) -> Result<MergeOutcome, FarmError> {
+        let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
+        let job = self.jobs.get(&l.job).ok_or(FarmError::LeaseLost(lease_id))?;
+        if !job.open.contains_key(&l.frame) {
+            return Err(FarmError::LeaseLost(lease_id));
+        }
+        let key = job.unit_key(l.frame, l.unit);
+        let rect = job.plan.tiles[key.tile as usize];
+        let mismatch = if frame.lease_id != lease_id {
+            Some(format!("frame is for lease {}", frame.lease_id))
+        } else if frame.job_id != l.job || frame.unit != key {
+            Some(format!(
+                "frame is for job {} unit {:?}, lease holds job {} unit {key:?}",
+                frame.job_id, frame.unit, l.job
+            ))
+        } else if frame.accum.rect != rect {
+            Some(format!("tile {:?}, expected {rect:?}", frame.accum.rect))
+        } else if frame
+            .splats
+            .as_ref()
+            .is_some_and(|s| (s.width, s.height) != (job.settings.width, job.settings.height))
+        {
+            Some("splat buffer size differs from the image".into())
+        } else {
+            let mask = job.open.get(&l.frame).and_then(|run| run.masks[key.tile as usize].as_ref());
+            sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
+        };
+        if let Some(reason) = mismatch {
+            // The worker holds the lease but sent something else: give the unit to someone else.
+            self.counters.results_rejected += 1;
+            self.take_lease(lease_id);
+            if let Some(job) = self.jobs.get_mut(&l.job) {
+                job.requeue(l.frame, l.unit);
+                job.log(format!("refused a result of worker {}: {reason}", l.worker));
+            }
+            return Err(FarmError::ResultMismatch { lease: lease_id, reason });
+        }
+        // Samples the unit holds (converged pixels of an adaptive tile hold none).
+        let unit_samples = |accum: &TileAccum| accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+        let rendered = unit_samples(&frame.accum);
+        self.take_lease(lease_id);
+        if let Some(w) = self.workers.get_mut(&l.worker) {
+            w.units_done += 1;
+            w.samples_done += rendered;
+            w.last_seen_ms = now_ms;
+        }
+        let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
+        let Some(run) = job.open.get_mut(&l.frame) else { return Err(FarmError::LeaseLost(lease_id)) };
+        run.units[l.unit] = UnitState::Received;
+        run.waiting.insert(l.unit, (frame.accum, frame.splats));
+        run.checkpoint_dirty = true;
+        let mut out = MergeOutcome::default();
+        let tile = key.tile as usize;
+        let tiles = job.plan.tiles.len();
+        loop {
+            let next = run.next_pass[tile];
+            if next as usize >= job.plan.passes.len() {
+                break;
+            }
+            let index = next as usize * tiles + tile;
+            let Some((accum, splats)) = run.waiting.remove(&index) else { break };
+            run.film.add_tile(&accum);
+            if let Some(s) = splats {
+                run.film.add_splats(&s);
+            }
+            run.units[index] = UnitState::Merged;
+            run.next_pass[tile] += 1;
+            run.units_merged += 1;
+            job.units_merged += 1;
+            let samples = unit_samples(&accum);
+            job.samples_done += samples;
+            self.counters.units_merged += 1;
+            self.counters.samples_merged += samples;
+            out.folded += 1;
+            run.pass_merged[next as usize] += 1;
+            if let Some(a) = &job.settings.adaptive {
+                let d = run.decide(&job.plan, a, job.settings.spp, tile);
+                job.units_merged += d.units_skipped;
+                job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
+            }
+        }
+        // Passes complete in order, because every tile folds its passes in order.
+        while (run.passes_done as usize) < job.plan.passes.len()
+            && run.pass_merged[run.passes_done as usize] == tiles as u32
+        {
+            let p = run.passes_done;
+            run.passes_done += 1;
+            if !job.sequence {
+                job.output_dirty = true;
+            }
+            out.passes_completed.push(p);
+        }
+        job.status[l.frame].passes_done = run.passes_done;
+        if run.is_complete() {
+            job.frame_merged(l.frame);
+            out.frames_completed.push(key.frame);
+            if job.sequence {
+                job.log(format!("frame {} merged", key.frame));
+            }
+        }
+        if job.frames_merged as usize == job.frames.len() {
+            let id = job.id;
+            if job.settings.denoise {
+                // The farm does not schedule the denoise step yet (issue 14, second part).
+                job.log(
+                    "denoise was asked for, but this coordinator does not schedule denoise steps yet: finished \
+                     without the denoised layer (render locally with `pathfarm-worker render --denoise`)"
+                        .into(),
+                );
+            }
+            job.log("completed".into());
+            self.finish(id, JobState::Completed, None, now_ms);
+            out.job_completed = true;
+        }
+        Ok(out)
+    }
+
+    /// The tile and image size a result for `lease_id` must have, if the lease is held.
+    pub fn lease_shape(&self, lease_id: LeaseId) -> Option<(pathfarm_common::job::TileRect, (u32, u32))> {
+        let l = self.leases.get(&lease_id)?;
+        let job = self.jobs.get(&l.job)?;
+        let key = job.unit_key(l.frame, l.unit);
+        Some((job.plan.tiles[key.tile as usize], (job.settings.width, job.settings.height)))
+    }
+
+    /// Leases held right now.
+    pub fn leases_held(&self) -> usize {
+        self.leases.len()
+    }
+}
