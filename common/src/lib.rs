@@ -8,4 +8,5 @@ pub mod film;
 pub mod frames;
 pub mod job;
 pub mod protocol;
+pub mod routes;
 pub mod scene;

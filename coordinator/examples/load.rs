@@ -36,6 +36,7 @@ use pathfarm_common::job::TileRect;
 use pathfarm_common::protocol::{
     API, Codec, JobInfo, LeaseGrant, RESULT_CODEC, RESULT_MAGIC, Registered, WORKER_SECRET_HEADER, push_pixels,
 };
+use pathfarm_common::routes;
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -223,7 +224,7 @@ async fn worker(
     start: Arc<tokio::sync::Barrier>,
 ) -> anyhow::Result<()> {
     let reg: Registered = http
-        .post(format!("{base}{API}/workers/register"))
+        .post(format!("{base}{API}{}", routes::WORKER_REGISTER))
         .json(&serde_json::json!({"name": format!("sim-{i}"), "threads": 1}))
         .send()
         .await?
@@ -231,7 +232,7 @@ async fn worker(
         .json()
         .await?;
     start.wait().await;
-    let lease_url = format!("{base}{API}/workers/{}/lease?wait_ms={wait_ms}", reg.worker_id);
+    let lease_url = format!("{base}{API}{}?wait_ms={wait_ms}", routes::fill(routes::WORKER_LEASE, &[&reg.worker_id]));
     let mut lats = Vec::new();
     let mut first = None;
     while !stats.done.load(Ordering::Relaxed) {
@@ -265,7 +266,7 @@ async fn worker(
         let sec = sections.get(&(x1 - x0, y1 - y0)).context("tile size")?;
         let body = frame(&g, sec);
         let r = http
-            .put(format!("{base}{API}/leases/{}/result", g.lease_id))
+            .put(format!("{base}{API}{}", routes::fill(routes::LEASE_RESULT, &[&g.lease_id])))
             .header(WORKER_SECRET_HEADER, &reg.worker_secret)
             .header("content-type", "application/octet-stream")
             .body(body)
@@ -363,7 +364,7 @@ async fn run(a: Args) -> anyhow::Result<()> {
         reqwest::Client::builder().pool_max_idle_per_host(a.workers + 16).timeout(Duration::from_secs(120)).build()?;
     // Scene and job.
     let scene: serde_json::Value = http
-        .post(format!("{base}{API}/scenes"))
+        .post(format!("{base}{API}{}", routes::SCENES))
         .body(pathfarm_common::scene::demo::cornell_demo_glb())
         .send()
         .await?
@@ -434,7 +435,7 @@ async fn run(a: Args) -> anyhow::Result<()> {
     }
     let t0 = Instant::now();
     let job: serde_json::Value =
-        http.post(format!("{base}{API}/jobs")).json(&body).send().await?.error_for_status()?.json().await?;
+        http.post(format!("{base}{API}{}", routes::JOBS)).json(&body).send().await?.error_for_status()?.json().await?;
     let job_id = job["id"].as_u64().context("job id")?;
     if let Some(r) = pid.and_then(proc_rss) {
         eprintln!("coordinator RSS after submitting: {r:.0} MiB");
@@ -443,7 +444,8 @@ async fn run(a: Args) -> anyhow::Result<()> {
     let mut last = (Instant::now(), 0u64);
     let info: JobInfo = loop {
         tokio::time::sleep(Duration::from_millis(500)).await;
-        let info: JobInfo = http.get(format!("{base}{API}/jobs/{job_id}")).send().await?.json().await?;
+        let info: JobInfo =
+            http.get(format!("{base}{API}{}", routes::fill(routes::JOB, &[&job_id]))).send().await?.json().await?;
         let now = Instant::now();
         let rate = (info.units_merged - last.1) as f64 / (now - last.0).as_secs_f64();
         last = (now, info.units_merged);
@@ -466,9 +468,17 @@ async fn run(a: Args) -> anyhow::Result<()> {
             break info;
         }
         if a.stop_after_frames.is_some_and(|n| info.frames.done >= n) {
-            http.post(format!("{base}{API}/jobs/{job_id}/cancel")).send().await?.error_for_status()?;
+            http.post(format!("{base}{API}{}", routes::fill(routes::JOB_CANCEL, &[&job_id])))
+                .send()
+                .await?
+                .error_for_status()?;
             eprintln!("cancelled after {} frames", info.frames.done);
-            break http.get(format!("{base}{API}/jobs/{job_id}")).send().await?.json().await?;
+            break http
+                .get(format!("{base}{API}{}", routes::fill(routes::JOB, &[&job_id])))
+                .send()
+                .await?
+                .json()
+                .await?;
         }
     };
     let elapsed = t0.elapsed().as_secs_f64();

@@ -5,6 +5,7 @@ use pathfarm_common::protocol::{
     API, ErrorBody, FrameInfo, FrameState, JobCreated, JobId, JobInfo, JobRequest, JobState, MAX_PAGE_LIMIT,
     SceneCreated,
 };
+use pathfarm_common::routes;
 use reqwest::blocking::{Client as Http, RequestBuilder, Response};
 use std::time::Duration;
 
@@ -51,7 +52,7 @@ impl Client {
     }
 
     pub fn upload_scene(&self, bytes: Vec<u8>) -> anyhow::Result<SceneCreated> {
-        Ok(self.req(self.http.post(self.url("/scenes")).body(bytes))?.json()?)
+        Ok(self.req(self.http.post(self.url(routes::SCENES)).body(bytes))?.json()?)
     }
 
     pub fn submit(&self, job: &JobRequest) -> anyhow::Result<JobId> {
@@ -60,18 +61,18 @@ impl Client {
 
     /// `POST /jobs`: the new job's id and the coordinator's warnings about it.
     pub fn submit_job(&self, job: &JobRequest) -> anyhow::Result<JobCreated> {
-        Ok(self.req(self.http.post(self.url("/jobs")).json(&job.to_json()))?.json()?)
+        Ok(self.req(self.http.post(self.url(routes::JOBS)).json(&job.to_json()))?.json()?)
     }
 
     pub fn job(&self, id: JobId) -> anyhow::Result<JobInfo> {
-        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}"))))?.json()?)
+        Ok(self.req(self.http.get(self.url(&routes::fill(routes::JOB, &[&id]))))?.json()?)
     }
 
     /// Every job: the list is paged, so this asks page after page.
     pub fn jobs(&self) -> anyhow::Result<Vec<JobInfo>> {
         let mut all: Vec<JobInfo> = Vec::new();
         loop {
-            let mut path = format!("/jobs?limit={MAX_PAGE_LIMIT}");
+            let mut path = format!("{}?limit={MAX_PAGE_LIMIT}", routes::JOBS);
             if let Some(last) = all.last() {
                 path.push_str(&format!("&after={}", last.id));
             }
@@ -85,22 +86,22 @@ impl Client {
     }
 
     pub fn cancel(&self, id: JobId) -> anyhow::Result<JobInfo> {
-        Ok(self.req(self.http.post(self.url(&format!("/jobs/{id}/cancel"))))?.json()?)
+        Ok(self.req(self.http.post(self.url(&routes::fill(routes::JOB_CANCEL, &[&id]))))?.json()?)
     }
 
     pub fn image_exr(&self, id: JobId) -> anyhow::Result<Vec<u8>> {
-        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/image.exr"))))?.bytes()?.to_vec())
+        Ok(self.req(self.http.get(self.url(&routes::fill(routes::JOB_EXR, &[&id]))))?.bytes()?.to_vec())
     }
 
     pub fn preview_png(&self, id: JobId) -> anyhow::Result<Vec<u8>> {
-        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/preview.png"))))?.bytes()?.to_vec())
+        Ok(self.req(self.http.get(self.url(&routes::fill(routes::JOB_PNG, &[&id]))))?.bytes()?.to_vec())
     }
 
     /// Every frame of a job with its state (the list is paged).
     pub fn frames(&self, id: JobId) -> anyhow::Result<Vec<FrameInfo>> {
         let mut all: Vec<FrameInfo> = Vec::new();
         loop {
-            let mut path = format!("/jobs/{id}/frames?limit={MAX_PAGE_LIMIT}");
+            let mut path = format!("{}?limit={MAX_PAGE_LIMIT}", routes::fill(routes::JOB_FRAMES, &[&id]));
             if let Some(last) = all.last() {
                 path.push_str(&format!("&after={}", last.index));
             }
@@ -114,11 +115,11 @@ impl Client {
     }
 
     pub fn frame_exr(&self, id: JobId, frame: i32) -> anyhow::Result<Vec<u8>> {
-        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/frames/{frame}/image.exr"))))?.bytes()?.to_vec())
+        Ok(self.req(self.http.get(self.url(&routes::fill(routes::FRAME_EXR, &[&id, &frame]))))?.bytes()?.to_vec())
     }
 
     pub fn frame_png(&self, id: JobId, frame: i32) -> anyhow::Result<Vec<u8>> {
-        Ok(self.req(self.http.get(self.url(&format!("/jobs/{id}/frames/{frame}/preview.png"))))?.bytes()?.to_vec())
+        Ok(self.req(self.http.get(self.url(&routes::fill(routes::FRAME_PNG, &[&id, &frame]))))?.bytes()?.to_vec())
     }
 
     /// Writes a job's images: a single-frame job's EXR to `out`; every started frame of a

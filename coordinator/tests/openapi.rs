@@ -1,5 +1,5 @@
 //! The OpenAPI document covers the router, both ways:
-//! - every `.route(PATH, METHODS)` registered in the source (http/mod.rs, http/dashboard.rs) is in the
+//! - every `.route(routes::NAME, METHODS)` registered in the source (http/mod.rs, http/dashboard.rs) is in the
 //!   document with each of its methods (a route added without docs fails here);
 //! - every documented (path, method) is served by the real router (not the fallback);
 //! - every schema reference resolves, and `/api/v1/openapi.json` serves the document.
@@ -53,11 +53,19 @@ fn routes_in_source(src: &str, prefix: &str, prefix_until: Option<&str>) -> BTre
         }
         let call = &src[start + ".route(".len()..end];
         rest = end.max(start + 1);
-        let q0 = call.find('"').expect("route path literal");
-        let q1 = q0 + 1 + call[q0 + 1..].find('"').expect("closing quote");
-        let path = &call[q0 + 1..q1];
-        let path = if start < boundary { format!("{prefix}{path}") } else { path.to_string() };
-        let methods = &call[q1 + 1..];
+        // The path is a `routes::NAME` constant (one definition of each URL path).
+        let q0 = call.find("routes::").expect("route path: a routes:: constant") + "routes::".len();
+        let q1 = q0 + call[q0..].find(|c: char| !(c.is_ascii_alphanumeric() || c == '_')).expect("end of name");
+        let name = &call[q0..q1];
+        let path = pathfarm_common::routes::ALL
+            .iter()
+            .find(|(n, _)| *n == name)
+            .unwrap_or_else(|| panic!("routes::{name} is not in routes::ALL"))
+            .1;
+        // Nested under the API prefix, or prefixed in the call itself (`format!("{API}{}", ..)`).
+        let prefixed = start < boundary || call[..q0].contains("{API}");
+        let path = if prefixed { format!("{prefix}{path}") } else { path.to_string() };
+        let methods = &call[q1..];
         let mut found = false;
         for m in ["get", "post", "put", "delete", "patch"] {
             // `get(`, `.get(`, but not `forget(` or `DefaultBodyLimit::max(`.
@@ -82,7 +90,8 @@ fn registered() -> BTreeSet<(String, String)> {
     let api = std::fs::read_to_string(format!("{dir}http/mod.rs")).expect("http/mod.rs");
     let dash = std::fs::read_to_string(format!("{dir}http/dashboard.rs")).expect("http/dashboard.rs");
     let mut all = routes_in_source(&api, API, Some(".nest(API"));
-    all.extend(routes_in_source(&dash, "", None));
+    // Served at the root; only the calls that write `{API}` themselves are under the prefix.
+    all.extend(routes_in_source(&dash, API, Some("Router::new()")));
     all
 }
 

@@ -11,6 +11,7 @@ use pathfarm_common::protocol::{
     API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WORKER_SECRET_HEADER,
     WorkerId,
 };
+use pathfarm_common::routes;
 use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
 use pathfarm_common::scene::{LoadOptions, Scene, load_job_environment, load_scene};
 use reqwest::StatusCode;
@@ -267,7 +268,7 @@ impl Daemon {
         };
         let mut attempt = 0;
         loop {
-            let r = self.auth(self.http.post(self.url("/workers/register")).json(&body)).send();
+            let r = self.auth(self.http.post(self.url(routes::WORKER_REGISTER)).json(&body)).send();
             match r {
                 Ok(resp) if resp.status().is_success() => {
                     let reg: Registered = resp.json().context("register answer")?;
@@ -305,8 +306,12 @@ impl Daemon {
                 }
             };
             let wait = self.cfg.lease_wait.as_millis();
-            let resp =
-                self.as_worker(self.http.post(self.url(&format!("/workers/{worker}/lease?wait_ms={wait}")))).send();
+            let resp = self
+                .as_worker(
+                    self.http
+                        .post(self.url(&format!("{}?wait_ms={wait}", routes::fill(routes::WORKER_LEASE, &[&worker])))),
+                )
+                .send();
             let grant: LeaseGrant = match resp {
                 Ok(r) if r.status() == StatusCode::OK => match r.json() {
                     Ok(g) => g,
@@ -410,7 +415,9 @@ impl Daemon {
         let result = std::thread::scope(|s| {
             s.spawn(move || {
                 while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = wake.recv_timeout(this.heartbeat) {
-                    let r = this.as_worker(this.http.post(this.url(&format!("/workers/{worker}/heartbeat")))).send();
+                    let r = this
+                        .as_worker(this.http.post(this.url(&routes::fill(routes::WORKER_HEARTBEAT, &[&worker]))))
+                        .send();
                     if let Ok(resp) = r
                         && (resp.status() == StatusCode::NOT_FOUND || resp.status() == StatusCode::FORBIDDEN)
                     {
@@ -438,7 +445,7 @@ impl Daemon {
     fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {
         for attempt in 0..10u32 {
             let r = self
-                .as_worker(self.http.put(self.url(&format!("/leases/{lease}/result"))))
+                .as_worker(self.http.put(self.url(&routes::fill(routes::LEASE_RESULT, &[&lease]))))
                 .header("content-type", "application/octet-stream")
                 .body(body.clone())
                 .send();
@@ -470,7 +477,9 @@ impl Daemon {
 
     fn release(&self, lease: u64, failed: bool, reason: &str) {
         let body = ReleaseRequest { failed, reason: reason.chars().take(2000).collect() };
-        let r = self.as_worker(self.http.post(self.url(&format!("/leases/{lease}/release"))).json(&body)).send();
+        let r = self
+            .as_worker(self.http.post(self.url(&routes::fill(routes::LEASE_RELEASE, &[&lease]))).json(&body))
+            .send();
         if let Err(e) = r {
             tracing::warn!(lease, "release failed ({e}); the lease will expire");
         }
@@ -508,7 +517,7 @@ impl Daemon {
                 b
             }
             _ => {
-                let resp = self.auth(self.http.get(self.url(&format!("/scenes/{id}")))).send()?;
+                let resp = self.auth(self.http.get(self.url(&routes::fill(routes::SCENE, &[&id])))).send()?;
                 if !resp.status().is_success() {
                     let status = resp.status();
                     bail!("downloading scene {id}: {status} {}", text(resp));

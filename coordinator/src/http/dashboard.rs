@@ -15,7 +15,9 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{Html, IntoResponse, Json, Response};
 use axum::routing::get;
 use pathfarm_common::film::{Film, luminance};
+use pathfarm_common::protocol::API;
 use pathfarm_common::protocol::JobId;
+use pathfarm_common::routes;
 use serde::Serialize;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, Weak};
@@ -200,12 +202,12 @@ pub fn routes(state: &Arc<AppState>) -> Router<Arc<AppState>> {
         rt.spawn(track(Arc::downgrade(state), history.clone()));
     }
     Router::new()
-        .route("/", get(|| async { Html(INDEX) }))
-        .route("/dashboard/app.js", get(|| async { asset("text/javascript; charset=utf-8", SCRIPT) }))
-        .route("/dashboard/style.css", get(|| async { asset("text/css; charset=utf-8", STYLE) }))
-        .route("/dashboard/icon.svg", get(|| async { asset("image/svg+xml", ICON) }))
+        .route(routes::DASHBOARD, get(|| async { Html(INDEX) }))
+        .route(routes::DASHBOARD_SCRIPT, get(|| async { asset("text/javascript; charset=utf-8", SCRIPT) }))
+        .route(routes::DASHBOARD_STYLE, get(|| async { asset("text/css; charset=utf-8", STYLE) }))
+        .route(routes::DASHBOARD_ICON, get(|| async { asset("image/svg+xml", ICON) }))
         .route(
-            "/api/v1/jobs/{id}/convergence",
+            &format!("{API}{}", routes::JOB_CONVERGENCE),
             get(move |st: State<Arc<AppState>>, Path(id): Path<String>, Query(q): Query<TokenQuery>, h: HeaderMap| {
                 convergence(st, history.clone(), h, q.token, id)
             }),

@@ -1,6 +1,7 @@
 //! A sequence's frames: the list and each frame's images.
 
 use super::*;
+use pathfarm_common::routes;
 
 /// Query of `GET /jobs/{id}/frames`: `?limit=N&after=INDEX`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -15,7 +16,8 @@ pub struct FramePageQuery {
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/frames",
+    path = routes::JOB_FRAMES,
+    context_path = API,
     tag = "jobs",
     summary = "A job's frames with their state and progress, a page at a time",
     description = "Frames in the order of the job's frame set, at most `limit` (default 100, at most 1000) \
@@ -36,7 +38,7 @@ pub(crate) async fn job_frames(
     let more = page.len() > limit;
     page.truncate(limit);
     let last = page.last().map(|f| u64::from(f.index));
-    Ok(paged(Json(page), &format!("/jobs/{id}/frames"), limit, more, last))
+    Ok(paged(Json(page), &routes::fill(routes::JOB_FRAMES, &[&id]), limit, more, last))
 }
 
 /// Where a frame's image comes from.
@@ -99,7 +101,8 @@ pub(crate) async fn frame_image(state: Arc<AppState>, id: String, frame: String,
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/frames/{frame}/image.exr",
+    path = routes::FRAME_EXR,
+    context_path = API,
     tag = "images",
     summary = "One frame as multi-layer OpenEXR: the written file once the frame is done, its film so far before",
     params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number")),
@@ -115,7 +118,8 @@ pub(crate) async fn frame_exr(
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/frames/{frame}/preview.png",
+    path = routes::FRAME_PNG,
+    context_path = API,
     tag = "images",
     summary = "One frame as an sRGB PNG preview (the dashboard's thumbnails)",
     params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number")),

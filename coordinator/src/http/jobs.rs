@@ -1,10 +1,12 @@
 //! Job routes: submit, list, inspect, actions, priority, delete, the job's images.
 
 use super::*;
+use pathfarm_common::routes;
 
 #[utoipa::path(
     post,
-    path = "/api/v1/jobs",
+    path = routes::JOBS,
+    context_path = API,
     tag = "jobs",
     summary = "Submit a job",
     request_body = crate::http::openapi::JobRequestBody,
@@ -82,7 +84,8 @@ pub(crate) async fn create_job(
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs",
+    path = routes::JOBS,
+    context_path = API,
     tag = "jobs",
     summary = "List jobs with their progress, a page at a time",
     description = "Jobs in id order, at most `limit` (default 100, at most 1000) with ids above `after`. \
@@ -102,7 +105,7 @@ pub(crate) async fn list_jobs(State(state): State<Arc<AppState>>, Query(q): Quer
     let more = page.len() > limit;
     page.truncate(limit);
     let last = page.last().map(|j| j.id);
-    Ok(paged(Json(page), "/jobs", limit, more, last))
+    Ok(paged(Json(page), routes::JOBS, limit, more, last))
 }
 
 /// Query of the list routes: `?limit=N&after=ID`.
@@ -144,7 +147,8 @@ pub(crate) fn paged(body: impl IntoResponse, path: &str, limit: usize, more: boo
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}",
+    path = routes::JOB,
+    context_path = API,
     tag = "jobs",
     summary = "A job's state and progress",
     params(("id" = u64, Path, description = "Job id")),
@@ -162,7 +166,8 @@ pub(crate) async fn get_job(
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/log",
+    path = routes::JOB_LOG,
+    context_path = API,
     tag = "jobs",
     summary = "A job's log (retries, failures, blocklists), oldest first",
     params(("id" = u64, Path, description = "Job id")),
@@ -180,7 +185,8 @@ pub(crate) async fn job_log(
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/tiles",
+    path = routes::JOB_TILES,
+    context_path = API,
     tag = "jobs",
     summary = "Per-tile progress (the tile map)",
     params(("id" = u64, Path, description = "Job id")),
@@ -221,7 +227,8 @@ pub(crate) async fn job_action(
 
 #[utoipa::path(
     post,
-    path = "/api/v1/jobs/{id}/cancel",
+    path = routes::JOB_CANCEL,
+    context_path = API,
     tag = "jobs",
     summary = "Cancel a job",
     params(("id" = u64, Path, description = "Job id")),
@@ -237,7 +244,8 @@ pub(crate) async fn cancel_job(
 
 #[utoipa::path(
     post,
-    path = "/api/v1/jobs/{id}/pause",
+    path = routes::JOB_PAUSE,
+    context_path = API,
     tag = "jobs",
     summary = "Pause a job (leased units finish)",
     params(("id" = u64, Path, description = "Job id")),
@@ -253,7 +261,8 @@ pub(crate) async fn pause_job(
 
 #[utoipa::path(
     post,
-    path = "/api/v1/jobs/{id}/resume",
+    path = routes::JOB_RESUME,
+    context_path = API,
     tag = "jobs",
     summary = "Resume a paused job",
     params(("id" = u64, Path, description = "Job id")),
@@ -269,7 +278,8 @@ pub(crate) async fn resume_job(
 
 #[utoipa::path(
     put,
-    path = "/api/v1/jobs/{id}/priority",
+    path = routes::JOB_PRIORITY,
+    context_path = API,
     tag = "jobs",
     summary = "Change a job's priority (higher first)",
     params(("id" = u64, Path, description = "Job id")),
@@ -289,7 +299,8 @@ pub(crate) async fn set_priority(
 
 #[utoipa::path(
     delete,
-    path = "/api/v1/jobs/{id}",
+    path = routes::JOB,
+    context_path = API,
     tag = "jobs",
     summary = "Delete a job and its images",
     params(("id" = u64, Path, description = "Job id")),
@@ -316,7 +327,8 @@ pub(crate) async fn resolve_job(state: &Arc<AppState>, id: &str) -> ApiResult<Im
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/image.exr",
+    path = routes::JOB_EXR,
+    context_path = API,
     tag = "images",
     summary = "The image so far as multi-layer OpenEXR (RGB, albedo, normal, depth, samples, variance)",
     params(("id" = u64, Path, description = "Job id")),
@@ -334,7 +346,8 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/preview.png",
+    path = routes::JOB_PNG,
+    context_path = API,
     tag = "images",
     summary = "The image so far as an sRGB PNG preview",
     params(("id" = u64, Path, description = "Job id")),

@@ -33,6 +33,7 @@ use pathfarm_common::protocol::{
     RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
     WorkerId, max_result_bytes, validate_tags,
 };
+use pathfarm_common::routes;
 use pathfarm_common::scene::bundle::is_scene_id;
 use scenes::*;
 use serde::Deserialize;
@@ -57,47 +58,47 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
     let upload_limit = state.config.max_upload_bytes;
     let client = Router::new()
         .route(
-            "/scenes",
+            routes::SCENES,
             post(upload_scene)
                 .layer(DefaultBodyLimit::max(upload_limit))
                 .layer(middleware::from_fn_with_state(state.clone(), declared_length_within_limit)),
         )
-        .route("/scenes/{id}", delete(delete_scene))
-        .route("/jobs", post(create_job).get(list_jobs))
-        .route("/jobs/{id}", get(get_job).delete(delete_job))
-        .route("/jobs/{id}/cancel", post(cancel_job))
-        .route("/jobs/{id}/pause", post(pause_job))
-        .route("/jobs/{id}/resume", post(resume_job))
-        .route("/jobs/{id}/priority", put(set_priority))
-        .route("/jobs/{id}/log", get(job_log))
-        .route("/jobs/{id}/tiles", get(job_tiles))
-        .route("/jobs/{id}/image.exr", get(job_exr))
-        .route("/jobs/{id}/preview.png", get(job_png))
-        .route("/jobs/{id}/frames", get(job_frames))
-        .route("/jobs/{id}/frames/{frame}/image.exr", get(frame_exr))
-        .route("/jobs/{id}/frames/{frame}/preview.png", get(frame_png))
-        .route("/workers", get(list_workers))
+        .route(routes::SCENE, delete(delete_scene))
+        .route(routes::JOBS, post(create_job).get(list_jobs))
+        .route(routes::JOB, get(get_job).delete(delete_job))
+        .route(routes::JOB_CANCEL, post(cancel_job))
+        .route(routes::JOB_PAUSE, post(pause_job))
+        .route(routes::JOB_RESUME, post(resume_job))
+        .route(routes::JOB_PRIORITY, put(set_priority))
+        .route(routes::JOB_LOG, get(job_log))
+        .route(routes::JOB_TILES, get(job_tiles))
+        .route(routes::JOB_EXR, get(job_exr))
+        .route(routes::JOB_PNG, get(job_png))
+        .route(routes::JOB_FRAMES, get(job_frames))
+        .route(routes::FRAME_EXR, get(frame_exr))
+        .route(routes::FRAME_PNG, get(frame_png))
+        .route(routes::WORKERS, get(list_workers))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_client));
     let worker = Router::new()
-        .route("/workers/register", post(register))
-        .route("/workers/{id}/heartbeat", post(heartbeat))
-        .route("/workers/{id}/lease", post(lease))
+        .route(routes::WORKER_REGISTER, post(register))
+        .route(routes::WORKER_HEARTBEAT, post(heartbeat))
+        .route(routes::WORKER_LEASE, post(lease))
         // The result handler reads its body itself, bounded by the lease's tile.
-        .route("/leases/{id}/result", put(upload_result))
-        .route("/leases/{id}/release", post(release))
+        .route(routes::LEASE_RESULT, put(upload_result))
+        .route(routes::LEASE_RELEASE, post(release))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_worker));
     let shared = Router::new()
-        .route("/scenes/{id}", get(download_scene))
+        .route(routes::SCENE, get(download_scene))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_any));
     // Own auth (the token may come as `?token=`, for EventSource), and the public API document.
     let live = Router::new()
-        .route("/events", get(crate::http::events::events))
-        .route("/openapi.json", get(crate::http::openapi::openapi_json));
+        .route(routes::EVENTS, get(crate::http::events::events))
+        .route(routes::OPENAPI, get(crate::http::openapi::openapi_json));
     let api = Router::new().merge(client).merge(worker).merge(shared).merge(live);
     Router::new()
         .nest(API, api)
-        .route("/healthz", get(|| async { "ok" }))
-        .route("/metrics", get(metrics))
+        .route(routes::HEALTHZ, get(|| async { "ok" }))
+        .route(routes::METRICS, get(metrics))
         .merge(crate::http::dashboard::routes(&state))
 }
 
@@ -160,7 +161,7 @@ async fn json_errors(State(state): State<Arc<AppState>>, req: Request, next: Nex
 
 #[utoipa::path(
     get,
-    path = "/metrics",
+    path = routes::METRICS,
     tag = "service",
     summary = "Prometheus metrics",
     description = "Open unless the coordinator runs with `--metrics-token`; then it takes only that token \

@@ -12,11 +12,13 @@ use pathfarm_common::job::{
     EnvironmentSettings, IntegratorSettings, LightSampling, MisHeuristic, Pass, PassSchedule, RenderSettings,
     SamplerKind, TileRect, UnitKey,
 };
+use pathfarm_common::protocol::API;
 use pathfarm_common::protocol::{
     ErrorBody, ErrorDetail, FrameInfo, FrameOrder, FrameState, FramesSummary, JobCreated, JobInfo, JobState,
     LeaseGrant, Notify, NotifyEvent, RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated,
     WorkerInfo, WorkerState,
 };
+use pathfarm_common::routes;
 use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
 use utoipa::OpenApi;
@@ -132,7 +134,7 @@ pub struct TileProgress {
 
 #[utoipa::path(
     get,
-    path = "/healthz",
+    path = routes::HEALTHZ,
     tag = "service",
     summary = "Liveness probe",
     responses((status = 200, description = "`ok`", body = String, content_type = "text/plain"))
@@ -142,7 +144,8 @@ fn healthz() {}
 
 #[utoipa::path(
     get,
-    path = "/api/v1/openapi.json",
+    path = routes::OPENAPI,
+    context_path = API,
     tag = "service",
     summary = "This document",
     responses((status = 200, description = "OpenAPI 3.1 document", body = Object))
@@ -152,7 +155,8 @@ fn openapi_doc() {}
 
 #[utoipa::path(
     get,
-    path = "/api/v1/events",
+    path = routes::EVENTS,
+    context_path = API,
     tag = "events",
     summary = "Live events (server-sent events)",
     description = "A `text/event-stream`. Messages (SSE `event:` name, JSON `data:`): `snapshot` \
@@ -174,7 +178,8 @@ fn events() {}
 
 #[utoipa::path(
     get,
-    path = "/api/v1/jobs/{id}/convergence",
+    path = routes::JOB_CONVERGENCE,
+    context_path = API,
     tag = "jobs",
     summary = "Estimated image noise after each completed pass",
     description = "Measured from the film's variance layer (variance of each pixel's mean) when \
@@ -192,22 +197,22 @@ fn events() {}
 #[allow(dead_code)]
 fn convergence() {}
 
-#[utoipa::path(get, path = "/", tag = "dashboard", summary = "The web dashboard (HTML)",
+#[utoipa::path(get, path = routes::DASHBOARD, tag = "dashboard", summary = "The web dashboard (HTML)",
     responses((status = 200, description = "HTML page", body = String, content_type = "text/html")))]
 #[allow(dead_code)]
 fn dashboard_page() {}
 
-#[utoipa::path(get, path = "/dashboard/app.js", tag = "dashboard", summary = "Dashboard script",
+#[utoipa::path(get, path = routes::DASHBOARD_SCRIPT, tag = "dashboard", summary = "Dashboard script",
     responses((status = 200, description = "JavaScript", body = String, content_type = "text/javascript")))]
 #[allow(dead_code)]
 fn dashboard_script() {}
 
-#[utoipa::path(get, path = "/dashboard/style.css", tag = "dashboard", summary = "Dashboard stylesheet",
+#[utoipa::path(get, path = routes::DASHBOARD_STYLE, tag = "dashboard", summary = "Dashboard stylesheet",
     responses((status = 200, description = "CSS", body = String, content_type = "text/css")))]
 #[allow(dead_code)]
 fn dashboard_style() {}
 
-#[utoipa::path(get, path = "/dashboard/icon.svg", tag = "dashboard", summary = "Dashboard icon",
+#[utoipa::path(get, path = routes::DASHBOARD_ICON, tag = "dashboard", summary = "Dashboard icon",
     responses((status = 200, description = "SVG", body = String, content_type = "image/svg+xml")))]
 #[allow(dead_code)]
 fn dashboard_icon() {}

@@ -1,10 +1,12 @@
 //! Scene routes: upload, download, delete.
 
 use super::*;
+use pathfarm_common::routes;
 
 #[utoipa::path(
     post,
-    path = "/api/v1/scenes",
+    path = routes::SCENES,
+    context_path = API,
     tag = "scenes",
     summary = "Upload a scene (.glb, .gltf or tar bundle); content-addressed by SHA-256",
     request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "A .glb, a self-contained .gltf, or a tar of a .gltf with its files"),
@@ -30,7 +32,8 @@ pub(crate) async fn upload_scene(
 
 #[utoipa::path(
     get,
-    path = "/api/v1/scenes/{id}",
+    path = routes::SCENE,
+    context_path = API,
     tag = "scenes",
     summary = "Download a scene bundle (workers and clients)",
     params(("id" = String, Path, description = "Scene id (SHA-256, hex)")),
@@ -48,7 +51,8 @@ pub(crate) async fn download_scene(State(state): State<Arc<AppState>>, Path(id):
 
 #[utoipa::path(
     delete,
-    path = "/api/v1/scenes/{id}",
+    path = routes::SCENE,
+    context_path = API,
     tag = "scenes",
     summary = "Delete a scene bundle that no unfinished job uses (finished jobs keep their images)",
     params(("id" = String, Path, description = "Scene id (SHA-256, hex)")),

@@ -1,10 +1,12 @@
 //! Worker routes: register, heartbeat, lease, result upload, release; the bounded body reads.
 
 use super::*;
+use pathfarm_common::routes;
 
 #[utoipa::path(
     get,
-    path = "/api/v1/workers",
+    path = routes::WORKERS,
+    context_path = API,
     tag = "workers",
     summary = "List workers, a page at a time",
     description = "Workers in id order, paged like `GET /jobs`: `limit` (default 100, at most 1000), `after`, \
@@ -23,12 +25,13 @@ pub(crate) async fn list_workers(
     let more = page.len() > limit;
     page.truncate(limit);
     let last = page.last().map(|w| w.id);
-    Ok(paged(Json(page), "/workers", limit, more, last))
+    Ok(paged(Json(page), routes::WORKERS, limit, more, last))
 }
 
 #[utoipa::path(
     post,
-    path = "/api/v1/workers/register",
+    path = routes::WORKER_REGISTER,
+    context_path = API,
     tag = "worker protocol",
     summary = "Register a worker",
     description = "The answer holds the worker's own secret (`worker_secret`): the lease, heartbeat, result \
@@ -94,7 +97,8 @@ pub(crate) async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiRe
 
 #[utoipa::path(
     post,
-    path = "/api/v1/workers/{id}/heartbeat",
+    path = routes::WORKER_HEARTBEAT,
+    context_path = API,
     tag = "worker protocol",
     summary = "Heartbeat (renews the worker's leases)",
     params(("id" = u64, Path, description = "Worker id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
@@ -123,7 +127,8 @@ pub(crate) struct LeaseQuery {
 
 #[utoipa::path(
     post,
-    path = "/api/v1/workers/{id}/lease",
+    path = routes::WORKER_LEASE,
+    context_path = API,
     tag = "worker protocol",
     summary = "Lease a work unit (long poll)",
     params(("id" = u64, Path, description = "Worker id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register"), ("wait_ms" = Option<u64>, Query, description = "Wait up to this long for work (at most 20000)")),
@@ -161,7 +166,8 @@ pub(crate) async fn lease(
 
 #[utoipa::path(
     put,
-    path = "/api/v1/leases/{id}/result",
+    path = routes::LEASE_RESULT,
+    context_path = API,
     tag = "worker protocol",
     summary = "Upload a unit's result",
     description = "The token, the worker secret, the lease and the declared `Content-Length` are checked before \
@@ -360,7 +366,8 @@ pub(crate) fn decode_and_accept(
 
 #[utoipa::path(
     post,
-    path = "/api/v1/leases/{id}/release",
+    path = routes::LEASE_RELEASE,
+    context_path = API,
     tag = "worker protocol",
     summary = "Give a unit back, or report that it failed",
     params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
