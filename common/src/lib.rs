@@ -4,6 +4,7 @@
 //! Nothing here renders and nothing here is async: the worker and the coordinator both build on it.
 
 pub mod adaptive;
+pub mod assembly;
 pub mod film;
 pub mod frames;
 pub mod job;

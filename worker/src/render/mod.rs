@@ -22,7 +22,8 @@ use camera::Camera;
 use glam::{UVec2, Vec2, Vec3A};
 use igi::{IgiParams, VplCache, li_igi};
 use integrator::{PathParams, li_path};
-use pathfarm_common::adaptive::{self, BlockMask};
+use pathfarm_common::adaptive::BlockMask;
+use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
 use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
 use pathfarm_common::scene::{self as scene_model, EnvironmentImage, Scene};
@@ -410,29 +411,24 @@ fn environment_spec(
 pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize)) -> Film {
     let settings = renderer.settings();
     let plan = settings.plan();
-    let mut film = Film::new(settings.width, settings.height);
+    // The farm's merge: the same assembly folds, judges blocks and drops converged tiles.
+    let mut asm = FilmAssembly::new(&plan, settings.width, settings.height);
+    let adaptive = settings.adaptive.as_ref().map(|a| (a, settings.spp));
     let total = plan.unit_count();
-    let mut masks: Vec<Option<BlockMask>> = vec![None; plan.tiles.len()];
     for (done, key) in plan.units().enumerate() {
         let (tile, pass) = (plan.tiles[key.tile as usize], plan.passes[key.pass as usize]);
-        let mask = masks[key.tile as usize].as_ref();
-        if !mask.is_some_and(BlockMask::all_converged) {
+        // A tile whose every block converged left the schedule (its later passes count as done).
+        if asm.next_pass(key.tile as usize) == key.pass {
+            let mask = asm.mask(key.tile as usize);
             let r = if mask.is_some() {
                 // The settings were validated (no bdpt) and the mask is of this tile.
                 renderer.render_unit_masked(tile, pass, mask).unwrap_or_else(|e| unreachable!("{e}"))
             } else {
                 renderer.render_unit(tile, pass)
             };
-            film.add_tile(&r.accum);
-            if let Some(s) = &r.splats {
-                film.add_splats(s);
-            }
-        }
-        if let Some(a) = &settings.adaptive {
-            // Judged after the tile's pass is merged, before its next pass.
-            masks[key.tile as usize] = Some(adaptive::converged_blocks(&film.tile(tile).sums, tile, a, pass.s1));
+            asm.offer(&plan, adaptive, key, r.accum, r.splats);
         }
         progress(done + 1, total);
     }
-    film
+    asm.into_film()
 }

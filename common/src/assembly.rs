@@ -1,0 +1,317 @@
+//! Film assembly: the one merge of units into a frame's film, used by the local renderer, the
+//! farm (results in any order) and restore (a checkpoint's film and merged passes).
+//!
+//! A unit is (pass, tile). Each tile folds its passes in order: a unit that arrives before its
+//! tile's earlier passes waits. The film's radiance sums are exact integers, for which the order
+//! does not matter; its AOV means are bit-identical across renders only because of it, and it
+//! makes every intermediate film a prefix of the final one (each pixel holds samples `[0, s)`).
+//!
+//! Adaptive sampling: after a tile folds a pass, its converged blocks are judged from the film's
+//! merged sums ([`adaptive::converged_blocks`]); the next pass samples only the others, and a
+//! tile whose every block converged leaves the schedule. The masks are a pure function of the
+//! film, so a checkpoint does not store them: [`FilmAssembly::resume`] judges them again.
+
+use crate::adaptive::{self, AdaptiveSettings, BlockMask};
+use crate::film::{Film, PixelSums, SplatBuffer, TileAccum};
+use crate::job::{Plan, TileRect, UnitKey};
+use std::collections::HashMap;
+
+/// A frame's film being assembled from units.
+#[derive(Clone, Debug)]
+pub struct FilmAssembly {
+    film: Film,
+    /// Per tile: the next pass to fold (the passes before it are in the film).
+    next_pass: Vec<u32>,
+    /// Units that arrived before their tile's earlier passes, by (tile, pass).
+    waiting: HashMap<(u32, u32), (TileAccum, Option<SplatBuffer>)>,
+    /// Adaptive sampling: per tile, the converged blocks after its last folded pass (`None`
+    /// before the first, and without adaptive sampling).
+    masks: Vec<Option<BlockMask>>,
+}
+
+/// A unit folded into the film by [`FilmAssembly::offer`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Folded {
+    pub tile: u32,
+    pub pass: u32,
+    /// Samples the unit held (the weights of its pixels).
+    pub samples: u64,
+    /// Adaptive sampling: what judging the tile after this pass changed.
+    pub judged: Option<Judged>,
+}
+
+/// What judging a tile's blocks after a pass changed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Judged {
+    /// Every block converged: the tile's later passes (if any) will not be rendered; the
+    /// assembly counts them as folded.
+    pub tile_done: bool,
+    /// The passes after this one that the tile skips (0 unless `tile_done`).
+    pub passes_skipped: u32,
+    /// Samples that newly converged pixels will not get (of the job's spp per pixel).
+    pub samples_skipped: u64,
+}
+
+impl FilmAssembly {
+    /// An empty film of `width` x `height` for `plan`.
+    pub fn new(plan: &Plan, width: u32, height: u32) -> Self {
+        Self::with_film(plan, Film::new(width, height))
+    }
+
+    fn with_film(plan: &Plan, film: Film) -> Self {
+        let tiles = plan.tiles.len();
+        FilmAssembly { film, next_pass: vec![0; tiles], waiting: HashMap::new(), masks: vec![None; tiles] }
+    }
+
+    /// Resumes from a film holding, per tile, exactly the passes before `next_pass[tile]` (a
+    /// checkpoint). Adaptive masks are judged again from the film; a tile that had converged
+    /// is done again. The caller checked the shapes (`next_pass.len()` = tiles, each at most the
+    /// pass count, the film the job's size).
+    pub fn resume(plan: &Plan, film: Film, next_pass: Vec<u32>, adaptive: Option<(&AdaptiveSettings, u32)>) -> Self {
+        let mut asm = Self::with_film(plan, film);
+        asm.next_pass = next_pass;
+        if let Some((a, spp)) = adaptive {
+            for tile in 0..plan.tiles.len() {
+                asm.judge(plan, a, spp, tile);
+            }
+        }
+        asm
+    }
+
+    pub fn film(&self) -> &Film {
+        &self.film
+    }
+
+    pub fn into_film(self) -> Film {
+        self.film
+    }
+
+    /// Per tile, the next pass to fold.
+    pub fn next_passes(&self) -> &[u32] {
+        &self.next_pass
+    }
+
+    pub fn next_pass(&self, tile: usize) -> u32 {
+        self.next_pass[tile]
+    }
+
+    /// The tile's converged blocks: the mask its next pass renders with.
+    pub fn mask(&self, tile: usize) -> Option<&BlockMask> {
+        self.masks[tile].as_ref()
+    }
+
+    /// Units waiting for an earlier pass of their tile.
+    pub fn waiting(&self) -> usize {
+        self.waiting.len()
+    }
+
+    /// True once every tile folded (or skipped) every pass.
+    pub fn is_complete(&self, plan: &Plan) -> bool {
+        let passes = plan.passes.len() as u32;
+        self.next_pass.iter().all(|&p| p >= passes)
+    }
+
+    /// Takes a unit's sums (and its BDPT splats, which fold into the film's radiance with it) and
+    /// folds every unit of its tile that is now in order, returning them in the order folded.
+    /// A unit at or before a pass its tile already folded is ignored (the caller refuses
+    /// duplicates before; this keeps the film exact whatever it does). `adaptive`: the job's
+    /// settings and spp.
+    pub fn offer(
+        &mut self,
+        plan: &Plan,
+        adaptive: Option<(&AdaptiveSettings, u32)>,
+        key: UnitKey,
+        accum: TileAccum,
+        splats: Option<SplatBuffer>,
+    ) -> Vec<Folded> {
+        let tile = key.tile as usize;
+        let mut out = Vec::new();
+        if key.pass < self.next_pass[tile] {
+            return out;
+        }
+        self.waiting.insert((key.tile, key.pass), (accum, splats));
+        let passes = plan.passes.len() as u32;
+        while self.next_pass[tile] < passes {
+            let pass = self.next_pass[tile];
+            let Some((accum, splats)) = self.waiting.remove(&(key.tile, pass)) else { break };
+            self.film.add_tile(&accum);
+            if let Some(s) = &splats {
+                self.film.add_splats(s);
+            }
+            self.next_pass[tile] += 1;
+            let samples = accum.sums.iter().map(|p| u64::from(p.weight)).sum();
+            let judged = adaptive.map(|(a, spp)| self.judge(plan, a, spp, tile));
+            out.push(Folded { tile: key.tile, pass, samples, judged });
+            if judged.is_some_and(|j| j.tile_done) {
+                // Later passes of a done tile can only be stale; drop any that waited.
+                self.waiting.retain(|&(t, _), _| t != key.tile);
+                break;
+            }
+        }
+        out
+    }
+
+    /// Judges `tile` after its passes before `next_pass[tile]` folded: its mask from the film's
+    /// sums; when every block converged, its remaining passes count as folded.
+    fn judge(&mut self, plan: &Plan, a: &AdaptiveSettings, spp: u32, tile: usize) -> Judged {
+        let np = self.next_pass[tile] as usize;
+        let mut out = Judged { tile_done: false, passes_skipped: 0, samples_skipped: 0 };
+        if np == 0 {
+            return out;
+        }
+        let rect = plan.tiles[tile];
+        let sums = self.film.tile(rect).sums;
+        let mask = adaptive::converged_blocks(&sums, rect, a, plan.passes[np - 1].s1);
+        let before = skipped_samples(self.masks[tile].as_ref(), &sums, rect, spp);
+        out.samples_skipped = skipped_samples(Some(&mask), &sums, rect, spp).saturating_sub(before);
+        let all = mask.all_converged();
+        self.masks[tile] = Some(mask);
+        let passes = plan.passes.len();
+        if all && np < passes {
+            out.tile_done = true;
+            out.passes_skipped = (passes - np) as u32;
+            self.next_pass[tile] = passes as u32;
+        }
+        out
+    }
+}
+
+/// Samples a tile's converged pixels will not get: per pixel in a converged block of `mask`,
+/// the job's spp less the samples it holds (they stop changing once their block converged).
+fn skipped_samples(mask: Option<&BlockMask>, sums: &[PixelSums], rect: TileRect, spp: u32) -> u64 {
+    let Some(mask) = mask else { return 0 };
+    let w = rect.width();
+    sums.iter()
+        .enumerate()
+        .filter(|(i, _)| mask.pixel_converged(*i as u32 % w, *i as u32 / w))
+        .map(|(_, p)| u64::from(spp.saturating_sub(p.weight)))
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::film::{SampleValue, add_sample};
+    use crate::job::{PassSchedule, RenderSettings};
+
+    fn settings() -> RenderSettings {
+        let mut s = RenderSettings::new(20, 12, 7);
+        s.tile_size = 8;
+        s.passes = PassSchedule::Doubling { first: 1, max: 4 };
+        s
+    }
+
+    /// A unit's sums: a value per sample that depends on the pixel and the sample index, with
+    /// AOVs, so a different merge order would change the AOV means' bits.
+    fn unit(plan: &Plan, key: UnitKey, mask: Option<&BlockMask>) -> TileAccum {
+        let (rect, pass) = (plan.tiles[key.tile as usize], plan.passes[key.pass as usize]);
+        let mut accum = TileAccum::new(rect);
+        for y in rect.y0..rect.y1 {
+            for x in rect.x0..rect.x1 {
+                let (lx, ly) = (x - rect.x0, y - rect.y0);
+                if mask.is_some_and(|m| m.pixel_converged(lx, ly)) {
+                    continue;
+                }
+                for s in pass.samples() {
+                    // Bright, smooth pixels on the left converge; noisy ones on the right do not.
+                    let noise = if x < 8 { 0.0 } else { ((s * 7919 + x * 31 + y) % 13) as f32 };
+                    let v = SampleValue {
+                        radiance: [1.0 + noise, 0.5, 0.25],
+                        albedo: [0.1 * s as f32, 0.3, 0.7],
+                        normal: [0.0, (s as f32).sin(), (s as f32).cos()],
+                        depth: Some(1.0 + s as f32),
+                    };
+                    add_sample(accum.pixel_mut(lx, ly), &v);
+                }
+            }
+        }
+        accum
+    }
+
+    fn in_order(s: &RenderSettings) -> FilmAssembly {
+        let plan = s.plan();
+        let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+        let mut asm = FilmAssembly::new(&plan, s.width, s.height);
+        for key in plan.units() {
+            if asm.next_pass(key.tile as usize) > key.pass {
+                continue; // the tile left the schedule
+            }
+            let accum = unit(&plan, key, asm.mask(key.tile as usize));
+            asm.offer(&plan, adaptive, key, accum, None);
+        }
+        asm
+    }
+
+    #[test]
+    fn any_arrival_order_assembles_the_same_bits() {
+        let s = settings();
+        let plan = s.plan();
+        let reference = in_order(&s).into_film();
+        let mut keys: Vec<UnitKey> = plan.units().collect();
+        keys.reverse();
+        let mut asm = FilmAssembly::new(&plan, s.width, s.height);
+        let mut folded = 0;
+        for key in keys {
+            let accum = unit(&plan, key, None);
+            let f = asm.offer(&plan, None, key, accum, None);
+            // A tile's last pass arrives first: nothing folds until its pass 0 does.
+            folded += f.len();
+        }
+        assert_eq!(folded, plan.unit_count());
+        assert!(asm.is_complete(&plan) && asm.waiting() == 0);
+        assert!(asm.into_film() == reference, "the reverse arrival order changed the film");
+    }
+
+    #[test]
+    fn stale_units_are_ignored() {
+        let s = settings();
+        let plan = s.plan();
+        let mut asm = FilmAssembly::new(&plan, s.width, s.height);
+        let key = UnitKey { frame: 0, pass: 0, tile: 1 };
+        assert_eq!(asm.offer(&plan, None, key, unit(&plan, key, None), None).len(), 1);
+        let film = asm.film().clone();
+        assert!(asm.offer(&plan, None, key, unit(&plan, key, None), None).is_empty());
+        assert_eq!(asm.film(), &film);
+    }
+
+    #[test]
+    fn adaptive_tiles_leave_the_schedule_and_resume_judges_the_same_masks() {
+        let mut s = settings();
+        s.spp = 32;
+        s.passes = PassSchedule::Fixed { spp: 4 };
+        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        let plan = s.plan();
+        let full = in_order(&s);
+        let passes = plan.passes.len() as u32;
+        // The smooth left tiles converge after their first pass; the noisy ones run to the end.
+        assert!(full.is_complete(&plan));
+        let smooth: Vec<usize> = (0..plan.tiles.len()).filter(|&t| plan.tiles[t].x1 <= 8).collect();
+        assert!(!smooth.is_empty());
+        for &t in &smooth {
+            assert!(full.mask(t).is_some_and(BlockMask::all_converged), "tile {t}");
+        }
+        assert!((0..plan.tiles.len()).any(|t| !full.mask(t).is_some_and(BlockMask::all_converged)));
+        // Stop halfway (pass 2 of every tile still in the schedule), resume, finish: same bits.
+        let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+        let mut asm = FilmAssembly::new(&plan, s.width, s.height);
+        for key in plan.units().filter(|k| k.pass < 2) {
+            if asm.next_pass(key.tile as usize) <= key.pass {
+                let accum = unit(&plan, key, asm.mask(key.tile as usize));
+                asm.offer(&plan, adaptive, key, accum, None);
+            }
+        }
+        let mut resumed = FilmAssembly::resume(&plan, asm.film().clone(), asm.next_passes().to_vec(), adaptive);
+        for t in 0..plan.tiles.len() {
+            assert_eq!(resumed.mask(t), asm.mask(t), "tile {t}");
+            assert_eq!(resumed.next_pass(t), asm.next_pass(t), "tile {t}");
+        }
+        for key in plan.units().filter(|k| k.pass >= 2) {
+            if resumed.next_pass(key.tile as usize) <= key.pass {
+                let accum = unit(&plan, key, resumed.mask(key.tile as usize));
+                resumed.offer(&plan, adaptive, key, accum, None);
+            }
+        }
+        assert!(resumed.next_passes().iter().all(|&p| p == passes));
+        assert!(resumed.into_film() == full.into_film(), "resuming changed the film");
+    }
+}
