@@ -74,6 +74,7 @@ impl Farm {
         if job.state == JobState::Queued {
             job.state = JobState::Running;
             job.started_ms = Some(now_ms);
+            self.changes.record(job_id);
         }
         if !job.started_notified {
             job.started_notified = true;
@@ -103,6 +104,8 @@ impl Farm {
             w.leases.insert(lease_id);
         }
         self.counters.units_leased += 1;
+        self.changes.progress(job_id);
+        self.changes.workers.insert(worker);
         Ok(Some(grant))
     }
 
@@ -146,6 +149,9 @@ impl Farm {
             self.leases.iter().filter(|(_, l)| l.deadline_ms < now_ms).map(|(id, _)| *id).collect();
         for &id in &expired {
             if let Some(l) = self.take_lease(id) {
+                self.changes.work_ready = true;
+                self.changes.progress(l.job);
+                self.changes.workers.insert(l.worker);
                 if let Some(job) = self.jobs.get_mut(&l.job) {
                     job.requeue(l.frame, l.unit);
                     let key = job.unit_key(l.frame, l.unit);
@@ -158,9 +164,10 @@ impl Farm {
             }
         }
         if now_ms >= self.grace_until_ms {
-            for w in self.workers.values_mut() {
-                if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms {
+            for (&id, w) in self.workers.iter_mut() {
+                if now_ms.saturating_sub(w.last_seen_ms) > self.cfg.lease_timeout_ms && !w.offline {
                     w.offline = true;
+                    self.changes.workers.insert(id);
                 }
             }
         }
@@ -171,6 +178,9 @@ impl Farm {
     /// A worker gives a unit back: on shutdown (`failed = false`) or because rendering failed.
     pub fn release(&mut self, lease_id: LeaseId, failed: bool, reason: &str, now_ms: u64) -> Result<(), FarmError> {
         let l = self.take_lease(lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
+        self.changes.work_ready = true;
+        self.changes.progress(l.job);
+        self.changes.workers.insert(l.worker);
         let (max_failures, blocklist_after) = (self.cfg.max_unit_failures, self.cfg.blocklist_after);
         let Some(job) = self.jobs.get_mut(&l.job) else { return Ok(()) };
         job.requeue(l.frame, l.unit);
@@ -249,6 +259,8 @@ impl Farm {
             // The worker holds the lease but sent something else: give the unit to someone else.
             self.counters.results_rejected += 1;
             self.take_lease(lease_id);
+            self.changes.work_ready = true;
+            self.changes.progress(l.job);
             if let Some(job) = self.jobs.get_mut(&l.job) {
                 job.requeue(l.frame, l.unit);
                 job.log(format!("refused a result of worker {}: {reason}", l.worker));
@@ -259,6 +271,8 @@ impl Farm {
         let unit_samples = |accum: &TileAccum| accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
         let rendered = unit_samples(&frame.accum);
         self.take_lease(lease_id);
+        self.changes.progress(l.job);
+        self.changes.workers.insert(l.worker);
         if let Some(w) = self.workers.get_mut(&l.worker) {
             w.units_done += 1;
             w.samples_done += rendered;
@@ -294,6 +308,8 @@ impl Farm {
             out.folded += 1;
             run.pass_merged[next as usize] += 1;
             if let Some(a) = &job.settings.adaptive {
+                // The tile's next pass may now be pending.
+                self.changes.work_ready = true;
                 let d = run.decide(&job.plan, a, job.settings.spp, tile);
                 job.units_merged += d.units_skipped;
                 job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
@@ -309,11 +325,14 @@ impl Farm {
                 job.output_dirty = true;
             }
             out.passes_completed.push(p);
+            self.changes.outputs = true;
         }
         job.status[l.frame].passes_done = run.passes_done;
         if run.is_complete() {
             job.frame_merged(l.frame);
             out.frames_completed.push(key.frame);
+            self.changes.outputs = true;
+            self.changes.work_ready = true;
             if job.sequence {
                 job.log(format!("frame {} merged", key.frame));
             }

@@ -14,6 +14,7 @@
 //! (albedo, normal, depth) are bit-identical to a local render because of it (film.rs), and it
 //! makes every progressive image a prefix of the final one (each pixel holds samples `[0, s)`).
 
+mod changes;
 mod frame_run;
 mod job;
 mod lease;
@@ -21,6 +22,7 @@ mod lease;
 mod tests;
 mod workers;
 
+pub use changes::Changes;
 pub use frame_run::FrameRun;
 use frame_run::UnitState;
 use job::FrameStatus;
@@ -156,6 +158,8 @@ pub struct Farm {
     /// Webhook events of jobs that asked for them, oldest first; the server drains them
     /// (`take_notifications`).
     notifications: Vec<(JobId, NotifyEvent)>,
+    /// What changed since the service last took it ([`Farm::take_changes`]).
+    changes: Changes,
 }
 
 impl Farm {
@@ -175,6 +179,7 @@ impl Farm {
             next_worker: (epoch << 32) + 1,
             next_lease: (epoch << 40) + 1,
             notifications: Vec::new(),
+            changes: Changes::default(),
             counters: Counters::default(),
             last_expire_ms: None,
             grace_until_ms: 0,
@@ -427,6 +432,8 @@ impl Farm {
         job.open_initial_frames();
         self.jobs.insert(id, job);
         self.note_unservable();
+        self.changes.record(id);
+        self.changes.work_ready = true;
         Ok(id)
     }
 
@@ -471,6 +478,8 @@ impl Farm {
 
     fn finish(&mut self, id: JobId, state: JobState, error: Option<String>, now_ms: u64) {
         self.drop_leases_of(id);
+        self.changes.record(id);
+        self.changes.outputs = true;
         if let Some(job) = self.jobs.get_mut(&id) {
             job.stop_clock(now_ms);
             job.state = state;
@@ -505,6 +514,9 @@ impl Farm {
         job.status[index].state = FrameState::Done;
         job.frames_done += 1;
         let frame = job.frames.frames()[index];
+        self.changes.frames.push((id, frame));
+        self.changes.progress(id);
+        self.changes.work_ready = true; // the next frame may start
         job.log(format!("frame {frame} written ({} of {} done)", job.frames_done, job.frames.len()));
         Some(frame)
     }
@@ -512,7 +524,13 @@ impl Farm {
     /// Sets the webhook of a job (right after submitting it).
     pub fn set_notify(&mut self, id: JobId, notify: Option<Notify>) -> Result<(), FarmError> {
         self.job_mut(id)?.notify = notify;
+        self.changes.record(id);
         Ok(())
+    }
+
+    /// What changed since the last call, for the service to apply (persist, wake, publish).
+    pub fn take_changes(&mut self) -> Changes {
+        std::mem::take(&mut self.changes)
     }
 
     /// The webhook events queued since the last call, oldest first.
@@ -524,6 +542,7 @@ impl Farm {
     pub fn log_job(&mut self, id: JobId, line: String) {
         if let Some(job) = self.jobs.get_mut(&id) {
             job.log(line);
+            self.changes.progress(id);
         }
     }
 
@@ -548,6 +567,7 @@ impl Farm {
         job.stop_clock(now_ms);
         job.state = JobState::Paused;
         job.log("paused".into());
+        self.changes.record(id);
         Ok(())
     }
 
@@ -561,11 +581,15 @@ impl Farm {
             job.started_ms = Some(_now_ms);
         }
         job.log("resumed".into());
+        self.changes.record(id);
+        self.changes.work_ready = true;
         Ok(())
     }
 
     pub fn set_priority(&mut self, id: JobId, priority: i32) -> Result<(), FarmError> {
         self.job_mut(id)?.priority = priority;
+        self.changes.record(id);
+        self.changes.work_ready = true;
         Ok(())
     }
 
@@ -575,6 +599,7 @@ impl Farm {
         if !job.state.is_finished() {
             return Err(FarmError::BadState { id, state: job.state.as_str(), action: "delete (cancel it first)" });
         }
+        self.changes.removed.insert(id);
         self.jobs.remove(&id).ok_or(FarmError::NoJob(id))
     }
 

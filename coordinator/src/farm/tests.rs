@@ -535,6 +535,52 @@ fn cancel_pause_resume() {
     assert_eq!(farm.job(id).err(), Some(FarmError::NoJob(id)));
 }
 
+/// Each operation says what it changed (what the service persists, wakes and publishes), and
+/// taking the changes empties them.
+#[test]
+fn operations_report_their_changes() {
+    let s = settings();
+    let mut farm = Farm::new(FarmConfig { lease_timeout_ms: 100, worker_prune_ms: Some(1000), ..Default::default() });
+    let id = farm.submit("x".into(), None, 0, s, 0).expect("submit");
+    let c = farm.take_changes();
+    assert!(c.records.contains(&id) && c.work_ready, "{c:?}");
+    assert!(farm.take_changes().is_empty());
+    let w = farm.register("w".into(), 1, 0);
+    let c = farm.take_changes();
+    assert_eq!(c.registered, vec![(w, "w".to_string(), 1)]);
+    assert!(c.workers.contains(&w));
+    // The first lease starts the job: its record changes (state running).
+    let g = farm.lease(w, 0).expect("lease").expect("work");
+    let c = farm.take_changes();
+    assert!(c.records.contains(&id) && c.progress.contains(&id) && c.workers.contains(&w), "{c:?}");
+    // A result that completes no pass: progress only, nothing to write, nobody to wake.
+    farm.accept(g.lease_id, fake_result(&g), 1).expect("accept");
+    let c = farm.take_changes();
+    assert!(c.progress.contains(&id) && c.records.is_empty() && !c.work_ready, "{c:?}");
+    let g = farm.lease(w, 2).expect("lease").expect("work");
+    farm.take_changes();
+    farm.release(g.lease_id, false, "shutdown", 3).expect("release");
+    let c = farm.take_changes();
+    assert!(c.work_ready && c.progress.contains(&id), "{c:?}");
+    // Leases expire and the silent worker goes offline, then is pruned.
+    farm.lease(w, 4).expect("lease").expect("work");
+    farm.take_changes();
+    farm.expire(200);
+    let c = farm.take_changes();
+    assert!(c.work_ready && c.workers.contains(&w), "{c:?}");
+    farm.prune_workers(2000);
+    assert_eq!(farm.take_changes().pruned, vec![w]);
+    farm.pause(id, 2001).expect("pause");
+    assert!(farm.take_changes().records.contains(&id));
+    farm.cancel(id, 2002).expect("cancel");
+    assert!(farm.take_changes().outputs);
+    farm.delete(id).expect("delete");
+    assert!(farm.take_changes().removed.contains(&id));
+    // A refused operation changes nothing.
+    assert!(farm.pause(id, 2003).is_err());
+    assert!(farm.take_changes().is_empty());
+}
+
 // ------------------------------------------------------------- adaptive sampling
 
 /// 20 x 12 pixels in 16-pixel tiles (tile 0: 2 x 2 blocks), spp 7 in passes 1, 2, 4.

@@ -44,6 +44,9 @@ impl Farm {
         let id = self.next_worker;
         self.next_worker += 1;
         tracing::info!(worker = id, %name, threads, ?tags, "worker registered");
+        self.changes.registered.push((id, name.clone(), threads));
+        self.changes.workers.insert(id);
+        self.changes.work_ready = true;
         self.workers.insert(
             id,
             Worker {
@@ -121,7 +124,9 @@ impl Farm {
     pub fn heartbeat(&mut self, worker: WorkerId, now_ms: u64) -> Result<(), FarmError> {
         let w = self.workers.get_mut(&worker).ok_or(FarmError::NoWorker(worker))?;
         w.last_seen_ms = now_ms;
-        w.offline = false;
+        if std::mem::replace(&mut w.offline, false) {
+            self.changes.workers.insert(worker);
+        }
         let deadline = now_ms + self.cfg.lease_timeout_ms;
         for id in &w.leases {
             if let Some(l) = self.leases.get_mut(id) {
@@ -152,6 +157,8 @@ impl Farm {
         }
         if !gone.is_empty() {
             self.note_unservable();
+            self.changes.pruned.extend(&gone);
+            self.changes.workers.extend(&gone);
         }
         gone
     }

@@ -43,8 +43,7 @@ pub(crate) async fn create_job(
     {
         warnings.push(pathfarm_common::scene::DARK_JOB_WARNING.to_string());
     }
-    let id = {
-        let mut farm = state.farm.lock();
+    let (submitted, changes) = state.locked(|farm| -> ApiResult<JobId> {
         // Checked again under the farm lock: a DELETE of the scene (or its GC) holds it too.
         if state.scenes.meta(&req.scene_id).is_none() {
             return Err(ApiError::unprocessable(
@@ -66,16 +65,16 @@ pub(crate) async fn create_job(
         for w in &warnings {
             farm.log_job(id, format!("warning: {w}"));
         }
-        id
-    };
-    tracing::info!(job = id, "job submitted");
-    if let Err(e) = state.persist_job(id) {
+        Ok(id)
+    });
+    let applied = state.apply(changes);
+    let id = submitted?;
+    if let Err(e) = applied {
         // Not durable, so not accepted: the job goes away again.
         state.farm.lock().withdraw(id);
         return Err(e.into());
     }
-    state.work_ready.notify_waiters();
-    state.publish(crate::service::Event::Job { id });
+    tracing::info!(job = id, "job submitted");
     for w in &warnings {
         tracing::warn!(job = id, "{w}");
     }
@@ -213,15 +212,11 @@ pub(crate) async fn job_action(
     action: impl FnOnce(&mut crate::farm::Farm, JobId, u64) -> Result<(), FarmError>,
 ) -> ApiResult<impl IntoResponse> {
     let id = parse_id("job", &id)?;
-    let info = {
-        let mut farm = state.farm.lock();
-        action(&mut farm, id, now_ms())?;
-        farm.job(id)?.info(now_ms())
-    };
     // The change is in effect; if it could not be saved, say so (the checkpoint loop retries).
-    state.persist_job(id)?;
-    state.work_ready.notify_waiters();
-    state.publish(crate::service::Event::Job { id });
+    let info = state.act(|farm| {
+        action(farm, id, now_ms())?;
+        Ok(farm.job(id)?.info(now_ms()))
+    })?;
     Ok(Json(info))
 }
 
@@ -309,10 +304,7 @@ pub(crate) async fn set_priority(
 )]
 pub(crate) async fn delete_job(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id = parse_id("job", &id)?;
-    state.farm.lock().delete(id)?;
-    state.forget_job(id)?;
-    state.delete_job_files(id);
-    state.publish(crate::service::Event::Job { id });
+    state.act(|farm| farm.delete(id).map(drop))?;
     Ok(StatusCode::NO_CONTENT)
 }
 

@@ -80,18 +80,15 @@ pub(crate) async fn register_worker(state: &Arc<AppState>, body: &[u8]) -> ApiRe
     }
     validate_tags(&req.tags, "register body: tags").map_err(|e| ApiError::unprocessable("invalid_body", e))?;
     let worker_secret = new_worker_secret()?;
-    let reg = {
-        let mut farm = state.farm.lock();
-        let worker_id = farm.register_tagged(req.name.clone(), req.threads, worker_secret.clone(), req.tags, now_ms());
-        Registered {
+    let reg = state.act(|farm| {
+        let worker_id = farm.register_tagged(req.name, req.threads, worker_secret.clone(), req.tags, now_ms());
+        Ok(Registered {
             worker_id,
             worker_secret,
             heartbeat_ms: farm.cfg.heartbeat_ms,
             lease_timeout_ms: farm.cfg.lease_timeout_ms,
-        }
-    };
-    state.persist_worker(reg.worker_id, &req.name, req.threads);
-    state.publish(crate::service::Event::Worker { id: reg.worker_id });
+        })
+    })?;
     Ok(Json(reg))
 }
 
@@ -111,9 +108,10 @@ pub(crate) async fn heartbeat(
     headers: HeaderMap,
 ) -> ApiResult<StatusCode> {
     let id: WorkerId = parse_id("worker", &id)?;
-    let mut farm = state.farm.lock();
-    farm.check_worker(id, worker_secret(&headers))?;
-    farm.heartbeat(id, now_ms())?;
+    state.act(|farm| {
+        farm.check_worker(id, worker_secret(&headers))?;
+        farm.heartbeat(id, now_ms())
+    })?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -150,10 +148,9 @@ pub(crate) async fn lease(
         tokio::pin!(notified);
         notified.as_mut().enable();
         let t0 = Instant::now();
-        let grant = state.farm.lock().lease(worker, now_ms())?;
+        let grant = state.act(|farm| farm.lease(worker, now_ms()))?;
         state.metrics.observe_lease(t0.elapsed());
         if let Some(g) = grant {
-            state.publish(crate::service::Event::Worker { id: worker });
             return Ok(Json(g).into_response());
         }
         let left = wait.saturating_sub(start.elapsed());
@@ -218,24 +215,12 @@ pub(crate) async fn upload_result(
     let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()).into_response())?;
     let st = state.clone();
     let t0 = Instant::now();
-    let (job_id, outcome) =
-        tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, secret.as_deref(), &body))
-            .await
-            .map_err(|e| ApiError::internal(format!("result task: {e}")).into_response())?
-            .map_err(IntoResponse::into_response)?;
-    let outcome = match outcome {
-        Ok(o) => o,
-        Err(e) => {
-            // A refused result may have sent its unit back to pending.
-            state.work_ready.notify_waiters();
-            return Err(ApiError::from(e).into_response());
-        }
-    };
+    let outcome = tokio::task::spawn_blocking(move || decode_and_accept(&st, lease_id, secret.as_deref(), &body))
+        .await
+        .map_err(|e| ApiError::internal(format!("result task: {e}")).into_response())?
+        .map_err(IntoResponse::into_response)?;
+    let outcome = outcome.map_err(|e| ApiError::from(e).into_response())?;
     state.metrics.observe_merge(t0.elapsed());
-    if !outcome.passes_completed.is_empty() || outcome.job_completed {
-        state.output_ready.notify_one();
-    }
-    state.publish(crate::service::Event::Job { id: job_id });
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
 }
 
@@ -318,7 +303,7 @@ pub(crate) fn decode_and_accept(
     lease_id: LeaseId,
     secret: Option<&str>,
     body: &[u8],
-) -> ApiResult<(JobId, Result<crate::farm::MergeOutcome, FarmError>)> {
+) -> ApiResult<Result<crate::farm::MergeOutcome, FarmError>> {
     // Refuse results for leases that are not held, or not held by the sender, before
     // decoding: duplicates and late results cost nothing, and a body from someone without a
     // lease cannot make the decoder allocate what its header declares (up to 4 GiB of sums).
@@ -329,13 +314,13 @@ pub(crate) fn decode_and_accept(
             if matches!(e, FarmError::WrongWorker(_)) {
                 tracing::warn!(lease = lease_id, "result refused: {e}");
             }
-            return Ok((0, Err(e)));
+            return Ok(Err(e));
         }
         match farm.lease_shape(lease_id) {
             Some(shape) => shape,
             None => {
                 farm.counters.results_rejected += 1;
-                return Ok((0, Err(FarmError::LeaseLost(lease_id))));
+                return Ok(Err(FarmError::LeaseLost(lease_id)));
             }
         }
     };
@@ -344,24 +329,26 @@ pub(crate) fn decode_and_accept(
         Err(e) => {
             // The worker does not retry a refused body, so its unit would sit leased until the
             // lease expired: give it to someone else now (a lost lease stays lost).
-            let requeued = {
-                let mut farm = state.farm.lock();
+            let _ = state.act(|farm| {
                 farm.counters.results_rejected += 1;
-                farm.release(lease_id, false, "", now_ms()).is_ok()
-            };
-            if requeued {
-                state.work_ready.notify_waiters();
-            }
+                farm.release(lease_id, false, "", now_ms())
+            });
             return Err(ApiError::unprocessable("bad_result", e.to_string()));
         }
     };
-    let job_id = frame.job_id;
-    let mut farm = state.farm.lock();
-    let r = farm.accept(lease_id, frame, now_ms());
-    if r.is_err() {
-        farm.counters.results_rejected += 1;
+    let (r, changes) = state.locked(|farm| {
+        let r = farm.accept(lease_id, frame, now_ms());
+        if r.is_err() {
+            farm.counters.results_rejected += 1;
+        }
+        r
+    });
+    // A merged result is in effect whether or not a record could be saved (the checkpoint loop
+    // saves it again); the worker is told it was merged.
+    if let Err(e) = state.apply(changes) {
+        tracing::error!(lease = lease_id, "applying a result's changes: {}", e.message);
     }
-    Ok((job_id, r))
+    Ok(r)
 }
 
 #[utoipa::path(
@@ -384,16 +371,14 @@ pub(crate) async fn release(
     let lease_id: LeaseId = parse_id("lease", &id)?;
     let req: ReleaseRequest = serde_json::from_slice(&body)
         .map_err(|e| ApiError::unprocessable("invalid_body", format!("release body: {e}")))?;
-    {
-        let mut farm = state.farm.lock();
+    state.act(|farm| {
         if let Err(e) = farm.check_lease(lease_id, worker_secret(&headers)) {
             if matches!(e, FarmError::WrongWorker(_)) {
                 tracing::warn!(lease = lease_id, "release refused: {e}");
             }
-            return Err(e.into());
+            return Err(e);
         }
-        farm.release(lease_id, req.failed, &req.reason, now_ms())?;
-    }
-    state.work_ready.notify_waiters();
+        farm.release(lease_id, req.failed, &req.reason, now_ms())
+    })?;
     Ok(StatusCode::NO_CONTENT)
 }

@@ -8,20 +8,16 @@ pub async fn maintenance_loop(state: Arc<AppState>) {
     let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
     loop {
         tick.tick().await;
-        let (expired, pruned) = {
-            let mut farm = state.farm.lock();
+        // Also applies any change an earlier caller took no care of.
+        let ((expired, _), changes) = state.locked(|farm| {
             let now = now_ms();
             (farm.expire(now), farm.prune_workers(now))
-        };
+        });
         if expired > 0 {
             tracing::warn!(expired, "leases expired; units are pending again");
-            state.work_ready.notify_waiters();
         }
-        if !pruned.is_empty() {
-            if let Err(e) = state.store().delete_workers(&pruned) {
-                tracing::error!("deleting pruned worker rows failed: {e:#}");
-            }
-            state.publish(crate::service::Event::Worker { id: pruned[0] });
+        if let Err(e) = state.apply(changes) {
+            tracing::error!("applying the maintenance's changes: {}", e.message);
         }
         if let Some(after) = state.config.scene_gc_after_ms {
             collect_scenes(&state, now_ms().saturating_sub(after));

@@ -300,6 +300,81 @@ impl AppState {
         }
     }
 
+    /// Runs `f` on the farm under its lock, takes what it changed, and applies the changes after
+    /// the lock is released ([`AppState::apply`]). `f`'s error comes first; else an error applying
+    /// (a job record that could not be saved: the change is in effect but not durable).
+    pub fn act<T>(&self, f: impl FnOnce(&mut Farm) -> Result<T, crate::farm::FarmError>) -> ServiceResult<T> {
+        let (r, changes) = self.locked(f);
+        let applied = self.apply(changes);
+        let v = r?;
+        applied?;
+        Ok(v)
+    }
+
+    /// Runs `f` on the farm under its lock and returns its result with the changes, for callers
+    /// that must react to applying them (a job that cannot be saved is withdrawn).
+    pub fn locked<T>(&self, f: impl FnOnce(&mut Farm) -> T) -> (T, crate::farm::Changes) {
+        let mut farm = self.farm.lock();
+        let r = f(&mut farm);
+        (r, farm.take_changes())
+    }
+
+    /// The one place where the farm's changes take effect outside it: removed jobs lose their
+    /// rows and files, changed job records are saved, worker rows are saved or deleted, waiting
+    /// workers and the output writer are woken, and events are published. Every record is
+    /// tried; the first error is returned (the checkpoint loop saves records again later).
+    pub fn apply(&self, changes: crate::farm::Changes) -> ServiceResult<()> {
+        if changes.is_empty() {
+            return Ok(());
+        }
+        let mut first_error = None;
+        for &id in &changes.removed {
+            if let Err(e) = self.forget_job(id) {
+                first_error.get_or_insert(e);
+            }
+            self.delete_job_files(id);
+        }
+        for &id in changes.records.difference(&changes.removed) {
+            if let Err(e) = self.persist_job(id) {
+                first_error.get_or_insert(e);
+            }
+        }
+        for (id, name, threads) in &changes.registered {
+            self.persist_worker(*id, name, *threads);
+        }
+        if !changes.pruned.is_empty()
+            && let Err(e) = self.store().delete_workers(&changes.pruned)
+        {
+            tracing::error!("deleting pruned worker rows failed: {e:#}");
+        }
+        if changes.work_ready {
+            self.work_ready.notify_waiters();
+        }
+        if changes.outputs {
+            self.output_ready.notify_one();
+        }
+        for &(id, frame) in &changes.frames {
+            self.publish(Event::Frame { id, frame });
+        }
+        let jobs: std::collections::BTreeSet<JobId> =
+            changes.records.iter().chain(&changes.progress).chain(&changes.removed).copied().collect();
+        for id in jobs {
+            self.publish(Event::Job { id });
+        }
+        for &id in &changes.workers {
+            self.publish(Event::Worker { id });
+        }
+        first_error.map_or(Ok(()), Err)
+    }
+
+    /// Appends a line to a job's log and publishes the change.
+    pub fn log_job(&self, id: JobId, line: String) {
+        let ((), changes) = self.locked(|farm| farm.log_job(id, line));
+        if let Err(e) = self.apply(changes) {
+            tracing::error!(job = id, "applying a log line's changes: {}", e.message);
+        }
+    }
+
     pub fn persist_worker(&self, id: u64, name: &str, threads: u32) {
         if let Err(e) = self.store().put_worker(id, name, threads, now_ms()) {
             tracing::error!(worker = id, "persisting the worker failed: {e:#}");

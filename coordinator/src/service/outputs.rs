@@ -107,15 +107,14 @@ pub async fn output_loop(state: Arc<AppState>) {
             let dir = super::store::frame_dir(&state.job_dir(id), frame);
             match writer.write(dir, film, exposure).await {
                 Ok(Ok(())) => {
-                    let (written, exists) = {
-                        let mut farm = state.farm.lock();
-                        (farm.frame_written(id, index).is_some(), farm.job(id).is_ok())
-                    };
+                    // Its film is freed: the next frame may start now (the changes say so).
+                    let ((written, exists), changes) =
+                        state.locked(|farm| (farm.frame_written(id, index).is_some(), farm.job(id).is_ok()));
+                    if let Err(e) = state.apply(changes) {
+                        tracing::error!(job = id, frame, "applying the frame's changes: {}", e.message);
+                    }
                     if written {
                         tracing::info!(job = id, frame, "frame written");
-                        state.publish_frame(id, frame);
-                        // Its film is freed: the next frame may start now.
-                        state.work_ready.notify_waiters();
                     } else if !exists {
                         // Deleted while its frame was being written: no files may remain.
                         state.delete_job_files(id);

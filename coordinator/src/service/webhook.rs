@@ -108,14 +108,13 @@ pub fn enqueue_pending(state: &AppState) {
             let line =
                 format!("notification {} not sent: the coordinator runs without --webhook-secret", d.event.as_str());
             tracing::warn!(job = d.job, event = d.event.as_str(), "{line}");
-            state.farm.lock().log_job(d.job, line);
+            state.log_job(d.job, line);
             continue;
         }
         if let Err(d) = state.webhooks.try_send(d) {
             let line = format!("notification {} dropped: the webhook queue is full", d.event.as_str());
             tracing::warn!(job = d.job, event = d.event.as_str(), "{line}");
-            state.farm.lock().log_job(d.job, line);
-            state.publish(crate::service::Event::Job { id: d.job });
+            state.log_job(d.job, line);
         }
     }
 }
@@ -152,10 +151,7 @@ async fn deliver(state: &AppState, client: &reqwest::Client, cfg: &WebhookConfig
     let secret = cfg.secret.as_deref().unwrap_or_default().as_bytes();
     let event = d.event.as_str();
     let attempts = cfg.attempts.max(1);
-    let log = |line: String| {
-        state.farm.lock().log_job(d.job, line);
-        state.publish(crate::service::Event::Job { id: d.job });
-    };
+    let log = |line: String| state.log_job(d.job, line);
     let mut last_error = String::new();
     for attempt in 1..=attempts {
         let body = body(d.event, &d.info, now_ms());
