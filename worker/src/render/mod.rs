@@ -406,7 +406,7 @@ fn environment_spec(
 /// `progress(done, total)` is called after each unit.
 ///
 /// With adaptive sampling the passes run in order and, after each pass, every tile's mask comes
-/// from [`adaptive::converged_blocks`] of the film's merged sums of that tile; the next pass
+/// from [`pathfarm_common::adaptive::converged_blocks`] of the film's merged sums of that tile; the next pass
 /// renders with it, and a tile whose blocks have all converged is skipped (counted as done).
 pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize)) -> Film {
     let settings = renderer.settings();
