@@ -100,7 +100,7 @@ impl Job {
     }
 
     pub(super) fn has_pending(&self) -> bool {
-        self.open.values().any(|f| f.pending > 0)
+        self.open.values().any(|f| f.pending() > 0)
     }
 
     /// The next frame that may be started (frame order: only when no frame in progress has
@@ -122,29 +122,43 @@ impl Job {
         (self.open.len() + self.finishing.len()) as u64
     }
 
+    /// Memory of the films this job holds now.
+    pub fn film_bytes(&self) -> u64 {
+        self.films_held() * Film::bytes_for(self.settings.width, self.settings.height)
+    }
+
     pub(super) fn open_frame(&mut self, index: usize) {
-        let run =
-            FrameRun::new(&self.plan, self.settings.width, self.settings.height, self.settings.adaptive.is_some());
+        self.open_frame_with(index, Film::new(self.settings.width, self.settings.height));
+    }
+
+    /// Starts frame `index` with `film` (restore: a checkpoint's).
+    pub(super) fn open_frame_with(&mut self, index: usize, film: Film) {
+        let run = FrameRun::new(&self.plan, film, self.settings.adaptive.is_some());
         self.open.insert(index, run);
         self.status[index].state = FrameState::Rendering;
         self.unstarted -= 1;
     }
 
-    /// At submission (and restoration): a frame-order job starts its first frame (its film was
-    /// admitted with the job) unless one is in progress; sequence preview starts every frame.
-    pub(super) fn open_initial_frames(&mut self) {
+    /// Films this job needs to start its next frames: one (frame order), or every frame not
+    /// started (sequence preview: all at once).
+    pub(super) fn films_to_start(&self) -> u64 {
         match self.order {
-            FrameOrder::SequencePreview => {
-                while let Some(i) = self.frame_to_open() {
-                    self.open_frame(i);
-                }
+            FrameOrder::Frame => 1,
+            FrameOrder::SequencePreview => self.unstarted as u64,
+        }
+    }
+
+    /// Starts the job's next frames (the first lease, or when the frames in progress have
+    /// nothing pending): one frame in frame order, every frame not started in sequence
+    /// preview. A queued job holds no film: its frames start here, when their films fit.
+    pub(super) fn start_frames(&mut self) {
+        while let Some(i) = self.frame_to_open() {
+            self.open_frame(i);
+            if self.sequence {
+                self.log(format!("frame {} started", self.frames.frames()[i]));
             }
-            FrameOrder::Frame => {
-                if self.open.is_empty()
-                    && let Some(i) = self.frame_to_open()
-                {
-                    self.open_frame(i);
-                }
+            if self.order == FrameOrder::Frame {
+                break;
             }
         }
     }
@@ -184,19 +198,19 @@ impl Job {
 
     /// The next unit to hand out: frame order takes the first frame in progress with pending
     /// units; sequence preview takes the lowest (pass, frame) over every frame.
-    pub(super) fn take_unit(&mut self) -> Option<(usize, usize)> {
+    pub(super) fn take_unit(&mut self, lease: pathfarm_common::protocol::LeaseId) -> Option<(usize, usize)> {
         let tiles = self.plan.tiles.len().max(1);
         let frame = match self.order {
-            FrameOrder::Frame => self.open.iter().find(|(_, f)| f.pending > 0).map(|(&i, _)| i),
+            FrameOrder::Frame => self.open.iter().find(|(_, f)| f.pending() > 0).map(|(&i, _)| i),
             FrameOrder::SequencePreview => self
                 .open
                 .iter_mut()
-                .filter(|(_, f)| f.pending > 0)
+                .filter(|(_, f)| f.pending() > 0)
                 .filter_map(|(&i, f)| f.peek_pending().map(|u| (u / tiles, i)))
                 .min()
                 .map(|(_, i)| i),
         }?;
-        let unit = self.open.get_mut(&frame)?.take_pending()?;
+        let unit = self.open.get_mut(&frame)?.take_pending(lease)?;
         Some((frame, unit))
     }
 

@@ -1,6 +1,6 @@
 //! Leases: scheduling, expiry, release and the merge of results.
 
-use super::frame_run::{UnitState, sample_count_mismatch};
+use super::frame_run::sample_count_mismatch;
 use super::{Farm, FarmError, Job, MergeOutcome};
 use pathfarm_common::film::{Film, TileAccum};
 use pathfarm_common::protocol::{
@@ -29,22 +29,20 @@ impl Farm {
             self.note_unservable();
         }
         let tags = &self.workers[&worker].tags;
-        // A frame-order sequence whose frames in progress have nothing pending may start its
-        // next frame, while the frames it holds are under the cap and the new film fits.
+        // A job whose frames in progress have nothing pending may start its next frames (a
+        // queued job its first), while it holds fewer than `max_open_frames` (frame order) and
+        // the new films fit the film budget beside every film held.
         let (budget, max_open) = (self.cfg.film_budget_bytes, self.cfg.max_open_frames.max(1) as u64);
         let mut held: Option<u64> = None;
         let jobs = &self.jobs;
         let mut may_start = |j: &Job| {
-            j.order == FrameOrder::Frame
-                && j.unstarted > 0
-                && j.films_held() < max_open
+            j.unstarted > 0
+                && (j.order == FrameOrder::SequencePreview || j.films_held() < max_open)
+                && (j.order == FrameOrder::Frame || j.films_held() == 0)
                 && budget.is_none_or(|b| {
-                    let used = *held.get_or_insert_with(|| {
-                        jobs.values()
-                            .map(|j| j.films_held() * Film::bytes_for(j.settings.width, j.settings.height))
-                            .sum()
-                    });
-                    used.saturating_add(Film::bytes_for(j.settings.width, j.settings.height)) <= b
+                    let used = *held.get_or_insert_with(|| jobs.values().map(Job::film_bytes).sum());
+                    let need = j.films_to_start().saturating_mul(Film::bytes_for(j.settings.width, j.settings.height));
+                    used.saturating_add(need) <= b
                 })
         };
         let pick = self
@@ -59,16 +57,10 @@ impl Farm {
         let lease_id = self.next_lease;
         self.next_lease += 1;
         let Some(job) = self.jobs.get_mut(&job_id) else { return Ok(None) };
-        if !job.has_pending()
-            && let Some(next) = job.frame_to_open()
-        {
-            job.open_frame(next);
-            job.log(format!("frame {} started", job.frames.frames()[next]));
+        if !job.has_pending() {
+            job.start_frames();
         }
-        let Some((frame, unit)) = job.take_unit() else { return Ok(None) };
-        if let Some(run) = job.open.get_mut(&frame) {
-            run.units[unit] = UnitState::Leased(lease_id);
-        }
+        let Some((frame, unit)) = job.take_unit(lease_id) else { return Ok(None) };
         job.leased += 1;
         job.served += 1;
         if job.state == JobState::Queued {
@@ -84,7 +76,8 @@ impl Farm {
         let key = job.unit_key(frame, unit);
         let mut settings = job.settings.clone();
         settings.frame = key.frame;
-        let mask = job.open.get(&frame).and_then(|run| run.masks[key.tile as usize].clone()).filter(|m| !m.none());
+        let mask =
+            job.open.get(&frame).and_then(|run| run.masks.get(key.tile as usize).cloned().flatten()).filter(|m| !m.none());
         let grant = LeaseGrant {
             mask,
             lease_id,
@@ -242,7 +235,7 @@ impl Farm {
         {
             Some("splat buffer size differs from the image".into())
         } else {
-            let mask = job.open.get(&l.frame).and_then(|run| run.masks[key.tile as usize].as_ref());
+            let mask = job.open.get(&l.frame).and_then(|run| run.masks.get(key.tile as usize)).and_then(Option::as_ref);
             sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
         };
         if let Some(reason) = mismatch {
@@ -266,33 +259,24 @@ impl Farm {
         }
         let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
         let Some(run) = job.open.get_mut(&l.frame) else { return Err(FarmError::LeaseLost(lease_id)) };
-        run.units[l.unit] = UnitState::Received;
-        run.waiting.insert(l.unit, (frame.accum, frame.splats));
+        let passes_before = run.passes_done;
+        run.receive(l.unit, frame.accum, frame.splats);
         run.checkpoint_dirty = true;
         let mut out = MergeOutcome::default();
         let tile = key.tile as usize;
-        let tiles = job.plan.tiles.len();
-        loop {
-            let next = run.next_pass[tile];
-            if next as usize >= job.plan.passes.len() {
-                break;
-            }
-            let index = next as usize * tiles + tile;
-            let Some((accum, splats)) = run.waiting.remove(&index) else { break };
+        while let Some((index, accum, splats)) = run.take_next_result(tile) {
             run.film.add_tile(&accum);
             if let Some(s) = splats {
                 run.film.add_splats(&s);
             }
-            run.units[index] = UnitState::Merged;
-            run.next_pass[tile] += 1;
-            run.units_merged += 1;
+            let pass = (index / job.plan.tiles.len()) as u32;
+            run.advance(tile, pass + 1);
             job.units_merged += 1;
             let samples = unit_samples(&accum);
             job.samples_done += samples;
             self.counters.units_merged += 1;
             self.counters.samples_merged += samples;
             out.folded += 1;
-            run.pass_merged[next as usize] += 1;
             if let Some(a) = &job.settings.adaptive {
                 let d = run.decide(&job.plan, a, job.settings.spp, tile);
                 job.units_merged += d.units_skipped;
@@ -300,15 +284,9 @@ impl Farm {
             }
         }
         // Passes complete in order, because every tile folds its passes in order.
-        while (run.passes_done as usize) < job.plan.passes.len()
-            && run.pass_merged[run.passes_done as usize] == tiles as u32
-        {
-            let p = run.passes_done;
-            run.passes_done += 1;
-            if !job.sequence {
-                job.output_dirty = true;
-            }
-            out.passes_completed.push(p);
+        out.passes_completed = (passes_before..run.passes_done).collect();
+        if !job.sequence && !out.passes_completed.is_empty() {
+            job.output_dirty = true;
         }
         job.status[l.frame].passes_done = run.passes_done;
         if run.is_complete() {

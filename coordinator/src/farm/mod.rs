@@ -22,7 +22,6 @@ mod tests;
 mod workers;
 
 pub use frame_run::FrameRun;
-use frame_run::UnitState;
 use job::FrameStatus;
 pub use job::{Checkpoint, FrameFilm, Job, JobRecord, JobSpec};
 use lease::Lease;
@@ -236,30 +235,20 @@ impl Farm {
             {
                 return Err(format!("checkpoint of job {} frame {} does not match its settings", rec.id, cp.frame));
             }
-            job.open_frame(index);
+            job.open_frame_with(index, cp.film);
             let Some(run) = job.open.get_mut(&index) else { continue };
             for (tile, &np) in cp.next_pass.iter().enumerate() {
-                for pass in 0..np as usize {
-                    let i = pass * tiles + tile;
-                    if run.units[i] == UnitState::Pending {
-                        run.pending -= 1;
-                    }
-                    run.units[i] = UnitState::Merged;
-                    run.units_merged += 1;
-                    run.pass_merged[pass] += 1;
-                    job.units_merged += 1;
-                }
+                run.advance(tile, np);
+                job.units_merged += u64::from(np);
                 if job.settings.adaptive.is_none() {
                     job.samples_done += job.plan.tiles[tile].pixel_count() as u64
                         * u64::from(job.plan.passes.get(..np as usize).map_or(0, |p| p.iter().map(|p| p.spp()).sum()));
                 } else {
                     // Converged pixels hold fewer samples than the passes: count what they hold.
                     job.samples_done +=
-                        cp.film.tile(job.plan.tiles[tile]).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+                        run.film.tile(job.plan.tiles[tile]).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
                 }
             }
-            run.next_pass = cp.next_pass;
-            run.film = cp.film;
             // Adaptive: the masks are a pure function of the merged sums, so they are computed
             // again (not stored); each tile's next pass becomes pending, or the tile leaves.
             if let Some(a) = job.settings.adaptive {
@@ -269,21 +258,14 @@ impl Farm {
                     job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
                 }
             }
-            while (run.passes_done as usize) < job.plan.passes.len()
-                && run.pass_merged[run.passes_done as usize] == tiles as u32
-            {
-                run.passes_done += 1;
-            }
             run.checkpoint_dirty = false;
             job.status[index].passes_done = run.passes_done;
             if run.is_complete() {
                 job.frame_merged(index);
             }
         }
-        // A single-frame job always has its film (empty without a checkpoint, as before frames).
-        if !job.sequence && job.open.is_empty() && job.frames_merged == 0 {
-            job.open_frame(0);
-        }
+        // Frames without a checkpoint start when they are leased (their films are not held
+        // before); a sequence preview that started holds every frame's film.
         let total = job.frames.len() as u32;
         job.state = match rec.state {
             // A sequence recorded completed whose last frames were merged but not written (and
@@ -303,8 +285,8 @@ impl Farm {
         };
         if job.state.is_finished() && job.state != JobState::Completed && job.sequence {
             job.drop_open_frames();
-        } else if !job.state.is_finished() {
-            job.open_initial_frames();
+        } else if !job.state.is_finished() && job.order == FrameOrder::SequencePreview && !job.open.is_empty() {
+            job.start_frames();
         }
         if job.state == JobState::Completed && job.finished_ms.is_none() {
             job.finished_ms = Some(now_ms);
@@ -356,12 +338,13 @@ impl Farm {
 
     /// Memory of the films every job holds now.
     pub fn film_bytes_held(&self) -> u64 {
-        self.jobs.values().map(|j| j.films_held() * Film::bytes_for(j.settings.width, j.settings.height)).sum()
+        self.jobs.values().map(Job::film_bytes).sum()
     }
 
     /// The farm's own budgets for a job whose settings are valid (`RenderSettings::validate`
     /// is the one check of the settings): frames, frames x tiles x passes within `max_units`,
-    /// and the films within `--film-memory-mb`.
+    /// and the films it needs at once within `--film-memory-mb` (a job that could never start
+    /// is refused; one that fits waits until the films held leave room).
     fn check_budgets(&self, spec: &JobSpec) -> Result<(), FarmError> {
         let settings = &spec.settings;
         let frames = spec.frames.as_ref().map_or(1, FrameSet::len) as u64;
@@ -382,13 +365,13 @@ impl Farm {
             let film = Film::bytes_for(settings.width, settings.height);
             let films = if spec.order == FrameOrder::SequencePreview { frames } else { 1 };
             let need = film.saturating_mul(films);
-            let used = self.film_bytes_held();
-            if used.saturating_add(need) > budget {
+            if need > budget {
                 let mib = |b: u64| b.div_ceil(1 << 20);
+                let bpp = pathfarm_common::film::PIXEL_BYTES;
                 let what = if films > 1 {
                     format!(
                         "order sequence_preview holds every frame's film at once: {films} frames x {} MiB = {} MiB \
-                         ({}x{} pixels, 256 bytes each; order \"frame\" needs one film at a time)",
+                         ({}x{} pixels, {bpp} bytes each; order \"frame\" needs one film at a time)",
                         mib(film),
                         mib(need),
                         settings.width,
@@ -396,18 +379,16 @@ impl Farm {
                     )
                 } else {
                     format!(
-                        "the job's film needs {} MiB ({}x{} pixels, 256 bytes each)",
+                        "the job's film needs {} MiB ({}x{} pixels, {bpp} bytes each)",
                         mib(need),
                         settings.width,
                         settings.height
                     )
                 };
                 return Err(FarmError::OverBudget(format!(
-                    "{what}; {} MiB of the coordinator's film budget of {} MiB (--film-memory-mb) are held by {} jobs: \
-                     delete finished jobs or lower the resolution",
-                    mib(used),
-                    mib(budget),
-                    self.jobs.len()
+                    "{what}, more than the coordinator's film budget of {} MiB (--film-memory-mb): lower the \
+                     resolution",
+                    mib(budget)
                 )));
             }
         }
@@ -415,17 +396,16 @@ impl Farm {
     }
 
     /// Adds a job: settings, tags, frames x tiles x passes and the film budget are checked
-    /// before anything is allocated. A frame-order job needs one film to fit the budget (more
-    /// frames start only while their films fit); a sequence-preview job needs every frame's.
+    /// before anything is allocated. A frame-order job needs one film to fit the budget; a
+    /// sequence-preview job needs every frame's. The job holds no film while queued: its frames
+    /// start when leased, once their films fit beside the films held then.
     pub fn submit_job(&mut self, spec: JobSpec, now_ms: u64) -> Result<JobId, FarmError> {
         pathfarm_common::protocol::validate_tags(&spec.requires, "requires").map_err(FarmError::InvalidJob)?;
         spec.settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
         self.check_budgets(&spec)?;
         let id = self.next_job;
         self.next_job += 1;
-        let mut job = Job::new(id, spec, now_ms);
-        job.open_initial_frames();
-        self.jobs.insert(id, job);
+        self.jobs.insert(id, Job::new(id, spec, now_ms));
         self.note_unservable();
         Ok(id)
     }

@@ -57,7 +57,7 @@ fn frame_order_bounds_the_frames_in_progress() {
     let per_frame = s.plan().unit_count();
     let mut farm = Farm::new(FarmConfig { max_open_frames: 2, ..FarmConfig::default() });
     let id = farm.submit_job(sequence("10-14", FrameOrder::Frame), 0).expect("submit");
-    assert_eq!(farm.job(id).expect("job").films_held(), 1, "the first frame starts with the job");
+    assert_eq!(farm.job(id).expect("job").films_held(), 0, "a queued job holds no film");
     let w = farm.register("w".into(), 1, 0);
     let mut grants = Vec::new();
     while let Some(g) = farm.lease(w, 0).expect("lease") {
@@ -125,11 +125,12 @@ fn sequence_preview_hands_out_passes_across_frames() {
     let (tiles, passes) = (s.plan().tiles.len(), s.plan().passes.len());
     let mut farm = Farm::new(FarmConfig::default());
     let id = farm.submit_job(sequence("1-3", FrameOrder::SequencePreview), 0).expect("submit");
-    assert_eq!(farm.job(id).expect("job").films_held(), 3);
+    assert_eq!(farm.job(id).expect("job").films_held(), 0, "a queued job holds no film");
     let w = farm.register("w".into(), 1, 0);
     let mut keys = Vec::new();
     let mut first = None;
     while let Some(g) = farm.lease(w, 0).expect("lease") {
+        assert_eq!(farm.job(id).expect("job").films_held(), 3, "the first lease starts every frame");
         keys.push(g.unit);
         // A result comes back now and then, out of order: requeues keep the order too.
         if keys.len() == 5 {
