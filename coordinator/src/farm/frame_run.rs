@@ -73,7 +73,17 @@ pub struct FrameRun {
     /// before the first, and for jobs without `adaptive`). A pure function of the film, so
     /// checkpoints do not hold it: restore computes it again.
     pub(super) masks: Vec<Option<BlockMask>>,
-    pub film: Film,
+    /// The merged sums; `None` while the film is on disk (its checkpoint): results then wait
+    /// in `waiting` and nothing is leased until it is loaded ([`super::Farm::attach_film`]).
+    pub film: Option<Film>,
+    /// The film is being written to disk: it must not be loaded until that is done.
+    pub(super) spilling: bool,
+    /// Restored without its film (adaptive jobs: masks and samples are computed when loaded).
+    pub(super) restored: bool,
+    /// When the frame was last leased from or merged into (the least recently used film is
+    /// written to disk first), and when its film was last loaded.
+    pub(super) last_used: u64,
+    pub(super) loaded_ms: u64,
     pub passes_done: u32,
     pub(super) units_merged: u64,
     /// Merged units since the last checkpoint snapshot.
@@ -83,7 +93,7 @@ pub struct FrameRun {
 impl FrameRun {
     /// A frame with nothing merged. `adaptive`: only the first pass is pending; each tile's
     /// later passes wait for its previous one.
-    pub(super) fn new(plan: &Plan, film: Film, adaptive: bool) -> Self {
+    pub(super) fn new(plan: &Plan, film: Option<Film>, adaptive: bool) -> Self {
         let tiles = plan.tiles.len();
         FrameRun {
             tiles,
@@ -97,6 +107,10 @@ impl FrameRun {
             waiting: HashMap::new(),
             masks: if adaptive { vec![None; tiles] } else { Vec::new() },
             film,
+            spilling: false,
+            restored: false,
+            last_used: 0,
+            loaded_ms: 0,
             passes_done: 0,
             units_merged: 0,
             checkpoint_dirty: true,
@@ -125,8 +139,11 @@ impl FrameRun {
         pass < self.passes && pass >= next && (!self.adaptive || pass == next) && !self.in_flight(index)
     }
 
-    /// Units that may be leased now.
+    /// Units that may be leased now (none while the film is on disk).
     pub(super) fn pending(&self) -> u64 {
+        if self.film.is_none() {
+            return 0;
+        }
         let in_flight = (self.leased.len() + self.waiting.len()) as u64;
         if self.adaptive {
             // One unit per tile that has passes left: its next pass.
@@ -188,6 +205,12 @@ impl FrameRun {
     pub(super) fn receive(&mut self, index: usize, accum: TileAccum, splats: Option<SplatBuffer>) {
         self.leased.remove(&index);
         self.waiting.insert(index, (accum, splats));
+    }
+
+    /// Tiles with results waiting, in order.
+    pub(super) fn waiting_tiles(&self) -> Vec<usize> {
+        let tiles: BTreeSet<usize> = self.waiting.keys().map(|&i| self.split(i).1).collect();
+        tiles.into_iter().collect()
     }
 
     /// The next unit `tile` folds, if its result is here: taken out of `waiting`.
@@ -254,7 +277,8 @@ impl FrameRun {
             return out;
         }
         let rect = plan.tiles[tile];
-        let sums = self.film.tile(rect).sums;
+        let Some(film) = &self.film else { return out };
+        let sums = film.tile(rect).sums;
         let mask = adaptive::converged_blocks(&sums, rect, a, plan.passes[np - 1].s1);
         let before = skipped_samples(self.masks[tile].as_ref(), &sums, rect, spp);
         out.samples_skipped = skipped_samples(Some(&mask), &sums, rect, spp).saturating_sub(before);

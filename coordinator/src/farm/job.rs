@@ -20,9 +20,10 @@ pub(super) struct FrameStatus {
 /// A job and its frames' units.
 ///
 /// A job renders a frame set (one frame unless `frames` was given). Units are (frame, pass,
-/// tile); only frames in progress hold a [`FrameRun`] (film and unit states), so memory grows
-/// with the frames in progress, not with the frames in the job. A single-frame job (`sequence`
-/// false) keeps its film after completion and writes `jobs/ID/image.exr`; a sequence's frame,
+/// tile); only frames in progress hold a [`FrameRun`] (film and merge state), so memory grows
+/// with the frames in progress, not with the frames in the job; a queued job holds none. A
+/// single-frame job (`sequence` false) writes `jobs/ID/image.exr`; once finished and written
+/// there its film is dropped ([`Farm::final_image_written`]); a sequence's frame,
 /// once every unit is merged, moves to `finishing` until the server has written
 /// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`Farm::frame_written`]), then its film is
 /// dropped.
@@ -80,6 +81,10 @@ pub struct Job {
     pub log: Vec<String>,
     /// Output should be written (a pass completed, a frame finished or the job ended).
     pub output_dirty: bool,
+    /// A finished single-frame job whose final `image.exr` and `preview.png` are written: its
+    /// film is dropped and its images are served from those files. The EV of the preview when
+    /// this run wrote it (`None` after a restart).
+    pub(super) image_on_disk: Option<Option<f32>>,
 }
 
 /// Frames listed in a job's info (the rest: `GET /jobs/{id}/frames`).
@@ -117,22 +122,27 @@ impl Job {
         self.has_pending() || self.unstarted > 0
     }
 
-    /// Films this job holds (frames in progress and frames being written).
+    /// Frames this job holds (frames in progress and frames being written).
     pub fn films_held(&self) -> u64 {
         (self.open.len() + self.finishing.len()) as u64
     }
 
+    /// Films this job holds in memory: those of `films_held` that are not on disk.
+    pub fn films_resident(&self) -> u64 {
+        (self.open.values().filter(|f| f.film.is_some()).count() + self.finishing.len()) as u64
+    }
+
     /// Memory of the films this job holds now.
     pub fn film_bytes(&self) -> u64 {
-        self.films_held() * Film::bytes_for(self.settings.width, self.settings.height)
+        self.films_resident() * Film::bytes_for(self.settings.width, self.settings.height)
     }
 
     pub(super) fn open_frame(&mut self, index: usize) {
-        self.open_frame_with(index, Film::new(self.settings.width, self.settings.height));
+        self.open_frame_with(index, Some(Film::new(self.settings.width, self.settings.height)));
     }
 
     /// Starts frame `index` with `film` (restore: a checkpoint's).
-    pub(super) fn open_frame_with(&mut self, index: usize, film: Film) {
+    pub(super) fn open_frame_with(&mut self, index: usize, film: Option<Film>) {
         let run = FrameRun::new(&self.plan, film, self.settings.adaptive.is_some());
         self.open.insert(index, run);
         self.status[index].state = FrameState::Rendering;
@@ -169,8 +179,8 @@ impl Job {
         self.frames_merged += 1;
         self.status[index].passes_done = self.plan.passes.len() as u32;
         if self.sequence {
-            if let Some(run) = self.open.remove(&index) {
-                self.finishing.insert(index, Arc::new(run.film));
+            if let Some(film) = self.open.remove(&index).and_then(|run| run.film) {
+                self.finishing.insert(index, Arc::new(film));
             }
             self.status[index].state = FrameState::Writing;
             self.output_dirty = true;
@@ -246,23 +256,35 @@ impl Job {
         }
     }
 
+    /// Its images are to be written now: something changed, and its film is in memory (a
+    /// single-frame job's film on disk is written once it is loaded again).
+    pub fn output_due(&self) -> bool {
+        self.output_dirty && (self.sequence || self.film().is_some())
+    }
+
+    /// A finished single-frame job's images are on disk, its film dropped: `Some(ev)` with the
+    /// preview's EV when this run wrote it.
+    pub fn image_on_disk(&self) -> Option<Option<f32>> {
+        self.image_on_disk
+    }
+
     /// The film shown as "the job's image": a single-frame job's film; for a sequence, `None`
     /// (each frame has its own: [`Job::frame_film`]).
     pub fn film(&self) -> Option<&Film> {
-        if self.sequence { None } else { self.open.values().next().map(|f| &f.film) }
+        if self.sequence { None } else { self.open.values().next().and_then(|f| f.film.as_ref()) }
     }
 
     /// Mutable access to a single-frame job's film (tests).
     #[cfg(test)]
     pub fn film_mut(&mut self) -> Option<&mut Film> {
-        if self.sequence { None } else { self.open.values_mut().next().map(|f| &mut f.film) }
+        if self.sequence { None } else { self.open.values_mut().next().and_then(|f| f.film.as_mut()) }
     }
 
     /// The film of frame number `frame` while it is held (rendering or being written).
     pub fn frame_film(&self, frame: i32) -> Option<FrameFilm<'_>> {
         let index = self.frame_index(frame)?;
-        if let Some(run) = self.open.get(&index) {
-            return Some(FrameFilm::Open(&run.film));
+        if let Some(film) = self.open.get(&index).and_then(|run| run.film.as_ref()) {
+            return Some(FrameFilm::Open(film));
         }
         self.finishing.get(&index).map(|f| FrameFilm::Finishing(f.clone()))
     }
@@ -458,6 +480,7 @@ impl Job {
             error: None,
             log: Vec::new(),
             output_dirty: false,
+            image_on_disk: None,
         }
     }
 
@@ -468,11 +491,12 @@ impl Job {
         let (id, frames) = (self.id, self.frames.frames());
         self.open
             .iter_mut()
-            .filter(|(_, f)| all || f.checkpoint_dirty)
+            .filter(|(_, f)| (all || f.checkpoint_dirty) && f.film.is_some())
             .take(limit)
-            .map(|(&i, f)| {
+            .filter_map(|(&i, f)| {
                 f.checkpoint_dirty = false;
-                Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film: f.film.clone() }
+                let film = f.film.clone()?;
+                Some(Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film })
             })
             .collect()
     }
@@ -515,6 +539,50 @@ pub struct JobRecord {
     pub finished_ms: Option<u64>,
     pub error: Option<String>,
     pub run_ms: u64,
+}
+
+/// A checkpoint without its film: what a restart reads of each frame in progress (its film is
+/// read when the frame is leased again).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CheckpointHead {
+    pub job_id: JobId,
+    /// The frame number.
+    pub frame: i32,
+    pub width: u32,
+    pub height: u32,
+    pub next_pass: Vec<u32>,
+}
+
+/// A frame's checkpoint as restore takes it: with its film, or only its head (the film stays
+/// on disk until the frame is leased).
+#[derive(Clone, Debug)]
+pub enum FrameCheckpoint {
+    Loaded(Checkpoint),
+    OnDisk(CheckpointHead),
+}
+
+impl From<Checkpoint> for FrameCheckpoint {
+    fn from(cp: Checkpoint) -> Self {
+        FrameCheckpoint::Loaded(cp)
+    }
+}
+
+impl From<CheckpointHead> for FrameCheckpoint {
+    fn from(h: CheckpointHead) -> Self {
+        FrameCheckpoint::OnDisk(h)
+    }
+}
+
+impl Checkpoint {
+    pub fn head(&self) -> CheckpointHead {
+        CheckpointHead {
+            job_id: self.job_id,
+            frame: self.frame,
+            width: self.film.width,
+            height: self.film.height,
+            next_pass: self.next_pass.clone(),
+        }
+    }
 }
 
 /// A frame's merged sums and which units they hold. Because each tile folds its passes in

@@ -17,14 +17,16 @@
 mod frame_run;
 mod job;
 mod lease;
+mod residency;
 #[cfg(test)]
 mod tests;
 mod workers;
 
 pub use frame_run::FrameRun;
 use job::FrameStatus;
-pub use job::{Checkpoint, FrameFilm, Job, JobRecord, JobSpec};
+pub use job::{Checkpoint, CheckpointHead, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
 use lease::Lease;
+pub use residency::{FrameRef, ResidencyPlan};
 use workers::Worker;
 
 use pathfarm_common::film::Film;
@@ -51,13 +53,25 @@ pub struct FarmConfig {
     /// Workers offline (not seen) for longer than this, holding no lease, are forgotten.
     /// `None`: never.
     pub worker_prune_ms: Option<u64>,
-    /// Memory for the films of all jobs the farm holds (each `Film::bytes_for` its size); a job
-    /// that does not fit is refused. `None`: unbounded.
+    /// Memory for the films in memory (each `Film::bytes_for` its size): frames start, and
+    /// films are read back from disk, only while they fit; a job whose films could never fit
+    /// is refused. `None`: unbounded.
     pub film_budget_bytes: Option<u64>,
+    /// Films in memory at most (frames in progress and being written); beyond it the least
+    /// recently used ones wait on disk ([`Farm::residency_plan`]).
+    pub max_resident_films: usize,
+    /// A film read back from disk stays in memory at least this long before it may be written
+    /// out again for another job's (no thrashing between jobs that take turns).
+    pub min_resident_ms: u64,
     /// Frames of one frame-order job in progress at once, at most (the next frame starts when
     /// the frames in progress have no pending unit left and its film fits the budget).
     pub max_open_frames: usize,
 }
+
+/// Default of `--film-memory-mb`: 16 GiB of films in memory.
+pub const DEFAULT_FILM_BUDGET_BYTES: u64 = 16 << 30;
+/// Default of `--max-resident-films`.
+pub const DEFAULT_MAX_RESIDENT_FILMS: usize = 32;
 
 impl Default for FarmConfig {
     fn default() -> Self {
@@ -67,7 +81,9 @@ impl Default for FarmConfig {
             max_unit_failures: 3,
             blocklist_after: 2,
             limits: Limits::default(),
-            film_budget_bytes: None,
+            film_budget_bytes: Some(DEFAULT_FILM_BUDGET_BYTES),
+            max_resident_films: DEFAULT_MAX_RESIDENT_FILMS,
+            min_resident_ms: 2_000,
             worker_prune_ms: Some(3_600_000),
             expiry_tick_ms: 250,
             max_open_frames: 2,
@@ -83,6 +99,22 @@ pub fn token_matches(given: &str, expected: &str) -> bool {
 }
 
 pub use pathfarm_common::frames::MAX_FRAMES;
+
+/// A restored adaptive frame, once its film is in memory: the samples its pixels hold and each
+/// tile's mask (its next pass becomes pending, or the tile leaves the schedule).
+fn restore_adaptive(job: &mut Job, index: usize) {
+    let Some(a) = job.settings.adaptive else { return };
+    let Some(run) = job.open.get_mut(&index) else { return };
+    let Some(film) = &run.film else { return };
+    job.samples_done +=
+        job.plan.tiles.iter().map(|t| film.tile(*t).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>()).sum::<u64>();
+    for tile in 0..job.plan.tiles.len() {
+        let d = run.decide(&job.plan, &a, job.settings.spp, tile);
+        job.units_merged += d.units_skipped;
+        job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
+    }
+    run.restored = false;
+}
 
 /// Errors of farm operations; the API maps each to a status code.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -181,13 +213,14 @@ impl Farm {
     }
 
     /// Brings back a job from the store. `checkpoints`: the last checkpoint of each frame that
-    /// had one; `done`: indices of the frames whose images were written (sequences). Units
-    /// merged by a checkpoint stay merged, every other unit of the frame is pending again;
-    /// frames without either start over.
+    /// had one; `done`: indices of the frames whose images were written (sequences; for a
+    /// finished single-frame job, `[0]` when its final image is on disk: then no film is held
+    /// and its checkpoint is not needed). Units merged by a checkpoint stay merged, every other
+    /// unit of the frame is pending again; frames without either start over.
     pub fn restore(
         &mut self,
         rec: JobRecord,
-        checkpoints: Vec<Checkpoint>,
+        checkpoints: impl IntoIterator<Item = impl Into<FrameCheckpoint>>,
         done: &[usize],
         now_ms: u64,
     ) -> Result<(), String> {
@@ -220,8 +253,24 @@ impl Farm {
                 }
             }
         }
+        if !job.sequence && rec.state.is_finished() && done.contains(&0) {
+            job.image_on_disk = Some(None);
+            if rec.state == JobState::Completed {
+                job.status[0] = FrameStatus { state: FrameState::Done, passes_done: passes };
+                job.unstarted = 0;
+                (job.frames_done, job.frames_merged) = (1, 1);
+                job.units_merged = units_per_frame;
+                job.samples_done = job.samples_total;
+            }
+        }
         let tiles = job.plan.tiles.len();
+        let checkpoints: Vec<FrameCheckpoint> =
+            if job.image_on_disk.is_some() { Vec::new() } else { checkpoints.into_iter().map(Into::into).collect() };
         for cp in checkpoints {
+            let (cp, film) = match cp {
+                FrameCheckpoint::Loaded(c) => (c.head(), Some(c.film)),
+                FrameCheckpoint::OnDisk(h) => (h, None),
+            };
             let index = job
                 .frame_index(cp.frame)
                 .ok_or_else(|| format!("checkpoint of job {} is for frame {}, not in its frames", rec.id, cp.frame))?;
@@ -230,37 +279,35 @@ impl Farm {
             }
             if cp.job_id != rec.id
                 || cp.next_pass.len() != tiles
-                || (cp.film.width, cp.film.height) != (job.settings.width, job.settings.height)
+                || (cp.width, cp.height) != (job.settings.width, job.settings.height)
                 || cp.next_pass.iter().any(|&p| p > passes)
             {
                 return Err(format!("checkpoint of job {} frame {} does not match its settings", rec.id, cp.frame));
             }
-            job.open_frame_with(index, cp.film);
+            let on_disk = film.is_none();
+            job.open_frame_with(index, film);
             let Some(run) = job.open.get_mut(&index) else { continue };
+            run.restored = on_disk;
             for (tile, &np) in cp.next_pass.iter().enumerate() {
                 run.advance(tile, np);
                 job.units_merged += u64::from(np);
                 if job.settings.adaptive.is_none() {
                     job.samples_done += job.plan.tiles[tile].pixel_count() as u64
                         * u64::from(job.plan.passes.get(..np as usize).map_or(0, |p| p.iter().map(|p| p.spp()).sum()));
-                } else {
-                    // Converged pixels hold fewer samples than the passes: count what they hold.
-                    job.samples_done +=
-                        run.film.tile(job.plan.tiles[tile]).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
                 }
             }
-            // Adaptive: the masks are a pure function of the merged sums, so they are computed
-            // again (not stored); each tile's next pass becomes pending, or the tile leaves.
-            if let Some(a) = job.settings.adaptive {
-                for tile in 0..tiles {
-                    let d = run.decide(&job.plan, &a, job.settings.spp, tile);
-                    job.units_merged += d.units_skipped;
-                    job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
-                }
+            // Adaptive: converged pixels hold fewer samples than the passes, and the masks are
+            // a pure function of the merged sums (not stored): both come from the film, now or
+            // when it is loaded.
+            if !on_disk {
+                restore_adaptive(&mut job, index);
             }
+            let Some(run) = job.open.get_mut(&index) else { continue };
             run.checkpoint_dirty = false;
-            job.status[index].passes_done = run.passes_done;
-            if run.is_complete() {
+            let (passes_done, complete) = (run.passes_done, run.is_complete());
+            job.status[index].passes_done = passes_done;
+            // A complete frame whose film is on disk completes when it is loaded.
+            if complete && !on_disk {
                 job.frame_merged(index);
             }
         }
@@ -287,6 +334,10 @@ impl Farm {
             job.drop_open_frames();
         } else if !job.state.is_finished() && job.order == FrameOrder::SequencePreview && !job.open.is_empty() {
             job.start_frames();
+        }
+        if job.state.is_finished() && !job.sequence && !job.open.is_empty() {
+            // Its final images may not be on disk: written once more, then its film is dropped.
+            job.output_dirty = true;
         }
         if job.state == JobState::Completed && job.finished_ms.is_none() {
             job.finished_ms = Some(now_ms);
@@ -456,7 +507,8 @@ impl Farm {
             job.state = state;
             job.finished_ms = Some(now_ms);
             job.error = error;
-            job.output_dirty = true;
+            // A single-frame job cancelled before it started has no film and no image.
+            job.output_dirty = job.sequence || !job.open.is_empty();
             for run in job.open.values_mut() {
                 run.waiting.clear();
             }
@@ -487,6 +539,19 @@ impl Farm {
         let frame = job.frames.frames()[index];
         job.log(format!("frame {frame} written ({} of {} done)", job.frames_done, job.frames.len()));
         Some(frame)
+    }
+
+    /// The server wrote the images of a finished single-frame job (`preview_ev`: the EV of its
+    /// preview): unless something changed since the job ended (`output_dirty`), its film is
+    /// dropped and its images are served from the files. Returns whether it was dropped.
+    pub fn final_image_written(&mut self, id: JobId, preview_ev: Option<f32>) -> bool {
+        let Some(job) = self.jobs.get_mut(&id) else { return false };
+        if job.sequence || !job.state.is_finished() || job.output_dirty || job.leased > 0 {
+            return false;
+        }
+        job.open.clear();
+        job.image_on_disk = Some(preview_ev);
+        true
     }
 
     /// Sets the webhook of a job (right after submitting it).

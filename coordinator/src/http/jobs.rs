@@ -324,6 +324,9 @@ pub(crate) async fn resolve_job(state: &Arc<AppState>, id: &str) -> ApiResult<Im
     responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 409, description = "The job is a sequence: each frame has its own image (`/jobs/{id}/frames/{frame}/image.exr`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
+    if let Some((bytes, _)) = written_image(&state, &id, "image.exr").await? {
+        return Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response());
+    }
     let layers = resolve_job(&state, &id).await?;
     let bytes = tokio::task::spawn_blocking(move || layers.encode_exr())
         .await
@@ -342,19 +345,42 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
     responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    let layers = resolve_job(&state, &id).await?;
-    let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
-    let (bytes, ev) = tokio::task::spawn_blocking(move || {
-        let ev = layers.preview_ev(exposure);
-        layers.encode_png(ev).map(|b| (b, ev))
-    })
-    .await
-    .map_err(|e| ApiError::internal(e.to_string()))?
-    .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+    let (bytes, ev) = match written_image(&state, &id, "preview.png").await? {
+        Some(written) => written,
+        None => {
+            let layers = resolve_job(&state, &id).await?;
+            let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
+            let (bytes, ev) = tokio::task::spawn_blocking(move || {
+                let ev = layers.preview_ev(exposure);
+                layers.encode_png(ev).map(|b| (b, ev))
+            })
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+            .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+            (bytes, Some(ev))
+        }
+    };
     let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
-    insert_exposure_header(&mut resp, ev);
+    if let Some(ev) = ev {
+        insert_exposure_header(&mut resp, ev);
+    }
     Ok(resp)
+}
+
+/// A finished job whose film was dropped: its written file `name` (`image.exr`, `preview.png`)
+/// and the preview's EV when known; `None` while the job's film is held (resolved from it).
+async fn written_image(state: &AppState, id: &str, name: &str) -> ApiResult<Option<(Vec<u8>, Option<f32>)>> {
+    let id = parse_id("job", id)?;
+    let Some(ev) = state.farm.lock().job(id)?.image_on_disk() else { return Ok(None) };
+    let bytes = tokio::fs::read(state.job_dir(id).join(name)).await.map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            ApiError::not_found(format!("job {id} has no {name} on disk (its files were removed)"))
+        } else {
+            crate::service::storage_error(&e, "the job's image").into()
+        }
+    })?;
+    Ok(Some((bytes, ev)))
 }
 
 /// The response header that says which exposure a PNG preview used (EV).
