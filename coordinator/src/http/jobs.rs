@@ -368,11 +368,26 @@ pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<S
     Ok(resp)
 }
 
-/// A finished job whose film was dropped: its written file `name` (`image.exr`, `preview.png`)
-/// and the preview's EV when known; `None` while the job's film is held (resolved from it).
+/// A single-frame job whose film is not in memory (finished and written, or on disk for now):
+/// its written file `name` (`image.exr`, `preview.png`, as of its last completed pass) and the
+/// preview's EV when known; `None` while the job's film is in memory (resolved from it).
 async fn written_image(state: &AppState, id: &str, name: &str) -> ApiResult<Option<(Vec<u8>, Option<f32>)>> {
     let id = parse_id("job", id)?;
-    let Some(ev) = state.farm.lock().job(id)?.image_on_disk() else { return Ok(None) };
+    let ev = {
+        let farm = state.farm.lock();
+        let job = farm.job(id)?;
+        match job.image_on_disk() {
+            Some(ev) => ev,
+            None if !job.sequence
+                && job.film().is_none()
+                && job.passes_done() > 0
+                && state.job_dir(id).join(name).is_file() =>
+            {
+                None
+            }
+            None => return Ok(None),
+        }
+    };
     let bytes = tokio::fs::read(state.job_dir(id).join(name)).await.map_err(|e| {
         if e.kind() == std::io::ErrorKind::NotFound {
             ApiError::not_found(format!("job {id} has no {name} on disk (its files were removed)"))
