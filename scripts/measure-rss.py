@@ -119,7 +119,7 @@ def case_restart(args, data_dir):
     c = Coordinator(args.coordinator, data_dir)
     try:
         time.sleep(args.settle)
-        jobs = c.request("GET", "/jobs?limit=1000")
+        jobs = c.request("GET", "/jobs?limit=500")
         n = len(jobs) if isinstance(jobs, list) else len(jobs.get("jobs", []))
         return c.hwm(), n
     finally:

@@ -32,7 +32,8 @@ impl Farm {
         // A job whose frames in progress have nothing pending may start its next frames (a
         // queued job its first), while it holds fewer than `max_open_frames` (frame order) and
         // the new films fit the film budget beside every film held.
-        let (budget, max_open) = (self.cfg.film_budget_bytes.unwrap_or(u64::MAX), self.cfg.max_open_frames.max(1) as u64);
+        let (budget, max_open) =
+            (self.cfg.film_budget_bytes.unwrap_or(u64::MAX), self.cfg.max_open_frames.max(1) as u64);
         let max_films = self.cfg.max_resident_films.max(1) as u64;
         let mut held: Option<(u64, u64)> = None;
         let farm = &*self;
@@ -83,8 +84,11 @@ impl Farm {
         let key = job.unit_key(frame, unit);
         let mut settings = job.settings.clone();
         settings.frame = key.frame;
-        let mask =
-            job.open.get(&frame).and_then(|run| run.masks.get(key.tile as usize).cloned().flatten()).filter(|m| !m.none());
+        let mask = job
+            .open
+            .get(&frame)
+            .and_then(|run| run.masks.get(key.tile as usize).cloned().flatten())
+            .filter(|m| !m.none());
         let grant = LeaseGrant {
             mask,
             lease_id,

@@ -206,7 +206,11 @@ impl Farm {
             Err(e) => {
                 let msg = format!("frame {} could not be read back from disk: {e}", f.frame);
                 job.log(format!("job failed: {msg}"));
-                if !job.state.is_finished() {
+                // Nothing is left to read back (or to try again).
+                job.open.remove(&f.index);
+                if job.state.is_finished() {
+                    job.output_dirty = job.sequence;
+                } else {
                     self.finish(f.job, JobState::Failed, Some(msg.clone()), now_ms);
                 }
                 Err(FarmError::InvalidJob(msg))

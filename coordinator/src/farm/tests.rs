@@ -782,7 +782,8 @@ fn lazy_units_hand_out_returned_units_first_in_canonical_order() {
     );
     assert!(out.iter().map(key).collect::<Vec<_>>().is_sorted(), "pass-major order");
     // Everything else, delivered newest first.
-    let mut grants: Vec<_> = out.iter().enumerate().filter(|(i, _)| ![2, 5, 7].contains(i)).map(|(_, g)| g.clone()).collect();
+    let mut grants: Vec<_> =
+        out.iter().enumerate().filter(|(i, _)| ![2, 5, 7].contains(i)).map(|(_, g)| g.clone()).collect();
     grants.extend(again);
     while let Some(g) = farm.lease(w, 0).expect("lease") {
         grants.push(g);
@@ -904,7 +905,8 @@ fn lru_residency_with_one_film_alternates_two_jobs_bit_identically() {
     let b = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
     let w = farm.register("w".into(), 1, 0);
     let mut disk = HashMap::new();
-    let (mut held, mut spills, mut loads, mut served): (Vec<LeaseGrant>, _, _, Vec<JobId>) = (Vec::new(), 0, 0, Vec::new());
+    let (mut held, mut spills, mut loads, mut served): (Vec<LeaseGrant>, _, _, Vec<JobId>) =
+        (Vec::new(), 0, 0, Vec::new());
     for step in 0..10_000 {
         let plan = run_residency(&mut farm, &mut disk, step);
         (spills, loads) = (spills + plan.spill.len(), loads + plan.load.len());
@@ -925,7 +927,10 @@ fn lru_residency_with_one_film_alternates_two_jobs_bit_identically() {
             break;
         }
     }
-    assert!(farm.job(a).expect("job").state == JobState::Completed && farm.job(b).expect("job").state == JobState::Completed);
+    assert!(
+        farm.job(a).expect("job").state == JobState::Completed
+            && farm.job(b).expect("job").state == JobState::Completed
+    );
     let turns = served.windows(2).filter(|p| p[0] != p[1]).count();
     assert!(turns >= 4 && spills >= 4 && loads >= 3, "turns {turns}, spills {spills}, loads {loads}");
     assert_eq!(film_of(&farm, &disk, a), reference);

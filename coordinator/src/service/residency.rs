@@ -52,7 +52,11 @@ pub fn apply_residency(state: &AppState) -> bool {
                 }
             }
             Err(e) => {
-                tracing::error!(job = f.job, frame = f.frame, "writing a film to disk failed, it stays in memory: {e:#}");
+                tracing::error!(
+                    job = f.job,
+                    frame = f.frame,
+                    "writing a film to disk failed, it stays in memory: {e:#}"
+                );
                 let out = state.farm.lock().return_film(*f, cp.film, now_ms());
                 publish_outcome(state, f.job, &out);
             }
@@ -86,5 +90,51 @@ fn publish_outcome(state: &AppState, id: JobId, out: &crate::farm::MergeOutcome)
     }
     if !out.passes_completed.is_empty() || !out.frames_completed.is_empty() || out.job_completed {
         state.output_ready.notify_one();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pathfarm_common::job::RenderSettings;
+
+    /// A restart reads no film: 50 queued jobs (none was checkpointed) and a running one
+    /// whose checkpoint holds its film; the running one's film is read by the first residency
+    /// plan, when its job wants leasing, and a paused job's film goes back to disk.
+    #[test]
+    fn a_restart_reads_films_only_when_wanted() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let running = {
+            let state = AppState::new(cfg.clone()).expect("state");
+            let running = {
+                let mut farm = state.farm.lock();
+                let id = farm.submit("s".into(), None, 1, RenderSettings::new(64, 32, 4), 0).expect("submit");
+                for _ in 0..50 {
+                    farm.submit("s".into(), None, 0, RenderSettings::new(64, 32, 4), 0).expect("submit");
+                }
+                let w = farm.register("w".into(), 1, 0);
+                assert_eq!(farm.lease(w, 0).expect("lease").map(|g| g.job_id), Some(id));
+                id
+            };
+            assert_eq!(super::super::loops::checkpoint_all(&state), 51);
+            running
+        };
+        let files: Vec<_> = std::fs::read_dir(dir.path().join("jobs"))
+            .expect("jobs dir")
+            .flatten()
+            .filter(|e| e.path().join("checkpoint.bin").is_file())
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(files, vec![std::ffi::OsString::from(running.to_string())], "queued jobs have no checkpoint");
+        let state = AppState::new(cfg).expect("restart");
+        assert_eq!(state.farm.lock().films_in_memory(), (0, 0), "no film is read at restart");
+        assert!(apply_residency(&state));
+        assert_eq!(state.farm.lock().films_in_memory().0, 1, "the running job's film is read back");
+        let w = state.farm.lock().register("w".into(), 1, 0);
+        assert_eq!(state.farm.lock().lease(w, 0).expect("lease").map(|g| g.job_id), Some(running));
+        state.farm.lock().pause(running, 0).expect("pause");
+        assert!(apply_residency(&state));
+        assert_eq!(state.farm.lock().films_in_memory(), (0, 0), "a paused job's film is on disk");
     }
 }
