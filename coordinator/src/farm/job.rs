@@ -23,9 +23,9 @@ pub(super) struct FrameStatus {
 /// tile); only frames in progress hold a [`FrameRun`] (film and merge state), so memory grows
 /// with the frames in progress, not with the frames in the job; a queued job holds none. A
 /// single-frame job (`sequence` false) writes `jobs/ID/image.exr`; once finished and written
-/// there its film is dropped ([`Farm::final_image_written`]); a sequence's frame,
+/// there its film is dropped ([`super::Farm::final_image_written`]); a sequence's frame,
 /// once every unit is merged, moves to `finishing` until the server has written
-/// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`Farm::frame_written`]), then its film is
+/// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`super::Farm::frame_written`]), then its film is
 /// dropped.
 #[derive(Debug)]
 pub struct Job {
