@@ -119,7 +119,9 @@ impl Farm {
                 bytes = bytes.saturating_sub(film_of(v));
             }
             if films + n > max_films || bytes.saturating_add(need) > budget {
-                continue;
+                // No room for this job: those ranked after it may not take room before it (and
+                // the plan stays O(jobs) per want met).
+                break;
             }
             served.insert(job.id);
             films += n;
