@@ -324,10 +324,10 @@ pub(crate) async fn resolve_job(state: &Arc<AppState>, id: &str) -> ApiResult<Im
     responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 409, description = "The job is a sequence: each frame has its own image (`/jobs/{id}/frames/{frame}/image.exr`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    if let Some((bytes, _)) = written_image(&state, &id, "image.exr").await? {
-        return Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response());
-    }
-    let layers = resolve_job(&state, &id).await?;
+    let layers = match film_or_file(&state, &id, "image.exr").await? {
+        Ok(layers) => layers,
+        Err((bytes, _)) => return Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response()),
+    };
     let bytes = tokio::task::spawn_blocking(move || layers.encode_exr())
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
@@ -345,10 +345,9 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
     responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    let (bytes, ev) = match written_image(&state, &id, "preview.png").await? {
-        Some(written) => written,
-        None => {
-            let layers = resolve_job(&state, &id).await?;
+    let (bytes, ev) = match film_or_file(&state, &id, "preview.png").await? {
+        Err(written) => written,
+        Ok(layers) => {
             let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
             let (bytes, ev) = tokio::task::spawn_blocking(move || {
                 let ev = layers.preview_ev(exposure);
@@ -366,6 +365,25 @@ pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<S
         insert_exposure_header(&mut resp, ev);
     }
     Ok(resp)
+}
+
+/// The job's image resolved from its film, or (`Err`) its written file `name` with the
+/// preview's EV when its film is not in memory (also when it was dropped during the resolve).
+async fn film_or_file(
+    state: &Arc<AppState>,
+    id: &str,
+    name: &str,
+) -> ApiResult<Result<ImageLayers, (Vec<u8>, Option<f32>)>> {
+    if let Some(written) = written_image(state, id, name).await? {
+        return Ok(Err(written));
+    }
+    match resolve_job(state, id).await {
+        Ok(layers) => Ok(Ok(layers)),
+        Err(e) => match written_image(state, id, name).await? {
+            Some(written) => Ok(Err(written)),
+            None => Err(e),
+        },
+    }
 }
 
 /// A single-frame job whose film is not in memory (finished and written, or on disk for now):
