@@ -106,11 +106,17 @@ struct ServeArgs {
     /// Refuse jobs with more work units (frames x tiles x passes) than this.
     #[arg(long, default_value_t = 1 << 22)]
     max_units: u64,
-    /// Memory for the films of all jobs held (queued, running and finished until deleted), in
-    /// MiB; a film takes 256 bytes per pixel (a 1080p job 506 MiB). A job that does not fit is
-    /// refused with 422. Checkpoints copy one film at a time on top.
-    #[arg(long, default_value_t = 16384)]
+    /// Memory for the films in memory, in MiB; a film takes 64 bytes per pixel (a 1080p frame
+    /// 127 MiB). Queued jobs hold none, paused and finished ones none once written to disk; a
+    /// frame starts (or a film is read back) only while it fits, and a job whose films could
+    /// never fit is refused with 422. Checkpoints copy one film at a time on top.
+    #[arg(long, default_value_t = pathfarm_coordinator::farm::DEFAULT_FILM_BUDGET_BYTES >> 20)]
     film_memory_mb: u64,
+    /// Films in memory at most, across jobs; beyond it the least recently used films of jobs
+    /// of no higher priority are written to disk (their frames' checkpoints) and read back when
+    /// their frames are leased again.
+    #[arg(long, default_value_t = pathfarm_coordinator::farm::DEFAULT_MAX_RESIDENT_FILMS)]
+    max_resident_films: usize,
     /// Frames of one sequence (frame order) holding a film at once: the frames rendering plus
     /// those being written. The next frame starts when the frames in progress have no unit
     /// left to hand out, if it fits this and --film-memory-mb.
@@ -188,6 +194,7 @@ fn main() -> anyhow::Result<()> {
     cfg.tls = a.tls_cert.clone().zip(a.tls_key.clone());
     cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
     cfg.farm.max_open_frames = a.max_open_frames.max(1);
+    cfg.farm.max_resident_films = a.max_resident_films.max(1);
     cfg.farm.worker_prune_ms = (a.prune_workers_after_ms > 0).then_some(a.prune_workers_after_ms);
     cfg.register_per_minute = a.register_per_minute;
     cfg.register_burst = a.register_burst;

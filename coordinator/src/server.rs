@@ -87,6 +87,7 @@ async fn serve(
         tokio::spawn(loops::maintenance_loop(state.clone())),
         tokio::spawn(outputs::output_loop(state.clone())),
         tokio::spawn(loops::checkpoint_loop(state.clone())),
+        tokio::spawn(crate::service::residency::residency_loop(state.clone())),
         tokio::spawn(webhook::run(state.clone())),
         tokio::spawn(crate::http::conn::serve(listener, app, limits, state.clone(), tls)),
     ];

@@ -295,8 +295,9 @@ fn unknown_json_fields_are_422() {
 }
 
 /// Memory is bounded by configuration, not by what clients submit: the request that aborted the
-/// coordinator (a 16 TiB unit table) is 422 naming the units, and films beyond
-/// --film-memory-mb are refused with the numbers; the server keeps serving.
+/// coordinator (a 16 TiB unit table) is 422 naming the units, and a film beyond
+/// --film-memory-mb is refused with the numbers; jobs whose film fits are queued (a queued job
+/// holds no film); the server keeps serving.
 #[test]
 fn jobs_beyond_the_memory_budget_are_422() {
     let mut c = start(&["--film-memory-mb", "64"]);
@@ -304,13 +305,14 @@ fn jobs_beyond_the_memory_budget_are_422() {
     let r = c.submit(&json!({"scene_id": scene, "width": 8192, "height": 8192, "spp": 1_048_576,
         "tile_size": 8, "passes": {"type": "fixed", "spp": 1}}));
     expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["units (tiles x passes)", "4194304"]);
-    // 512 x 512 is 16 MiB of film (64 bytes per pixel): four fit in 64 MiB, the fifth does not.
-    for _ in 0..4 {
+    // 512 x 512 is 16 MiB of film (64 bytes per pixel): any number of them queue; 2048 x 1024
+    // (128 MiB) never fits.
+    for _ in 0..5 {
         c.submit_ok(&json!({"scene_id": scene, "width": 512, "height": 512, "spp": 1}));
     }
-    let r = c.submit(&json!({"scene_id": scene, "width": 512, "height": 512, "spp": 1}));
-    let msg = expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["16 MiB", "64 MiB", "--film-memory-mb", "4 jobs"]);
-    assert!(msg.contains("delete finished jobs"), "{msg}");
+    let r = c.submit(&json!({"scene_id": scene, "width": 2048, "height": 1024, "spp": 1}));
+    let msg = expect_error(r, StatusCode::UNPROCESSABLE_ENTITY, &["128 MiB", "64 MiB", "--film-memory-mb"]);
+    assert!(msg.contains("lower the resolution"), "{msg}");
     c.assert_serving();
 }
 

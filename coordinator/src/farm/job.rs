@@ -20,11 +20,12 @@ pub(super) struct FrameStatus {
 /// A job and its frames' units.
 ///
 /// A job renders a frame set (one frame unless `frames` was given). Units are (frame, pass,
-/// tile); only frames in progress hold a [`FrameRun`] (film and unit states), so memory grows
-/// with the frames in progress, not with the frames in the job. A single-frame job (`sequence`
-/// false) keeps its film after completion and writes `jobs/ID/image.exr`; a sequence's frame,
+/// tile); only frames in progress hold a [`FrameRun`] (film and merge state), so memory grows
+/// with the frames in progress, not with the frames in the job; a queued job holds none. A
+/// single-frame job (`sequence` false) writes `jobs/ID/image.exr`; once finished and written
+/// there its film is dropped ([`super::Farm::final_image_written`]); a sequence's frame,
 /// once every unit is merged, moves to `finishing` until the server has written
-/// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`Farm::frame_written`](super::Farm::frame_written)), then its film is
+/// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`super::Farm::frame_written`]), then its film is
 /// dropped.
 #[derive(Debug)]
 pub struct Job {
@@ -80,6 +81,10 @@ pub struct Job {
     pub log: Vec<String>,
     /// Output should be written (a pass completed, a frame finished or the job ended).
     pub output_dirty: bool,
+    /// A finished single-frame job whose final `image.exr` and `preview.png` are written: its
+    /// film is dropped and its images are served from those files. The EV of the preview when
+    /// this run wrote it (`None` after a restart).
+    pub(super) image_on_disk: Option<Option<f32>>,
 }
 
 /// Frames listed in a job's info (the rest: `GET /jobs/{id}/frames`).
@@ -100,7 +105,7 @@ impl Job {
     }
 
     pub(super) fn has_pending(&self) -> bool {
-        self.open.values().any(|f| f.pending > 0)
+        self.open.values().any(|f| f.pending() > 0)
     }
 
     /// The next frame that may be started (frame order: only when no frame in progress has
@@ -117,34 +122,53 @@ impl Job {
         self.has_pending() || self.unstarted > 0
     }
 
-    /// Films this job holds (frames in progress and frames being written).
+    /// Frames this job holds (frames in progress and frames being written).
     pub fn films_held(&self) -> u64 {
         (self.open.len() + self.finishing.len()) as u64
     }
 
+    /// Films this job holds in memory: those of `films_held` that are not on disk.
+    pub fn films_resident(&self) -> u64 {
+        (self.open.values().filter(|f| f.film.is_some()).count() + self.finishing.len()) as u64
+    }
+
+    /// Memory of the films this job holds now.
+    pub fn film_bytes(&self) -> u64 {
+        self.films_resident() * Film::bytes_for(self.settings.width, self.settings.height)
+    }
+
     pub(super) fn open_frame(&mut self, index: usize) {
-        let run =
-            FrameRun::new(&self.plan, self.settings.width, self.settings.height, self.settings.adaptive.is_some());
+        self.open_frame_with(index, Some(Film::new(self.settings.width, self.settings.height)));
+    }
+
+    /// Starts frame `index` with `film` (restore: a checkpoint's).
+    pub(super) fn open_frame_with(&mut self, index: usize, film: Option<Film>) {
+        let run = FrameRun::new(&self.plan, film, self.settings.adaptive.is_some());
         self.open.insert(index, run);
         self.status[index].state = FrameState::Rendering;
         self.unstarted -= 1;
     }
 
-    /// At submission (and restoration): a frame-order job starts its first frame (its film was
-    /// admitted with the job) unless one is in progress; sequence preview starts every frame.
-    pub(super) fn open_initial_frames(&mut self) {
+    /// Films this job needs to start its next frames: one (frame order), or every frame not
+    /// started (sequence preview: all at once).
+    pub(super) fn films_to_start(&self) -> u64 {
         match self.order {
-            FrameOrder::SequencePreview => {
-                while let Some(i) = self.frame_to_open() {
-                    self.open_frame(i);
-                }
+            FrameOrder::Frame => 1,
+            FrameOrder::SequencePreview => self.unstarted as u64,
+        }
+    }
+
+    /// Starts the job's next frames (the first lease, or when the frames in progress have
+    /// nothing pending): one frame in frame order, every frame not started in sequence
+    /// preview. A queued job holds no film: its frames start here, when their films fit.
+    pub(super) fn start_frames(&mut self) {
+        while let Some(i) = self.frame_to_open() {
+            self.open_frame(i);
+            if self.sequence {
+                self.log(format!("frame {} started", self.frames.frames()[i]));
             }
-            FrameOrder::Frame => {
-                if self.open.is_empty()
-                    && let Some(i) = self.frame_to_open()
-                {
-                    self.open_frame(i);
-                }
+            if self.order == FrameOrder::Frame {
+                break;
             }
         }
     }
@@ -155,8 +179,8 @@ impl Job {
         self.frames_merged += 1;
         self.status[index].passes_done = self.plan.passes.len() as u32;
         if self.sequence {
-            if let Some(run) = self.open.remove(&index) {
-                self.finishing.insert(index, Arc::new(run.film));
+            if let Some(film) = self.open.remove(&index).and_then(|run| run.film) {
+                self.finishing.insert(index, Arc::new(film));
             }
             self.status[index].state = FrameState::Writing;
             self.output_dirty = true;
@@ -184,19 +208,19 @@ impl Job {
 
     /// The next unit to hand out: frame order takes the first frame in progress with pending
     /// units; sequence preview takes the lowest (pass, frame) over every frame.
-    pub(super) fn take_unit(&mut self) -> Option<(usize, usize)> {
+    pub(super) fn take_unit(&mut self, lease: pathfarm_common::protocol::LeaseId) -> Option<(usize, usize)> {
         let tiles = self.plan.tiles.len().max(1);
         let frame = match self.order {
-            FrameOrder::Frame => self.open.iter().find(|(_, f)| f.pending > 0).map(|(&i, _)| i),
+            FrameOrder::Frame => self.open.iter().find(|(_, f)| f.pending() > 0).map(|(&i, _)| i),
             FrameOrder::SequencePreview => self
                 .open
                 .iter_mut()
-                .filter(|(_, f)| f.pending > 0)
+                .filter(|(_, f)| f.pending() > 0)
                 .filter_map(|(&i, f)| f.peek_pending().map(|u| (u / tiles, i)))
                 .min()
                 .map(|(_, i)| i),
         }?;
-        let unit = self.open.get_mut(&frame)?.take_pending()?;
+        let unit = self.open.get_mut(&frame)?.take_pending(lease)?;
         Some((frame, unit))
     }
 
@@ -232,23 +256,35 @@ impl Job {
         }
     }
 
+    /// Its images are to be written now: something changed, and its film is in memory (a
+    /// single-frame job's film on disk is written once it is loaded again).
+    pub fn output_due(&self) -> bool {
+        self.output_dirty && (self.sequence || self.film().is_some())
+    }
+
+    /// A finished single-frame job's images are on disk, its film dropped: `Some(ev)` with the
+    /// preview's EV when this run wrote it.
+    pub fn image_on_disk(&self) -> Option<Option<f32>> {
+        self.image_on_disk
+    }
+
     /// The film shown as "the job's image": a single-frame job's film; for a sequence, `None`
     /// (each frame has its own: [`Job::frame_film`]).
     pub fn film(&self) -> Option<&Film> {
-        if self.sequence { None } else { self.open.values().next().map(|f| &f.film) }
+        if self.sequence { None } else { self.open.values().next().and_then(|f| f.film.as_ref()) }
     }
 
     /// Mutable access to a single-frame job's film (tests).
     #[cfg(test)]
     pub fn film_mut(&mut self) -> Option<&mut Film> {
-        if self.sequence { None } else { self.open.values_mut().next().map(|f| &mut f.film) }
+        if self.sequence { None } else { self.open.values_mut().next().and_then(|f| f.film.as_mut()) }
     }
 
     /// The film of frame number `frame` while it is held (rendering or being written).
     pub fn frame_film(&self, frame: i32) -> Option<FrameFilm<'_>> {
         let index = self.frame_index(frame)?;
-        if let Some(run) = self.open.get(&index) {
-            return Some(FrameFilm::Open(&run.film));
+        if let Some(film) = self.open.get(&index).and_then(|run| run.film.as_ref()) {
+            return Some(FrameFilm::Open(film));
         }
         self.finishing.get(&index).map(|f| FrameFilm::Finishing(f.clone()))
     }
@@ -444,6 +480,7 @@ impl Job {
             error: None,
             log: Vec::new(),
             output_dirty: false,
+            image_on_disk: None,
         }
     }
 
@@ -454,11 +491,12 @@ impl Job {
         let (id, frames) = (self.id, self.frames.frames());
         self.open
             .iter_mut()
-            .filter(|(_, f)| all || f.checkpoint_dirty)
+            .filter(|(_, f)| (all || f.checkpoint_dirty) && f.film.is_some())
             .take(limit)
-            .map(|(&i, f)| {
+            .filter_map(|(&i, f)| {
                 f.checkpoint_dirty = false;
-                Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film: f.film.clone() }
+                let film = f.film.clone()?;
+                Some(Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film })
             })
             .collect()
     }
@@ -501,6 +539,50 @@ pub struct JobRecord {
     pub finished_ms: Option<u64>,
     pub error: Option<String>,
     pub run_ms: u64,
+}
+
+/// A checkpoint without its film: what a restart reads of each frame in progress (its film is
+/// read when the frame is leased again).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CheckpointHead {
+    pub job_id: JobId,
+    /// The frame number.
+    pub frame: i32,
+    pub width: u32,
+    pub height: u32,
+    pub next_pass: Vec<u32>,
+}
+
+/// A frame's checkpoint as restore takes it: with its film, or only its head (the film stays
+/// on disk until the frame is leased).
+#[derive(Clone, Debug)]
+pub enum FrameCheckpoint {
+    Loaded(Checkpoint),
+    OnDisk(CheckpointHead),
+}
+
+impl From<Checkpoint> for FrameCheckpoint {
+    fn from(cp: Checkpoint) -> Self {
+        FrameCheckpoint::Loaded(cp)
+    }
+}
+
+impl From<CheckpointHead> for FrameCheckpoint {
+    fn from(h: CheckpointHead) -> Self {
+        FrameCheckpoint::OnDisk(h)
+    }
+}
+
+impl Checkpoint {
+    pub fn head(&self) -> CheckpointHead {
+        CheckpointHead {
+            job_id: self.job_id,
+            frame: self.frame,
+            width: self.film.width,
+            height: self.film.height,
+            next_pass: self.next_pass.clone(),
+        }
+    }
 }
 
 /// A frame's merged sums and which units they hold. Because each tile folds its passes in

@@ -1,10 +1,10 @@
 //! Leases: scheduling, expiry, release and the merge of results.
 
-use super::frame_run::{UnitState, sample_count_mismatch};
+use super::frame_run::sample_count_mismatch;
 use super::{Farm, FarmError, Job, MergeOutcome};
 use pathfarm_common::film::{Film, TileAccum};
 use pathfarm_common::protocol::{
-    FrameOrder, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
+    FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
 };
 
 #[derive(Clone, Debug)]
@@ -29,23 +29,26 @@ impl Farm {
             self.note_unservable();
         }
         let tags = &self.workers[&worker].tags;
-        // A frame-order sequence whose frames in progress have nothing pending may start its
-        // next frame, while the frames it holds are under the cap and the new film fits.
-        let (budget, max_open) = (self.cfg.film_budget_bytes, self.cfg.max_open_frames.max(1) as u64);
-        let mut held: Option<u64> = None;
-        let jobs = &self.jobs;
+        // A job whose frames in progress have nothing pending may start its next frames (a
+        // queued job its first), while it holds fewer than `max_open_frames` (frame order) and
+        // the new films fit the film budget beside every film held.
+        let (budget, max_open) =
+            (self.cfg.film_budget_bytes.unwrap_or(u64::MAX), self.cfg.max_open_frames.max(1) as u64);
+        let max_films = self.cfg.max_resident_films.max(1) as u64;
+        let mut held: Option<(u64, u64)> = None;
+        let farm = &*self;
         let mut may_start = |j: &Job| {
-            j.order == FrameOrder::Frame
-                && j.unstarted > 0
-                && j.films_held() < max_open
-                && budget.is_none_or(|b| {
-                    let used = *held.get_or_insert_with(|| {
-                        jobs.values()
-                            .map(|j| j.films_held() * Film::bytes_for(j.settings.width, j.settings.height))
-                            .sum()
-                    });
-                    used.saturating_add(Film::bytes_for(j.settings.width, j.settings.height)) <= b
-                })
+            j.unstarted > 0
+                && (j.order == FrameOrder::SequencePreview || j.films_held() < max_open)
+                && (j.order == FrameOrder::Frame || j.films_held() == 0)
+                // A frame whose film is on disk is loaded before the next one starts.
+                && j.open.values().all(|r| r.film.is_some())
+                && {
+                    let (films, used) = *held.get_or_insert_with(|| farm.films_in_memory());
+                    let n = j.films_to_start();
+                    let need = n.saturating_mul(Film::bytes_for(j.settings.width, j.settings.height));
+                    films + n <= max_films && used.saturating_add(need) <= budget
+                }
         };
         let pick = self
             .jobs
@@ -59,15 +62,12 @@ impl Farm {
         let lease_id = self.next_lease;
         self.next_lease += 1;
         let Some(job) = self.jobs.get_mut(&job_id) else { return Ok(None) };
-        if !job.has_pending()
-            && let Some(next) = job.frame_to_open()
-        {
-            job.open_frame(next);
-            job.log(format!("frame {} started", job.frames.frames()[next]));
+        if !job.has_pending() {
+            job.start_frames();
         }
-        let Some((frame, unit)) = job.take_unit() else { return Ok(None) };
+        let Some((frame, unit)) = job.take_unit(lease_id) else { return Ok(None) };
         if let Some(run) = job.open.get_mut(&frame) {
-            run.units[unit] = UnitState::Leased(lease_id);
+            run.last_used = now_ms;
         }
         job.leased += 1;
         job.served += 1;
@@ -85,7 +85,11 @@ impl Farm {
         let key = job.unit_key(frame, unit);
         let mut settings = job.settings.clone();
         settings.frame = key.frame;
-        let mask = job.open.get(&frame).and_then(|run| run.masks[key.tile as usize].clone()).filter(|m| !m.none());
+        let mask = job
+            .open
+            .get(&frame)
+            .and_then(|run| run.masks.get(key.tile as usize).cloned().flatten())
+            .filter(|m| !m.none());
         let grant = LeaseGrant {
             mask,
             lease_id,
@@ -252,7 +256,7 @@ impl Farm {
         {
             Some("splat buffer size differs from the image".into())
         } else {
-            let mask = job.open.get(&l.frame).and_then(|run| run.masks[key.tile as usize].as_ref());
+            let mask = job.open.get(&l.frame).and_then(|run| run.masks.get(key.tile as usize)).and_then(Option::as_ref);
             sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
         };
         if let Some(reason) = mismatch {
@@ -267,9 +271,7 @@ impl Farm {
             }
             return Err(FarmError::ResultMismatch { lease: lease_id, reason });
         }
-        // Samples the unit holds (converged pixels of an adaptive tile hold none).
-        let unit_samples = |accum: &TileAccum| accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
-        let rendered = unit_samples(&frame.accum);
+        let rendered = frame.accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
         self.take_lease(lease_id);
         self.changes.progress(l.job);
         self.changes.workers.insert(l.worker);
@@ -280,64 +282,71 @@ impl Farm {
         }
         let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
         let Some(run) = job.open.get_mut(&l.frame) else { return Err(FarmError::LeaseLost(lease_id)) };
-        run.units[l.unit] = UnitState::Received;
-        run.waiting.insert(l.unit, (frame.accum, frame.splats));
-        run.checkpoint_dirty = true;
+        run.receive(l.unit, frame.accum, frame.splats);
+        Ok(self.settle(l.job, l.frame, &[key.tile as usize], now_ms))
+    }
+
+    /// Folds the results of `tiles` of frame `index` that are next in their tile's pass order
+    /// (none while the frame's film is on disk: they wait until it is loaded), then completes
+    /// passes, the frame and the job as they become complete.
+    pub(super) fn settle(&mut self, job_id: JobId, index: usize, tiles: &[usize], now_ms: u64) -> MergeOutcome {
+        // Samples the unit holds (converged pixels of an adaptive tile hold none).
+        let unit_samples = |accum: &TileAccum| accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
         let mut out = MergeOutcome::default();
-        let tile = key.tile as usize;
-        let tiles = job.plan.tiles.len();
-        loop {
-            let next = run.next_pass[tile];
-            if next as usize >= job.plan.passes.len() {
-                break;
-            }
-            let index = next as usize * tiles + tile;
-            let Some((accum, splats)) = run.waiting.remove(&index) else { break };
-            run.film.add_tile(&accum);
-            if let Some(s) = splats {
-                run.film.add_splats(&s);
-            }
-            run.units[index] = UnitState::Merged;
-            run.next_pass[tile] += 1;
-            run.units_merged += 1;
-            job.units_merged += 1;
-            let samples = unit_samples(&accum);
-            job.samples_done += samples;
-            self.counters.units_merged += 1;
-            self.counters.samples_merged += samples;
-            out.folded += 1;
-            run.pass_merged[next as usize] += 1;
-            if let Some(a) = &job.settings.adaptive {
-                // The tile's next pass may now be pending.
-                self.changes.work_ready = true;
-                let d = run.decide(&job.plan, a, job.settings.spp, tile);
-                job.units_merged += d.units_skipped;
-                job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
+        let Some(job) = self.jobs.get_mut(&job_id) else { return out };
+        let Some(run) = job.open.get_mut(&index) else { return out };
+        let passes_before = run.passes_done;
+        run.last_used = now_ms;
+        for &tile in tiles {
+            while run.film.is_some()
+                && let Some((unit, accum, splats)) = run.take_next_result(tile)
+            {
+                let Some(film) = run.film.as_mut() else { break };
+                film.add_tile(&accum);
+                if let Some(s) = splats {
+                    film.add_splats(&s);
+                }
+                run.checkpoint_dirty = true;
+                let pass = (unit / job.plan.tiles.len()) as u32;
+                run.advance(tile, pass + 1);
+                job.units_merged += 1;
+                let samples = unit_samples(&accum);
+                job.samples_done += samples;
+                self.counters.units_merged += 1;
+                self.counters.samples_merged += samples;
+                out.folded += 1;
+                if let Some(a) = &job.settings.adaptive {
+                    // The tile's next pass may now be pending.
+                    self.changes.work_ready = true;
+                    let d = run.decide(&job.plan, a, job.settings.spp, tile);
+                    job.units_merged += d.units_skipped;
+                    job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
+                }
             }
         }
         // Passes complete in order, because every tile folds its passes in order.
-        while (run.passes_done as usize) < job.plan.passes.len()
-            && run.pass_merged[run.passes_done as usize] == tiles as u32
-        {
-            let p = run.passes_done;
-            run.passes_done += 1;
+        out.passes_completed = (passes_before..run.passes_done).collect();
+        if !out.passes_completed.is_empty() {
+            self.changes.outputs = true;
             if !job.sequence {
                 job.output_dirty = true;
             }
-            out.passes_completed.push(p);
-            self.changes.outputs = true;
         }
-        job.status[l.frame].passes_done = run.passes_done;
-        if run.is_complete() {
-            job.frame_merged(l.frame);
-            out.frames_completed.push(key.frame);
+        if out.folded > 0 {
+            self.changes.progress(job_id);
+        }
+        job.status[index].passes_done = run.passes_done;
+        if run.is_complete() && job.status[index].state == FrameState::Rendering {
+            let frame = job.frames.frames()[index];
+            job.frame_merged(index);
+            out.frames_completed.push(frame);
             self.changes.outputs = true;
             self.changes.work_ready = true;
             if job.sequence {
-                job.log(format!("frame {} merged", key.frame));
+                job.log(format!("frame {frame} merged"));
             }
         }
-        if job.frames_merged as usize == job.frames.len() {
+        if job.frames_merged as usize == job.frames.len() && !job.state.is_finished() {
             let id = job.id;
             if job.settings.denoise {
                 // The farm does not schedule the denoise step yet (issue 14, second part).
@@ -351,7 +360,7 @@ impl Farm {
             self.finish(id, JobState::Completed, None, now_ms);
             out.job_completed = true;
         }
-        Ok(out)
+        out
     }
 
     /// The tile and image size a result for `lease_id` must have, if the lease is held.

@@ -18,16 +18,17 @@ mod changes;
 mod frame_run;
 mod job;
 mod lease;
+mod residency;
 #[cfg(test)]
 mod tests;
 mod workers;
 
 pub use changes::Changes;
 pub use frame_run::FrameRun;
-use frame_run::UnitState;
 use job::FrameStatus;
-pub use job::{Checkpoint, FrameFilm, Job, JobRecord, JobSpec};
+pub use job::{Checkpoint, CheckpointHead, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
 use lease::Lease;
+pub use residency::{FrameRef, ResidencyPlan};
 use workers::Worker;
 
 use pathfarm_common::film::Film;
@@ -54,13 +55,25 @@ pub struct FarmConfig {
     /// Workers offline (not seen) for longer than this, holding no lease, are forgotten.
     /// `None`: never.
     pub worker_prune_ms: Option<u64>,
-    /// Memory for the films of all jobs the farm holds (each `Film::bytes_for` its size); a job
-    /// that does not fit is refused. `None`: unbounded.
+    /// Memory for the films in memory (each `Film::bytes_for` its size): frames start, and
+    /// films are read back from disk, only while they fit; a job whose films could never fit
+    /// is refused. `None`: unbounded.
     pub film_budget_bytes: Option<u64>,
+    /// Films in memory at most (frames in progress and being written); beyond it the least
+    /// recently used ones wait on disk ([`Farm::residency_plan`]).
+    pub max_resident_films: usize,
+    /// A film read back from disk stays in memory at least this long before it may be written
+    /// out again for another job's (no thrashing between jobs that take turns).
+    pub min_resident_ms: u64,
     /// Frames of one frame-order job in progress at once, at most (the next frame starts when
     /// the frames in progress have no pending unit left and its film fits the budget).
     pub max_open_frames: usize,
 }
+
+/// Default of `--film-memory-mb`: 16 GiB of films in memory.
+pub const DEFAULT_FILM_BUDGET_BYTES: u64 = 16 << 30;
+/// Default of `--max-resident-films`.
+pub const DEFAULT_MAX_RESIDENT_FILMS: usize = 32;
 
 impl Default for FarmConfig {
     fn default() -> Self {
@@ -70,7 +83,9 @@ impl Default for FarmConfig {
             max_unit_failures: 3,
             blocklist_after: 2,
             limits: Limits::default(),
-            film_budget_bytes: None,
+            film_budget_bytes: Some(DEFAULT_FILM_BUDGET_BYTES),
+            max_resident_films: DEFAULT_MAX_RESIDENT_FILMS,
+            min_resident_ms: 2_000,
             worker_prune_ms: Some(3_600_000),
             expiry_tick_ms: 250,
             max_open_frames: 2,
@@ -86,6 +101,22 @@ pub fn token_matches(given: &str, expected: &str) -> bool {
 }
 
 pub use pathfarm_common::frames::MAX_FRAMES;
+
+/// A restored adaptive frame, once its film is in memory: the samples its pixels hold and each
+/// tile's mask (its next pass becomes pending, or the tile leaves the schedule).
+fn restore_adaptive(job: &mut Job, index: usize) {
+    let Some(a) = job.settings.adaptive else { return };
+    let Some(run) = job.open.get_mut(&index) else { return };
+    let Some(film) = &run.film else { return };
+    job.samples_done +=
+        job.plan.tiles.iter().map(|t| film.tile(*t).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>()).sum::<u64>();
+    for tile in 0..job.plan.tiles.len() {
+        let d = run.decide(&job.plan, &a, job.settings.spp, tile);
+        job.units_merged += d.units_skipped;
+        job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
+    }
+    run.restored = false;
+}
 
 /// Errors of farm operations; the API maps each to a status code.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -187,13 +218,14 @@ impl Farm {
     }
 
     /// Brings back a job from the store. `checkpoints`: the last checkpoint of each frame that
-    /// had one; `done`: indices of the frames whose images were written (sequences). Units
-    /// merged by a checkpoint stay merged, every other unit of the frame is pending again;
-    /// frames without either start over.
+    /// had one; `done`: indices of the frames whose images were written (sequences; for a
+    /// finished single-frame job, `[0]` when its final image is on disk: then no film is held
+    /// and its checkpoint is not needed). Units merged by a checkpoint stay merged, every other
+    /// unit of the frame is pending again; frames without either start over.
     pub fn restore(
         &mut self,
         rec: JobRecord,
-        checkpoints: Vec<Checkpoint>,
+        checkpoints: impl IntoIterator<Item = impl Into<FrameCheckpoint>>,
         done: &[usize],
         now_ms: u64,
     ) -> Result<(), String> {
@@ -226,8 +258,24 @@ impl Farm {
                 }
             }
         }
+        if !job.sequence && rec.state.is_finished() && done.contains(&0) {
+            job.image_on_disk = Some(None);
+            if rec.state == JobState::Completed {
+                job.status[0] = FrameStatus { state: FrameState::Done, passes_done: passes };
+                job.unstarted = 0;
+                (job.frames_done, job.frames_merged) = (1, 1);
+                job.units_merged = units_per_frame;
+                job.samples_done = job.samples_total;
+            }
+        }
         let tiles = job.plan.tiles.len();
+        let checkpoints: Vec<FrameCheckpoint> =
+            if job.image_on_disk.is_some() { Vec::new() } else { checkpoints.into_iter().map(Into::into).collect() };
         for cp in checkpoints {
+            let (cp, film) = match cp {
+                FrameCheckpoint::Loaded(c) => (c.head(), Some(c.film)),
+                FrameCheckpoint::OnDisk(h) => (h, None),
+            };
             let index = job
                 .frame_index(cp.frame)
                 .ok_or_else(|| format!("checkpoint of job {} is for frame {}, not in its frames", rec.id, cp.frame))?;
@@ -236,59 +284,40 @@ impl Farm {
             }
             if cp.job_id != rec.id
                 || cp.next_pass.len() != tiles
-                || (cp.film.width, cp.film.height) != (job.settings.width, job.settings.height)
+                || (cp.width, cp.height) != (job.settings.width, job.settings.height)
                 || cp.next_pass.iter().any(|&p| p > passes)
             {
                 return Err(format!("checkpoint of job {} frame {} does not match its settings", rec.id, cp.frame));
             }
-            job.open_frame(index);
+            let on_disk = film.is_none();
+            job.open_frame_with(index, film);
             let Some(run) = job.open.get_mut(&index) else { continue };
+            run.restored = on_disk;
             for (tile, &np) in cp.next_pass.iter().enumerate() {
-                for pass in 0..np as usize {
-                    let i = pass * tiles + tile;
-                    if run.units[i] == UnitState::Pending {
-                        run.pending -= 1;
-                    }
-                    run.units[i] = UnitState::Merged;
-                    run.units_merged += 1;
-                    run.pass_merged[pass] += 1;
-                    job.units_merged += 1;
-                }
+                run.advance(tile, np);
+                job.units_merged += u64::from(np);
                 if job.settings.adaptive.is_none() {
                     job.samples_done += job.plan.tiles[tile].pixel_count() as u64
                         * u64::from(job.plan.passes.get(..np as usize).map_or(0, |p| p.iter().map(|p| p.spp()).sum()));
-                } else {
-                    // Converged pixels hold fewer samples than the passes: count what they hold.
-                    job.samples_done +=
-                        cp.film.tile(job.plan.tiles[tile]).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
                 }
             }
-            run.next_pass = cp.next_pass;
-            run.film = cp.film;
-            // Adaptive: the masks are a pure function of the merged sums, so they are computed
-            // again (not stored); each tile's next pass becomes pending, or the tile leaves.
-            if let Some(a) = job.settings.adaptive {
-                for tile in 0..tiles {
-                    let d = run.decide(&job.plan, &a, job.settings.spp, tile);
-                    job.units_merged += d.units_skipped;
-                    job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
-                }
+            // Adaptive: converged pixels hold fewer samples than the passes, and the masks are
+            // a pure function of the merged sums (not stored): both come from the film, now or
+            // when it is loaded.
+            if !on_disk {
+                restore_adaptive(&mut job, index);
             }
-            while (run.passes_done as usize) < job.plan.passes.len()
-                && run.pass_merged[run.passes_done as usize] == tiles as u32
-            {
-                run.passes_done += 1;
-            }
+            let Some(run) = job.open.get_mut(&index) else { continue };
             run.checkpoint_dirty = false;
-            job.status[index].passes_done = run.passes_done;
-            if run.is_complete() {
+            let (passes_done, complete) = (run.passes_done, run.is_complete());
+            job.status[index].passes_done = passes_done;
+            // A complete frame whose film is on disk completes when it is loaded.
+            if complete && !on_disk {
                 job.frame_merged(index);
             }
         }
-        // A single-frame job always has its film (empty without a checkpoint, as before frames).
-        if !job.sequence && job.open.is_empty() && job.frames_merged == 0 {
-            job.open_frame(0);
-        }
+        // Frames without a checkpoint start when they are leased (their films are not held
+        // before); a sequence preview that started holds every frame's film.
         let total = job.frames.len() as u32;
         job.state = match rec.state {
             // A sequence recorded completed whose last frames were merged but not written (and
@@ -308,8 +337,12 @@ impl Farm {
         };
         if job.state.is_finished() && job.state != JobState::Completed && job.sequence {
             job.drop_open_frames();
-        } else if !job.state.is_finished() {
-            job.open_initial_frames();
+        } else if !job.state.is_finished() && job.order == FrameOrder::SequencePreview && !job.open.is_empty() {
+            job.start_frames();
+        }
+        if job.state.is_finished() && !job.sequence && !job.open.is_empty() {
+            // Its final images may not be on disk: written once more, then its film is dropped.
+            job.output_dirty = true;
         }
         if job.state == JobState::Completed && job.finished_ms.is_none() {
             job.finished_ms = Some(now_ms);
@@ -361,12 +394,13 @@ impl Farm {
 
     /// Memory of the films every job holds now.
     pub fn film_bytes_held(&self) -> u64 {
-        self.jobs.values().map(|j| j.films_held() * Film::bytes_for(j.settings.width, j.settings.height)).sum()
+        self.jobs.values().map(Job::film_bytes).sum()
     }
 
     /// The farm's own budgets for a job whose settings are valid (`RenderSettings::validate`
     /// is the one check of the settings): frames, frames x tiles x passes within `max_units`,
-    /// and the films within `--film-memory-mb`.
+    /// and the films it needs at once within `--film-memory-mb` (a job that could never start
+    /// is refused; one that fits waits until the films held leave room).
     fn check_budgets(&self, spec: &JobSpec) -> Result<(), FarmError> {
         let settings = &spec.settings;
         let frames = spec.frames.as_ref().map_or(1, FrameSet::len) as u64;
@@ -387,13 +421,13 @@ impl Farm {
             let film = Film::bytes_for(settings.width, settings.height);
             let films = if spec.order == FrameOrder::SequencePreview { frames } else { 1 };
             let need = film.saturating_mul(films);
-            let used = self.film_bytes_held();
-            if used.saturating_add(need) > budget {
+            if need > budget {
                 let mib = |b: u64| b.div_ceil(1 << 20);
+                let bpp = pathfarm_common::film::PIXEL_BYTES;
                 let what = if films > 1 {
                     format!(
                         "order sequence_preview holds every frame's film at once: {films} frames x {} MiB = {} MiB \
-                         ({}x{} pixels, 256 bytes each; order \"frame\" needs one film at a time)",
+                         ({}x{} pixels, {bpp} bytes each; order \"frame\" needs one film at a time)",
                         mib(film),
                         mib(need),
                         settings.width,
@@ -401,18 +435,16 @@ impl Farm {
                     )
                 } else {
                     format!(
-                        "the job's film needs {} MiB ({}x{} pixels, 256 bytes each)",
+                        "the job's film needs {} MiB ({}x{} pixels, {bpp} bytes each)",
                         mib(need),
                         settings.width,
                         settings.height
                     )
                 };
                 return Err(FarmError::OverBudget(format!(
-                    "{what}; {} MiB of the coordinator's film budget of {} MiB (--film-memory-mb) are held by {} jobs: \
-                     delete finished jobs or lower the resolution",
-                    mib(used),
-                    mib(budget),
-                    self.jobs.len()
+                    "{what}, more than the coordinator's film budget of {} MiB (--film-memory-mb): lower the \
+                     resolution",
+                    mib(budget)
                 )));
             }
         }
@@ -420,17 +452,16 @@ impl Farm {
     }
 
     /// Adds a job: settings, tags, frames x tiles x passes and the film budget are checked
-    /// before anything is allocated. A frame-order job needs one film to fit the budget (more
-    /// frames start only while their films fit); a sequence-preview job needs every frame's.
+    /// before anything is allocated. A frame-order job needs one film to fit the budget; a
+    /// sequence-preview job needs every frame's. The job holds no film while queued: its frames
+    /// start when leased, once their films fit beside the films held then.
     pub fn submit_job(&mut self, spec: JobSpec, now_ms: u64) -> Result<JobId, FarmError> {
         pathfarm_common::protocol::validate_tags(&spec.requires, "requires").map_err(FarmError::InvalidJob)?;
         spec.settings.validate(&self.cfg.limits).map_err(|e| FarmError::InvalidJob(e.to_string()))?;
         self.check_budgets(&spec)?;
         let id = self.next_job;
         self.next_job += 1;
-        let mut job = Job::new(id, spec, now_ms);
-        job.open_initial_frames();
-        self.jobs.insert(id, job);
+        self.jobs.insert(id, Job::new(id, spec, now_ms));
         self.note_unservable();
         self.changes.record(id);
         self.changes.work_ready = true;
@@ -485,7 +516,8 @@ impl Farm {
             job.state = state;
             job.finished_ms = Some(now_ms);
             job.error = error;
-            job.output_dirty = true;
+            // A single-frame job cancelled before it started has no film and no image.
+            job.output_dirty = job.sequence || !job.open.is_empty();
             for run in job.open.values_mut() {
                 run.waiting.clear();
             }
@@ -519,6 +551,19 @@ impl Farm {
         self.changes.work_ready = true; // the next frame may start
         job.log(format!("frame {frame} written ({} of {} done)", job.frames_done, job.frames.len()));
         Some(frame)
+    }
+
+    /// The server wrote the images of a finished single-frame job (`preview_ev`: the EV of its
+    /// preview): unless something changed since the job ended (`output_dirty`), its film is
+    /// dropped and its images are served from the files. Returns whether it was dropped.
+    pub fn final_image_written(&mut self, id: JobId, preview_ev: Option<f32>) -> bool {
+        let Some(job) = self.jobs.get_mut(&id) else { return false };
+        if job.sequence || !job.state.is_finished() || job.output_dirty || job.leased > 0 {
+            return false;
+        }
+        job.open.clear();
+        job.image_on_disk = Some(preview_ev);
+        true
     }
 
     /// Sets the webhook of a job (right after submitting it).

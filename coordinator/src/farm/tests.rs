@@ -7,6 +7,7 @@ use pathfarm_common::film::TileAccum;
 use pathfarm_common::job::PassSchedule;
 use pathfarm_common::job::TileRect;
 use pathfarm_common::protocol::{LeaseGrant, UnitResultFrame, WorkerState};
+use std::collections::HashMap;
 
 fn settings() -> RenderSettings {
     let mut s = RenderSettings::new(20, 12, 7);
@@ -57,7 +58,7 @@ fn frame_order_bounds_the_frames_in_progress() {
     let per_frame = s.plan().unit_count();
     let mut farm = Farm::new(FarmConfig { max_open_frames: 2, ..FarmConfig::default() });
     let id = farm.submit_job(sequence("10-14", FrameOrder::Frame), 0).expect("submit");
-    assert_eq!(farm.job(id).expect("job").films_held(), 1, "the first frame starts with the job");
+    assert_eq!(farm.job(id).expect("job").films_held(), 0, "a queued job holds no film");
     let w = farm.register("w".into(), 1, 0);
     let mut grants = Vec::new();
     while let Some(g) = farm.lease(w, 0).expect("lease") {
@@ -125,11 +126,12 @@ fn sequence_preview_hands_out_passes_across_frames() {
     let (tiles, passes) = (s.plan().tiles.len(), s.plan().passes.len());
     let mut farm = Farm::new(FarmConfig::default());
     let id = farm.submit_job(sequence("1-3", FrameOrder::SequencePreview), 0).expect("submit");
-    assert_eq!(farm.job(id).expect("job").films_held(), 3);
+    assert_eq!(farm.job(id).expect("job").films_held(), 0, "a queued job holds no film");
     let w = farm.register("w".into(), 1, 0);
     let mut keys = Vec::new();
     let mut first = None;
     while let Some(g) = farm.lease(w, 0).expect("lease") {
+        assert_eq!(farm.job(id).expect("job").films_held(), 3, "the first lease starts every frame");
         keys.push(g.unit);
         // A result comes back now and then, out of order: requeues keep the order too.
         if keys.len() == 5 {
@@ -749,4 +751,316 @@ fn adaptive_converged_tiles_leave_the_schedule_and_survive_a_restore() {
     assert_eq!(job.state, JobState::Completed);
     assert_eq!(job.film(), Some(&reference));
     assert_eq!(job.info(0).progress, 1.0);
+}
+
+/// Units are derived from the plan, never stored per (pass, tile): the job of issue 17
+/// (8192 x 8192, spp 2^20, tile 8, 1-spp passes: 2^40 units, whose unit table aborted the
+/// coordinator) is refused by the default unit limit with a message that says so; with the
+/// limit lifted it is accepted holding no film and no unit table, and a frame's state with
+/// 2^20 passes takes the same memory as with one pass.
+#[test]
+fn units_are_lazy_and_memory_does_not_grow_with_the_pass_count() {
+    let mut huge = RenderSettings::new(8192, 8192, 1 << 20);
+    huge.tile_size = 8;
+    huge.passes = PassSchedule::Fixed { spp: 1 };
+    let mut farm = Farm::new(FarmConfig::default());
+    match farm.submit("x".into(), None, 0, huge.clone(), 0) {
+        Err(FarmError::InvalidJob(m)) => assert!(m.contains("units (tiles x passes)"), "{m}"),
+        r => panic!("admitted: {r:?}"),
+    }
+    let unlimited = FarmConfig {
+        limits: Limits { max_units: u64::MAX, ..Limits::default() },
+        film_budget_bytes: Some(Film::bytes_for(8192, 8192)),
+        ..FarmConfig::default()
+    };
+    let mut farm = Farm::new(unlimited.clone());
+    let id = farm.submit("x".into(), None, 0, huge, 0).expect("2^40 units are accepted without a unit table");
+    assert_eq!(farm.job(id).expect("job").films_held(), 0, "a queued job holds no film");
+    // Lease and merge a few units of a 2^20-pass frame (small image, 4096 tiles): canonical
+    // order, pass 0 first; then compare its state with a 1-pass job's.
+    let state_after = |spp: u32| {
+        let mut s = RenderSettings::new(512, 512, spp);
+        s.tile_size = 8;
+        s.passes = PassSchedule::Fixed { spp: 1 };
+        let mut farm = Farm::new(unlimited.clone());
+        let id = farm.submit("x".into(), None, 0, s, 0).expect("submit");
+        let w = farm.register("w".into(), 1, 0);
+        for i in 0..10u32 {
+            let g = farm.lease(w, 0).expect("lease").expect("work");
+            assert_eq!((g.unit.pass, g.unit.tile), (0, i));
+            farm.accept(g.lease_id, fake_result(&g), 0).expect("accept");
+        }
+        let job = farm.job(id).expect("job");
+        job.open.values().map(FrameRun::state_bytes).sum::<usize>()
+    };
+    let (many, one) = (state_after(1 << 20), state_after(1));
+    assert_eq!(many, one, "a frame's state must not depend on the pass count");
+    assert!(many < 64 * 4096, "{many} bytes for 4096 tiles");
+}
+
+/// The canonical order survives returns: units handed back (expired, released, refused) go
+/// out again before later ones, in (pass, tile) order, and every unit merges once.
+#[test]
+fn lazy_units_hand_out_returned_units_first_in_canonical_order() {
+    let s = settings();
+    let reference = reference_film(&s);
+    let plan = s.plan();
+    let mut farm = Farm::new(FarmConfig::default());
+    let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+    let w = farm.register("w".into(), 1, 0);
+    let mut out = Vec::new();
+    for _ in 0..9 {
+        out.push(farm.lease(w, 0).expect("lease").expect("work"));
+    }
+    // Units 7, 2 and 5 come back (in that order): they go out again sorted, before the
+    // cursor's next unit.
+    let key = |g: &LeaseGrant| (g.unit.pass, g.unit.tile);
+    for i in [7, 2, 5] {
+        farm.release(out[i].lease_id, false, "shutdown", 0).expect("release");
+    }
+    let again: Vec<_> = (0..4).map(|_| farm.lease(w, 0).expect("lease").expect("work")).collect();
+    let tiles = plan.tiles.len() as u32;
+    let next = (9 / tiles, 9 % tiles);
+    assert_eq!(
+        again.iter().map(key).collect::<Vec<_>>(),
+        vec![key(&out[2]), key(&out[5]), key(&out[7]), next],
+        "returned units first, then the cursor"
+    );
+    assert!(out.iter().map(key).collect::<Vec<_>>().is_sorted(), "pass-major order");
+    // Everything else, delivered newest first.
+    let mut grants: Vec<_> =
+        out.iter().enumerate().filter(|(i, _)| ![2, 5, 7].contains(i)).map(|(_, g)| g.clone()).collect();
+    grants.extend(again);
+    while let Some(g) = farm.lease(w, 0).expect("lease") {
+        grants.push(g);
+    }
+    assert_eq!(grants.len(), plan.unit_count());
+    for g in grants.iter().rev() {
+        farm.accept(g.lease_id, fake_result(g), 0).expect("accept");
+    }
+    let job = farm.job(id).expect("job");
+    assert_eq!(job.state, JobState::Completed);
+    assert_eq!(job.film(), Some(&reference));
+}
+
+/// Films follow the jobs in progress: queued jobs hold none and are admitted while their film
+/// alone fits the budget; they start when leased, once their film fits beside those held; a
+/// finished job's film is dropped once its image is written, making room for the next.
+#[test]
+fn queued_jobs_hold_no_film_and_start_when_their_film_fits() {
+    let s = settings();
+    let film = Film::bytes_for(s.width, s.height);
+    let mut farm = Farm::new(FarmConfig { film_budget_bytes: Some(film * 2), ..FarmConfig::default() });
+    let ids: Vec<JobId> = (0..5).map(|_| farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit")).collect();
+    assert_eq!(farm.film_bytes_held(), 0);
+    let mut big = s.clone();
+    big.width *= 3;
+    match farm.submit("x".into(), None, 0, big, 0) {
+        Err(FarmError::OverBudget(m)) => assert!(m.contains("--film-memory-mb") && m.contains("64 bytes"), "{m}"),
+        r => panic!("admitted: {r:?}"),
+    }
+    let w = farm.register("w".into(), 1, 0);
+    let mut grants = Vec::new();
+    while let Some(g) = farm.lease(w, 0).expect("lease") {
+        grants.push(g);
+    }
+    let started: std::collections::BTreeSet<JobId> = grants.iter().map(|g| g.job_id).collect();
+    assert_eq!(started.len(), 2, "two films fit");
+    assert_eq!(farm.film_bytes_held(), 2 * film);
+    for g in &grants {
+        farm.accept(g.lease_id, fake_result(g), 0).expect("accept");
+    }
+    let done: Vec<JobId> = started.iter().copied().collect();
+    assert!(done.iter().all(|&id| farm.job(id).expect("job").state == JobState::Completed));
+    assert_eq!(farm.lease(w, 0).expect("lease"), None, "finished films are held until written");
+    // The output loop wrote one job's final image: its film is dropped, the next job starts.
+    farm.job_mut(done[0]).expect("job").output_dirty = false;
+    assert!(farm.final_image_written(done[0], Some(0.5)));
+    let job = farm.job(done[0]).expect("job");
+    assert_eq!((job.film(), job.image_on_disk()), (None, Some(Some(0.5))));
+    assert_eq!(job.info(0).progress, 1.0);
+    assert_eq!(farm.film_bytes_held(), film);
+    let g = farm.lease(w, 0).expect("lease").expect("the third job starts");
+    assert!(!started.contains(&g.job_id) && ids.contains(&g.job_id));
+}
+
+/// A restart loads no film for queued jobs (none was checkpointed) nor for finished jobs
+/// whose image is on disk; a completed one keeps its figures; frames with a checkpoint resume.
+#[test]
+fn a_restart_loads_no_film_for_queued_or_written_jobs() {
+    let s = settings();
+    let units = s.plan().unit_count();
+    let mut farm = Farm::new(FarmConfig::default());
+    let done = farm.submit("x".into(), None, 1, s.clone(), 0).expect("submit");
+    let queued: Vec<JobId> = (0..50).map(|_| farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit")).collect();
+    // Nothing to checkpoint: a queued job holds no frame.
+    for &id in &queued {
+        assert!(farm.job_mut(id).expect("job").take_checkpoints(true, usize::MAX).is_empty());
+    }
+    let w = farm.register("w".into(), 1, 0);
+    for _ in 0..units {
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        assert_eq!(g.job_id, done, "the higher priority first");
+        farm.accept(g.lease_id, fake_result(&g), 0).expect("accept");
+    }
+    assert_eq!(farm.job(done).expect("job").state, JobState::Completed);
+    let mut again = Farm::new(FarmConfig::default());
+    for job in farm.jobs() {
+        let written: &[usize] = if job.id == done { &[0] } else { &[] };
+        // The store would find no checkpoint for the queued jobs and read none for the written one.
+        again.restore(job.record(0), Vec::<Checkpoint>::new(), written, 0).expect("restore");
+    }
+    assert_eq!(again.film_bytes_held(), 0, "no film is loaded at restore");
+    let info = again.job(done).expect("job").info(0);
+    assert_eq!((info.state, info.units_merged, info.progress), (JobState::Completed, units as u64, 1.0));
+    assert_eq!(again.job(done).expect("job").image_on_disk(), Some(None));
+    assert!(queued.iter().all(|&id| again.job(id).expect("job").state == JobState::Queued));
+}
+
+/// The service's side of residency with a map for a disk: carries out one plan.
+fn run_residency(farm: &mut Farm, disk: &mut HashMap<(JobId, i32), Checkpoint>, now: u64) -> ResidencyPlan {
+    let plan = farm.residency_plan(now);
+    for f in &plan.spill {
+        let cp = farm.take_film(*f).expect("a film to write");
+        disk.insert((f.job, f.frame), cp);
+        farm.film_spilled(*f);
+    }
+    for f in &plan.load {
+        let cp = disk.get(&(f.job, f.frame)).cloned().ok_or_else(|| "not on disk".to_string());
+        farm.attach_film(*f, cp, now).expect("attach");
+    }
+    plan
+}
+
+/// A job's film, from memory or from the disk map.
+fn film_of(farm: &Farm, disk: &HashMap<(JobId, i32), Checkpoint>, id: JobId) -> Film {
+    let job = farm.job(id).expect("job");
+    job.film().cloned().unwrap_or_else(|| disk[&(id, job.settings.frame)].film.clone())
+}
+
+/// At most one film in memory (`max_resident_films` 1) and two jobs of equal priority: they
+/// take turns, each film written to disk and read back many times, results that arrive while
+/// their film is on disk wait and fold when it is back; both end bit-identical to an
+/// uninterrupted render.
+#[test]
+fn lru_residency_with_one_film_alternates_two_jobs_bit_identically() {
+    let s = settings();
+    let reference = reference_film(&s);
+    let mut farm = Farm::new(FarmConfig { max_resident_films: 1, min_resident_ms: 0, ..FarmConfig::default() });
+    let a = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+    let b = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+    let w = farm.register("w".into(), 1, 0);
+    let mut disk = HashMap::new();
+    let (mut held, mut spills, mut loads, mut served): (Vec<LeaseGrant>, _, _, Vec<JobId>) =
+        (Vec::new(), 0, 0, Vec::new());
+    for step in 0..10_000 {
+        let plan = run_residency(&mut farm, &mut disk, step);
+        (spills, loads) = (spills + plan.spill.len(), loads + plan.load.len());
+        assert!(farm.films_in_memory().0 <= 1, "step {step}: {:?}", farm.films_in_memory());
+        // Results leased before the plan arrive now, their film perhaps on disk.
+        for g in std::mem::take(&mut held) {
+            farm.accept(g.lease_id, fake_result(&g), step).expect("accept");
+        }
+        for _ in 0..3 {
+            if let Some(g) = farm.lease(w, step).expect("lease") {
+                served.push(g.job_id);
+                held.push(g);
+            }
+        }
+        assert!(farm.films_in_memory().0 <= 1);
+        let done = |id| farm.job(id).expect("job").state == JobState::Completed;
+        if held.is_empty() && done(a) && done(b) {
+            break;
+        }
+    }
+    assert!(
+        farm.job(a).expect("job").state == JobState::Completed
+            && farm.job(b).expect("job").state == JobState::Completed
+    );
+    let turns = served.windows(2).filter(|p| p[0] != p[1]).count();
+    assert!(turns >= 4 && spills >= 4 && loads >= 3, "turns {turns}, spills {spills}, loads {loads}");
+    assert_eq!(film_of(&farm, &disk, a), reference);
+    assert_eq!(film_of(&farm, &disk, b), reference);
+}
+
+/// A paused job's film goes to disk (results in flight wait); resumed, it is read back at
+/// the next plan and the job finishes bit-identical.
+#[test]
+fn a_paused_jobs_film_lives_on_disk() {
+    let s = settings();
+    let reference = reference_film(&s);
+    let mut farm = Farm::new(FarmConfig::default());
+    let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+    let w = farm.register("w".into(), 1, 0);
+    let mut disk = HashMap::new();
+    let g1 = farm.lease(w, 0).expect("lease").expect("work");
+    let g2 = farm.lease(w, 0).expect("lease").expect("work");
+    farm.accept(g1.lease_id, fake_result(&g1), 0).expect("accept");
+    farm.pause(id, 1).expect("pause");
+    let plan = run_residency(&mut farm, &mut disk, 1);
+    assert_eq!(plan.spill.len(), 1);
+    assert_eq!(farm.film_bytes_held(), 0, "a paused job's film is on disk");
+    assert_eq!(disk[&(id, 0)].next_pass.iter().sum::<u32>(), 1);
+    // The unit in flight arrives: it waits in memory, nothing is folded.
+    assert_eq!(farm.accept(g2.lease_id, fake_result(&g2), 2).expect("accept").folded, 0);
+    assert!(run_residency(&mut farm, &mut disk, 2).is_empty(), "paused: stays on disk");
+    farm.resume(id, 3).expect("resume");
+    assert_eq!(farm.lease(w, 3).expect("lease"), None, "nothing is leased before the film is back");
+    let plan = run_residency(&mut farm, &mut disk, 3);
+    assert_eq!(plan.load.len(), 1);
+    assert_eq!(farm.job(id).expect("job").units_merged, 2, "the waiting result folded");
+    while let Some(g) = farm.lease(w, 4).expect("lease") {
+        farm.accept(g.lease_id, fake_result(&g), 4).expect("accept");
+    }
+    assert_eq!(farm.job(id).expect("job").state, JobState::Completed);
+    assert_eq!(film_of(&farm, &disk, id), reference);
+}
+
+/// A restart with checkpoint heads only: no film is in memory; a frame's film is read when its
+/// job wants leasing, and the job finishes bit-identical. A checkpoint that does not match
+/// what the farm restored fails the job with a message, never merges wrong sums.
+#[test]
+fn a_restart_reads_films_when_their_frames_are_leased() {
+    let s = settings();
+    let reference = reference_film(&s);
+    let mut farm = Farm::new(FarmConfig::default());
+    let ids: Vec<JobId> = (0..3).map(|_| farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit")).collect();
+    let w = farm.register("w".into(), 1, 0);
+    for _ in 0..12 {
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        farm.accept(g.lease_id, fake_result(&g), 0).expect("accept");
+    }
+    let mut disk = HashMap::new();
+    let mut again = Farm::new(FarmConfig::default());
+    for &id in &ids {
+        let cps = farm.job_mut(id).expect("job").take_checkpoints(true, usize::MAX);
+        let heads: Vec<CheckpointHead> = cps.iter().map(Checkpoint::head).collect();
+        for cp in cps {
+            disk.insert((id, cp.frame), cp);
+        }
+        again.restore(farm.job(id).expect("job").record(0), heads, &[], 0).expect("restore");
+    }
+    assert_eq!(again.films_in_memory(), (0, 0), "no film is read at restore");
+    let before = again.job(ids[0]).expect("job").info(0);
+    assert_eq!(before.units_merged, farm.job(ids[0]).expect("job").units_merged);
+    let w = again.register("w".into(), 1, 0);
+    assert_eq!(again.lease(w, 0).expect("lease"), None, "films first");
+    // The third job's checkpoint on disk is not the one restored: it fails, saying why.
+    disk.get_mut(&(ids[2], 0)).expect("cp").next_pass[0] += 1;
+    let plan = again.residency_plan(0);
+    assert_eq!(plan.load.len(), 3);
+    for f in &plan.load {
+        let r = again.attach_film(*f, Ok(disk[&(f.job, f.frame)].clone()), 0);
+        assert_eq!(r.is_err(), f.job == ids[2], "{r:?}");
+    }
+    let failed = again.job(ids[2]).expect("job");
+    assert_eq!(failed.state, JobState::Failed);
+    assert!(failed.error.as_deref().is_some_and(|e| e.contains("could not be read back")), "{:?}", failed.error);
+    while let Some(g) = again.lease(w, 1).expect("lease") {
+        again.accept(g.lease_id, fake_result(&g), 1).expect("accept");
+    }
+    for &id in &ids[..2] {
+        assert_eq!(again.job(id).expect("job").state, JobState::Completed);
+        assert_eq!(again.job(id).expect("job").film(), Some(&reference));
+    }
 }

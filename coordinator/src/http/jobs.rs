@@ -328,7 +328,10 @@ pub(crate) async fn resolve_job(state: &Arc<AppState>, id: &str) -> ApiResult<Im
     responses((status = 200, description = "OpenEXR file", body = Vec<u8>, content_type = "image/x-exr"), (status = 409, description = "The job is a sequence: each frame has its own image (`/jobs/{id}/frames/{frame}/image.exr`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    let layers = resolve_job(&state, &id).await?;
+    let layers = match film_or_file(&state, &id, "image.exr").await? {
+        Ok(layers) => layers,
+        Err((bytes, _)) => return Ok(([(header::CONTENT_TYPE, "image/x-exr")], bytes).into_response()),
+    };
     let bytes = tokio::task::spawn_blocking(move || layers.encode_exr())
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
@@ -347,19 +350,75 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
     responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    let layers = resolve_job(&state, &id).await?;
-    let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
-    let (bytes, ev) = tokio::task::spawn_blocking(move || {
-        let ev = layers.preview_ev(exposure);
-        layers.encode_png(ev).map(|b| (b, ev))
-    })
-    .await
-    .map_err(|e| ApiError::internal(e.to_string()))?
-    .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+    let (bytes, ev) = match film_or_file(&state, &id, "preview.png").await? {
+        Err(written) => written,
+        Ok(layers) => {
+            let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
+            let (bytes, ev) = tokio::task::spawn_blocking(move || {
+                let ev = layers.preview_ev(exposure);
+                layers.encode_png(ev).map(|b| (b, ev))
+            })
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+            .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+            (bytes, Some(ev))
+        }
+    };
     let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
-    insert_exposure_header(&mut resp, ev);
+    if let Some(ev) = ev {
+        insert_exposure_header(&mut resp, ev);
+    }
     Ok(resp)
+}
+
+/// The job's image resolved from its film, or (`Err`) its written file `name` with the
+/// preview's EV when its film is not in memory (also when it was dropped during the resolve).
+async fn film_or_file(
+    state: &Arc<AppState>,
+    id: &str,
+    name: &str,
+) -> ApiResult<Result<ImageLayers, (Vec<u8>, Option<f32>)>> {
+    if let Some(written) = written_image(state, id, name).await? {
+        return Ok(Err(written));
+    }
+    match resolve_job(state, id).await {
+        Ok(layers) => Ok(Ok(layers)),
+        Err(e) => match written_image(state, id, name).await? {
+            Some(written) => Ok(Err(written)),
+            None => Err(e),
+        },
+    }
+}
+
+/// A single-frame job whose film is not in memory (finished and written, or on disk for now):
+/// its written file `name` (`image.exr`, `preview.png`, as of its last completed pass) and the
+/// preview's EV when known; `None` while the job's film is in memory (resolved from it).
+async fn written_image(state: &AppState, id: &str, name: &str) -> ApiResult<Option<(Vec<u8>, Option<f32>)>> {
+    let id = parse_id("job", id)?;
+    let ev = {
+        let farm = state.farm.lock();
+        let job = farm.job(id)?;
+        match job.image_on_disk() {
+            Some(ev) => ev,
+            None if !job.sequence
+                && job.film().is_none()
+                && job.passes_done() > 0
+                && state.job_dir(id).join(name).is_file() =>
+            {
+                None
+            }
+            None => return Ok(None),
+        }
+    };
+    let bytes = tokio::fs::read(state.job_dir(id).join(name)).await.map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            ApiError::not_found(format!("job {id} has no {name} on disk (its files were removed)"))
+        } else {
+            crate::service::storage_error(&e, "the job's image").into()
+        }
+    })?;
+    Ok(Some((bytes, ev)))
 }
 
 /// The response header that says which exposure a PNG preview used (EV).

@@ -193,7 +193,7 @@ async fn sequences_are_validated_listed_and_served_per_frame() {
     assert_eq!(status, StatusCode::OK);
     assert_eq!(info["frames"]["total"], 5);
     assert_eq!(info["frames"]["sequence"], true);
-    assert_eq!(info["frames"]["current"][0]["frame"], 10);
+    assert_eq!(info["frames"]["current"], serde_json::json!([]), "a queued job holds no frame");
     let (_, link, page) = get(&app, &format!("/api/v1/jobs/{id}/frames?limit=2")).await;
     let frames = |v: &serde_json::Value| -> Vec<i64> {
         v.as_array().expect("array").iter().map(|f| f["frame"].as_i64().expect("frame")).collect()
@@ -203,7 +203,11 @@ async fn sequences_are_validated_listed_and_served_per_frame() {
     let (_, link, page) = get(&app, &format!("/api/v1/jobs/{id}/frames?limit=2&after=3")).await;
     assert_eq!((frames(&page), link), (vec![14], None));
     assert_eq!(page[0]["state"], "pending");
-    // Frame 10 is rendering (its film exists): served; frame 14 has not started: 409.
+    // Not started: 409. Frame 10 starts with the first lease (its film exists): served; frame
+    // 14 has not started: 409.
+    assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/10/preview.png")).await, StatusCode::CONFLICT);
+    let w = state.farm.lock().register("w".into(), 1, 0);
+    assert!(state.farm.lock().lease(w, 0).expect("lease").is_some_and(|g| g.unit.frame == 10));
     assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/10/preview.png")).await, StatusCode::OK);
     assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/14/image.exr")).await, StatusCode::CONFLICT);
     assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/frames/9/image.exr")).await, StatusCode::NOT_FOUND);
@@ -211,6 +215,7 @@ async fn sequences_are_validated_listed_and_served_per_frame() {
     assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{id}/image.exr")).await, StatusCode::CONFLICT);
     // A single-frame job serves its one frame under the frame route too.
     let single = submit(&app, &scene).await;
+    assert!(state.farm.lock().lease(w, 0).expect("lease").is_some_and(|g| g.job_id == single));
     assert_eq!(status_of(&app, "GET", &format!("/api/v1/jobs/{single}/frames/0/preview.png")).await, StatusCode::OK);
     assert_eq!(
         status_of(&app, "GET", &format!("/api/v1/jobs/{single}/frames/1/preview.png")).await,
@@ -347,6 +352,9 @@ fn banded_resolve_equals_whole_resolve() {
     let id = state.farm.lock().submit("s".into(), None, 0, RenderSettings::new(23, 37, 4), 0).expect("submit");
     let expected = {
         let mut farm = state.farm.lock();
+        // The job's film exists from its first lease.
+        let w = farm.register("w".into(), 1, 0);
+        assert!(farm.lease(w, 0).expect("lease").is_some());
         let film = farm.job_mut(id).expect("job").film_mut().expect("film");
         let mut x: u64 = 0x1234_5678_9abc_def1;
         for p in film.sums.iter_mut() {

@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
-use store::{Store, read_checkpoint, write_checkpoint};
+use store::{Store, write_checkpoint};
 use tokio::sync::{Notify, broadcast};
 
 /// The farm's clock, in milliseconds: the Unix time when the process started plus the
@@ -34,6 +34,7 @@ pub mod error;
 pub mod loops;
 pub mod metrics;
 pub mod outputs;
+pub mod residency;
 pub mod scenes;
 pub mod store;
 pub mod webhook;
@@ -238,13 +239,17 @@ impl AppState {
         let now = now_ms();
         for rec in store.jobs()? {
             let id = rec.id;
+            let image = config.data_dir.join("jobs").join(id.to_string()).join("image.exr");
             let (done, checkpoints) = match &rec.frames {
                 Some(frames) => store.sequence_state(id, frames),
-                None => (Vec::new(), read_checkpoint(&store.checkpoint_path(id)).into_iter().collect()),
+                // A finished job whose image is written holds no film: its checkpoint is not read.
+                None if rec.state.is_finished() && image.is_file() => (vec![0], Vec::new()),
+                // Only the merged set: the film is read when the job is leased again.
+                None => (Vec::new(), store::read_checkpoint_head(&store.checkpoint_path(id)).into_iter().collect()),
             };
             if let Err(e) = farm.restore(rec.clone(), checkpoints, &done, now) {
                 tracing::error!(job = id, "{e}; restarting the job's unwritten frames from zero");
-                farm.restore(rec, Vec::new(), &done, now).map_err(anyhow::Error::msg)?;
+                farm.restore(rec, Vec::<crate::farm::CheckpointHead>::new(), &done, now).map_err(anyhow::Error::msg)?;
             }
         }
         tracing::info!(epoch, jobs = farm.jobs().count(), "state restored");

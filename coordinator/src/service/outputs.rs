@@ -83,7 +83,7 @@ pub async fn output_loop(state: Arc<AppState>) {
             let mut frames = Vec::new();
             let due = farm
                 .jobs_mut()
-                .filter(|j| j.output_dirty)
+                .filter(|j| j.output_due())
                 .filter(|j| {
                     j.sequence
                         || j.state.is_finished()
@@ -140,7 +140,13 @@ pub async fn output_loop(state: Arc<AppState>) {
             })
             .await;
             match r {
-                Ok(Ok(ev)) => tracing::debug!(job = id, state = job_state.as_str(), preview_ev = ev, "images written"),
+                Ok(Ok(ev)) => {
+                    tracing::debug!(job = id, state = job_state.as_str(), preview_ev = ev, "images written");
+                    // A finished job's images are final: its film is dropped, they are served from disk.
+                    if job_state.is_finished() && state.farm.lock().final_image_written(id, Some(ev)) {
+                        tracing::debug!(job = id, "film dropped: the job's images are served from its files");
+                    }
+                }
                 Ok(Err(e)) => tracing::error!(job = id, "writing images failed: {e:#}"),
                 Err(e) => tracing::error!(job = id, "image writer panicked: {e}"),
             }
@@ -171,16 +177,23 @@ fn with_film<T>(
 ) -> ServiceResult<T> {
     let job = farm.job(id)?;
     let conflict = |m: String| ServiceError::conflict("no_image", m);
+    let no_film = || {
+        conflict(if job.state == JobState::Queued {
+            format!("job {id} has not started: it has no image before its first unit is leased")
+        } else {
+            format!("job {id} has no film")
+        })
+    };
     match frame {
         None if job.sequence => Err(conflict(format!(
             "job {id} is a sequence of {} frames ({}): each frame has its own image at              {API}/jobs/{id}/frames/{{frame}}/image.exr and preview.png; {API}/jobs/{id}/frames lists them",
             job.frames.len(),
             job.frames.spec()
         ))),
-        None => job.film().map(f).ok_or_else(|| conflict(format!("job {id} has no film"))),
+        None => job.film().map(f).ok_or_else(no_film),
         Some(n) if !job.sequence => {
             if job.frames.frames().first() == Some(&n) {
-                job.film().map(f).ok_or_else(|| conflict(format!("job {id} has no film")))
+                job.film().map(f).ok_or_else(no_film)
             } else {
                 Err(ServiceError::not_found(format!(
                     "job {id} renders frame {} only, not frame {n}",

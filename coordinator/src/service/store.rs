@@ -6,7 +6,7 @@
 //! restores every job from its row and last checkpoint; units merged after that checkpoint are
 //! pending again and will be rendered and merged once more, into a film that does not hold them.
 
-use crate::farm::{Checkpoint, JobRecord};
+use crate::farm::{Checkpoint, CheckpointHead, JobRecord};
 use anyhow::{Context, bail};
 use pathfarm_common::film::{Film, PIXEL_BYTES, write_atomic};
 use pathfarm_common::frames::FrameSet;
@@ -312,8 +312,9 @@ impl Store {
     }
 
     /// A sequence's frames on disk: the indices (in `frames`) of frames whose `image.exr` is
-    /// written, and the checkpoints of the others. Reads the job's `frames/` folder once.
-    pub fn sequence_state(&self, id: JobId, frames: &FrameSet) -> (Vec<usize>, Vec<Checkpoint>) {
+    /// written, and the checkpoint heads of the others (their films stay on disk until
+    /// leased). Reads the job's `frames/` folder once.
+    pub fn sequence_state(&self, id: JobId, frames: &FrameSet) -> (Vec<usize>, Vec<CheckpointHead>) {
         let dir = self.jobs_dir.join(id.to_string()).join("frames");
         let index: std::collections::HashMap<i32, usize> =
             frames.frames().iter().enumerate().map(|(i, &f)| (f, i)).collect();
@@ -327,7 +328,7 @@ impl Store {
                 done.push(i);
                 // A checkpoint written after the frame's images is stale.
                 let _ = std::fs::remove_file(path.join("checkpoint.bin"));
-            } else if let Some(cp) = read_checkpoint(&path.join("checkpoint.bin")) {
+            } else if let Some(cp) = read_checkpoint_head(&path.join("checkpoint.bin")) {
                 checkpoints.push(cp);
             }
         }
@@ -423,6 +424,46 @@ pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     Ok(Checkpoint { job_id: h.job_id, frame: h.frame, next_pass: h.next_pass, film })
 }
 
+/// Reads only the header of a checkpoint (the frame's merged set, not its film), if there is
+/// one that this coordinator can read; the film is read (and its checksum checked) by
+/// [`read_checkpoint`] when the frame is leased again.
+pub fn read_checkpoint_head(path: &Path) -> Option<CheckpointHead> {
+    use std::io::Read;
+    let head = (|| -> anyhow::Result<Option<CheckpointHead>> {
+        let mut f = match std::fs::File::open(path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e.into()),
+        };
+        let mut start = [0u8; 8];
+        f.read_exact(&mut start)?;
+        if &start[..4] != CHECKPOINT_MAGIC {
+            bail!("not a checkpoint of this coordinator (magic {:?})", String::from_utf8_lossy(&start[..4]));
+        }
+        let hlen = u32::from_le_bytes([start[4], start[5], start[6], start[7]]) as usize;
+        if hlen > 64 << 20 {
+            bail!("checkpoint header of {hlen} bytes");
+        }
+        let mut header = vec![0u8; hlen];
+        f.read_exact(&mut header)?;
+        let h: CheckpointHeader = serde_json::from_slice(&header)?;
+        if h.pixel_bytes != PIXEL_BYTES as u32 {
+            bail!("checkpoint has {} bytes per pixel, this coordinator {PIXEL_BYTES}", h.pixel_bytes);
+        }
+        Ok(Some(CheckpointHead {
+            job_id: h.job_id,
+            frame: h.frame,
+            width: h.width,
+            height: h.height,
+            next_pass: h.next_pass,
+        }))
+    })();
+    head.unwrap_or_else(|e| {
+        tracing::error!(path = %path.display(), "ignoring a checkpoint that cannot be read (damaged or of an older format): {e:#}");
+        None
+    })
+}
+
 /// Writes a checkpoint atomically.
 pub fn write_checkpoint(path: &Path, cp: &Checkpoint) -> anyhow::Result<()> {
     if let Some(dir) = path.parent() {
@@ -459,6 +500,12 @@ mod tests {
         let cp = Checkpoint { job_id: 4, frame: -7, next_pass: vec![1, 2], film };
         let bytes = encode_checkpoint(&cp);
         assert_eq!(decode_checkpoint(&bytes).expect("decode"), cp);
+        // The head alone is read without the film.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("checkpoint.bin");
+        write_checkpoint(&path, &cp).expect("write");
+        assert_eq!(read_checkpoint_head(&path), Some(cp.head()));
+        assert_eq!(read_checkpoint_head(&dir.path().join("none.bin")), None);
         let mut bad = bytes.clone();
         bad[20] ^= 1;
         assert!(decode_checkpoint(&bad).is_err());
