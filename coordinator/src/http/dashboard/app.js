@@ -344,7 +344,10 @@ async function loadThumbs(id) {
 async function refreshPreview() {
   const id = st.selected;
   if (id == null) return;
-  const seq = isSequence(st.jobs.get(id));
+  const job = st.jobs.get(id);
+  // A queued job has no image yet (its film exists from its first lease on): nothing to ask for.
+  if (job && job.info.state === 'queued') return;
+  const seq = isSequence(job);
   const frame = st.frame;
   if (seq && (frame == null || (st.frames || []).some((f) => f.frame === frame && f.state === 'pending'))) return;
   if (st.previewBusy) { st.previewAgain = true; return; }
