@@ -8,8 +8,8 @@
 use crate::render::{Renderer, UnitResult};
 use anyhow::{Context, bail};
 use pathfarm_common::protocol::{
-    API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId,
+    API, DenoiseInput, JobId, LeaseGrant, LeaseKind, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame,
+    WORKER_SECRET_HEADER, WorkerId,
 };
 use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
 use pathfarm_common::scene::{LoadOptions, Scene, load_job_environment, load_scene};
@@ -349,6 +349,9 @@ impl Daemon {
 
     /// Renders one leased unit and delivers it (or reports the failure).
     fn work(&mut self, worker: WorkerId, grant: LeaseGrant, shutdown: &AtomicBool) {
+        if grant.kind == LeaseKind::Denoise {
+            return self.denoise_step(worker, &grant, shutdown);
+        }
         let lease = grant.lease_id;
         tracing::debug!(
             lease,
@@ -396,6 +399,67 @@ impl Daemon {
         self.upload(lease, body, shutdown);
     }
 
+    /// A denoise step: fetches the frame's colour, albedo and normal, denoises them (OIDN, under
+    /// catch_unwind, heartbeating meanwhile) and uploads the layer; any failure releases the
+    /// lease as failed, with the reason.
+    fn denoise_step(&mut self, worker: WorkerId, grant: &LeaseGrant, shutdown: &AtomicBool) {
+        let lease = grant.lease_id;
+        let (w, h) = (grant.settings.width, grant.settings.height);
+        tracing::debug!(lease, job = grant.job_id, frame = grant.unit.frame, pass = grant.unit.pass, "denoising");
+        let input = guarded("fetching the denoise input", || {
+            crate::denoise::ensure_available()?;
+            let resp = self.as_worker(self.http.get(self.url(&format!("/leases/{lease}/denoise-input")))).send()?;
+            if !resp.status().is_success() {
+                let status = resp.status();
+                bail!("denoise input: {status} {}", text(resp));
+            }
+            Ok(DenoiseInput::decode_expecting(&resp.bytes()?, w, h)?)
+        });
+        let denoised = input.and_then(|input| {
+            let t0 = Instant::now();
+            let r = self.with_heartbeats(worker, || guarded("denoising", || crate::denoise::denoise_input(&input)));
+            tracing::debug!(lease, ms = t0.elapsed().as_millis() as u64, "denoised");
+            r
+        });
+        match denoised {
+            Ok(rgb) => {
+                let body = pathfarm_common::protocol::encode_denoised(w, h, &rgb);
+                self.upload_to(lease, "denoised", body, shutdown);
+            }
+            Err(reason) => {
+                tracing::error!(lease, job = grant.job_id, "cannot denoise: {reason}");
+                self.release(lease, true, &reason);
+            }
+        }
+    }
+
+    /// Runs `f` while a thread heartbeats every `heartbeat` (a lost registration is noticed).
+    fn with_heartbeats<T>(&mut self, worker: WorkerId, f: impl FnOnce() -> T) -> T {
+        let (done, wake) = std::sync::mpsc::channel::<()>();
+        let lost = AtomicBool::new(false);
+        let this: &Self = self;
+        let lost_flag = &lost;
+        let result = std::thread::scope(|s| {
+            s.spawn(move || {
+                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = wake.recv_timeout(this.heartbeat) {
+                    let r = this.as_worker(this.http.post(this.url(&format!("/workers/{worker}/heartbeat")))).send();
+                    if let Ok(resp) = r
+                        && (resp.status() == StatusCode::NOT_FOUND || resp.status() == StatusCode::FORBIDDEN)
+                    {
+                        lost_flag.store(true, Ordering::Relaxed);
+                    }
+                }
+            });
+            let r = f();
+            drop(done);
+            r
+        });
+        if lost.load(Ordering::Relaxed) {
+            self.worker_id = None;
+        }
+        result
+    }
+
     fn render_with_heartbeats(
         &mut self,
         worker: WorkerId,
@@ -436,9 +500,14 @@ impl Daemon {
     }
 
     fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {
+        self.upload_to(lease, "result", body, shutdown)
+    }
+
+    /// `PUT /leases/{lease}/{what}` with retries; a refusal releases the lease as failed.
+    fn upload_to(&self, lease: u64, what: &str, body: Vec<u8>, shutdown: &AtomicBool) {
         for attempt in 0..10u32 {
             let r = self
-                .as_worker(self.http.put(self.url(&format!("/leases/{lease}/result"))))
+                .as_worker(self.http.put(self.url(&format!("/leases/{lease}/{what}"))))
                 .header("content-type", "application/octet-stream")
                 .body(body.clone())
                 .send();

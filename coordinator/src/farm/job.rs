@@ -80,6 +80,8 @@ pub struct Job {
     pub log: Vec<String>,
     /// Output should be written (a pass completed, a frame finished or the job ended).
     pub output_dirty: bool,
+    /// Denoise steps and denoised layers (`farm/denoise.rs`).
+    pub(super) denoise: super::denoise::JobDenoise,
 }
 
 /// Frames listed in a job's info (the rest: `GET /jobs/{id}/frames`).
@@ -444,6 +446,7 @@ impl Job {
             error: None,
             log: Vec::new(),
             output_dirty: false,
+            denoise: Default::default(),
         }
     }
 

@@ -15,6 +15,8 @@ pub(super) struct Lease {
     pub(super) unit: usize,
     pub(super) worker: WorkerId,
     pub(super) deadline_ms: u64,
+    /// A denoise step of frame `frame` (`unit` unused), not a unit (`farm/denoise.rs`).
+    pub(super) denoise: Option<super::denoise::Step>,
 }
 
 impl Farm {
@@ -27,6 +29,10 @@ impl Farm {
         let was_offline = std::mem::replace(&mut w.offline, false);
         if was_offline {
             self.note_unservable();
+        }
+        // A worker that can denoise takes the waiting denoise steps first: they hold frames back.
+        if let Some(grant) = self.lease_denoise(worker, now_ms) {
+            return Ok(Some(grant));
         }
         let tags = &self.workers[&worker].tags;
         // A frame-order sequence whose frames in progress have nothing pending may start its
@@ -86,6 +92,7 @@ impl Farm {
         settings.frame = key.frame;
         let mask = job.open.get(&frame).and_then(|run| run.masks[key.tile as usize].clone()).filter(|m| !m.none());
         let grant = LeaseGrant {
+            kind: Default::default(),
             mask,
             lease_id,
             job_id,
@@ -97,7 +104,7 @@ impl Farm {
         };
         self.leases.insert(
             lease_id,
-            Lease { job: job_id, frame, unit, worker, deadline_ms: now_ms + self.cfg.lease_timeout_ms },
+            Lease { job: job_id, frame, unit, worker, deadline_ms: now_ms + self.cfg.lease_timeout_ms, denoise: None },
         );
         if let Some(w) = self.workers.get_mut(&worker) {
             w.leases.insert(lease_id);
@@ -147,12 +154,19 @@ impl Farm {
         for &id in &expired {
             if let Some(l) = self.take_lease(id) {
                 if let Some(job) = self.jobs.get_mut(&l.job) {
-                    job.requeue(l.frame, l.unit);
+                    job.give_back(&l, now_ms);
                     let key = job.unit_key(l.frame, l.unit);
-                    job.log(format!(
-                        "lease {id} of worker {} expired: unit frame {} pass {} tile {} is pending again",
-                        l.worker, key.frame, key.pass, key.tile
-                    ));
+                    if l.denoise.is_some() {
+                        job.log(format!(
+                            "lease {id} of worker {} expired: the denoise step of frame {} waits again",
+                            l.worker, key.frame
+                        ));
+                    } else {
+                        job.log(format!(
+                            "lease {id} of worker {} expired: unit frame {} pass {} tile {} is pending again",
+                            l.worker, key.frame, key.pass, key.tile
+                        ));
+                    }
                 }
                 self.counters.leases_expired += 1;
             }
@@ -171,6 +185,10 @@ impl Farm {
     /// A worker gives a unit back: on shutdown (`failed = false`) or because rendering failed.
     pub fn release(&mut self, lease_id: LeaseId, failed: bool, reason: &str, now_ms: u64) -> Result<(), FarmError> {
         let l = self.take_lease(lease_id).ok_or(FarmError::LeaseLost(lease_id))?;
+        if l.denoise.is_some() {
+            self.denoise_released(l, failed, reason, now_ms);
+            return Ok(());
+        }
         let (max_failures, blocklist_after) = (self.cfg.max_unit_failures, self.cfg.blocklist_after);
         let Some(job) = self.jobs.get_mut(&l.job) else { return Ok(()) };
         job.requeue(l.frame, l.unit);
@@ -220,6 +238,12 @@ impl Farm {
         now_ms: u64,
     ) -> Result<MergeOutcome, FarmError> {
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
+        if l.denoise.is_some() {
+            return Err(FarmError::ResultMismatch {
+                lease: lease_id,
+                reason: "this is a denoise lease: PUT its denoised layer to /leases/{id}/denoised".into(),
+            });
+        }
         let job = self.jobs.get(&l.job).ok_or(FarmError::LeaseLost(lease_id))?;
         if !job.open.contains_key(&l.frame) {
             return Err(FarmError::LeaseLost(lease_id));
@@ -311,26 +335,24 @@ impl Farm {
             out.passes_completed.push(p);
         }
         job.status[l.frame].passes_done = run.passes_done;
-        if run.is_complete() {
+        let frame_complete = run.is_complete();
+        if frame_complete {
             job.frame_merged(l.frame);
             out.frames_completed.push(key.frame);
             if job.sequence {
                 job.log(format!("frame {} merged", key.frame));
             }
         }
-        if job.frames_merged as usize == job.frames.len() {
-            let id = job.id;
-            if job.settings.denoise {
-                // The farm does not schedule the denoise step yet (issue 14, second part).
-                job.log(
-                    "denoise was asked for, but this coordinator does not schedule denoise steps yet: finished \
-                     without the denoised layer (render locally with `pathfarm-worker render --denoise`)"
-                        .into(),
-                );
-            }
-            job.log("completed".into());
+        let (id, all_merged) = (job.id, job.frames_merged as usize == job.frames.len());
+        // Denoise steps (`farm/denoise.rs`): a frame's final one holds the job open.
+        let owed = (frame_complete || !out.passes_completed.is_empty())
+            && self.denoise_after_merge(id, l.frame, &out.passes_completed, frame_complete, now_ms);
+        if all_merged && !owed {
+            self.log_job(id, "completed".into());
             self.finish(id, JobState::Completed, None, now_ms);
             out.job_completed = true;
+        } else if all_merged && frame_complete {
+            self.log_job(id, "every frame merged; waiting for the denoise step".into());
         }
         Ok(out)
     }

@@ -14,6 +14,7 @@
 //! (albedo, normal, depth) are bit-identical to a local render because of it (film.rs), and it
 //! makes every progressive image a prefix of the final one (each pixel holds samples `[0, s)`).
 
+mod denoise;
 mod frame_run;
 mod job;
 mod lease;
@@ -21,6 +22,7 @@ mod lease;
 mod tests;
 mod workers;
 
+pub use denoise::{DENOISE_TAG, DenoiseOutcome, DenoisedLayer};
 pub use frame_run::FrameRun;
 use frame_run::UnitState;
 use job::FrameStatus;
@@ -58,6 +60,9 @@ pub struct FarmConfig {
     /// Frames of one frame-order job in progress at once, at most (the next frame starts when
     /// the frames in progress have no pending unit left and its film fits the budget).
     pub max_open_frames: usize,
+    /// A job's final denoise step that no worker took for this long is given up: its frame is
+    /// finished without the denoised layer (`farm/denoise.rs`).
+    pub denoise_grace_ms: u64,
 }
 
 impl Default for FarmConfig {
@@ -72,6 +77,7 @@ impl Default for FarmConfig {
             worker_prune_ms: Some(3_600_000),
             expiry_tick_ms: 250,
             max_open_frames: 2,
+            denoise_grace_ms: 30_000,
         }
     }
 }
@@ -106,6 +112,9 @@ pub enum FarmError {
     /// the worker id belongs to.
     #[error("{0}")]
     WrongWorker(String),
+    /// A denoised layer older than the one the farm holds.
+    #[error("stale denoised layer: {0}")]
+    Stale(String),
 }
 
 fn missing_secret() -> FarmError {
@@ -463,7 +472,9 @@ impl Farm {
                 }
                 if let Some(job) = self.jobs.get_mut(&l.job) {
                     job.leased = job.leased.saturating_sub(1);
-                    job.requeue(l.frame, l.unit);
+                    if l.denoise.is_none() {
+                        job.requeue(l.frame, l.unit);
+                    }
                 }
             }
         }

@@ -63,11 +63,25 @@ pub(crate) fn frame_source(state: &AppState, id: &str, frame: &str) -> ApiResult
     Ok((id, n, FrameSource::Film))
 }
 
-pub(crate) async fn frame_image(state: Arc<AppState>, id: String, frame: String, png: bool) -> ApiResult<Response> {
+pub(crate) async fn frame_image(
+    state: Arc<AppState>,
+    id: String,
+    frame: String,
+    png: bool,
+    layer: PreviewQuery,
+) -> ApiResult<Response> {
     let (id, n, source) = frame_source(&state, &id, &frame)?;
     let bytes = match source {
         FrameSource::File(dir) => {
-            let path = dir.join(if png { "preview.png" } else { "image.exr" });
+            // A frame written with a denoised layer has its noisy preview beside.
+            let noisy = dir.join(crate::service::NOISY_PREVIEW);
+            let file = match layer.layer {
+                _ if !png => "image.exr",
+                Some(PreviewLayer::Noisy) if noisy.exists() => crate::service::NOISY_PREVIEW,
+                Some(PreviewLayer::Denoised) if !noisy.exists() => return Err(no_denoised()),
+                _ => "preview.png",
+            };
+            let path = dir.join(file);
             tokio::fs::read(&path).await.map_err(|e| {
                 if e.kind() == std::io::ErrorKind::NotFound {
                     ApiError::not_found(format!("frame {n} of job {id} has no image on disk (its files were removed)"))
@@ -82,6 +96,7 @@ pub(crate) async fn frame_image(state: Arc<AppState>, id: String, frame: String,
             tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
                 let layers = resolve_film_banded(&st, id, Some(n))?;
                 if png {
+                    let layers = layer.select(layers)?;
                     let ev = layers.preview_ev(exposure);
                     layers.encode_png(ev).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))
                 } else {
@@ -110,7 +125,7 @@ pub(crate) async fn frame_exr(
     State(state): State<Arc<AppState>>,
     Path((id, frame)): Path<(String, String)>,
 ) -> ApiResult<Response> {
-    frame_image(state, id, frame, false).await
+    frame_image(state, id, frame, false, PreviewQuery::default()).await
 }
 
 #[utoipa::path(
@@ -118,13 +133,15 @@ pub(crate) async fn frame_exr(
     path = "/api/v1/jobs/{id}/frames/{frame}/preview.png",
     tag = "images",
     summary = "One frame as an sRGB PNG preview (the dashboard's thumbnails)",
-    params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number")),
+    description = "Shows the frame's denoised layer when it has one (`denoise`), else the noisy colour; `layer` picks one.",
+    params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number"), ("layer" = Option<String>, Query, description = "`noisy` or `denoised` (409 `no_denoised` while there is none)")),
     security(("client_token" = [])),
     responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn frame_png(
     State(state): State<Arc<AppState>>,
     Path((id, frame)): Path<(String, String)>,
+    Query(q): Query<PreviewQuery>,
 ) -> ApiResult<Response> {
-    frame_image(state, id, frame, true).await
+    frame_image(state, id, frame, true, q).await
 }

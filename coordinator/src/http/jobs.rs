@@ -337,12 +337,17 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
     path = "/api/v1/jobs/{id}/preview.png",
     tag = "images",
     summary = "The image so far as an sRGB PNG preview",
-    params(("id" = u64, Path, description = "Job id")),
+    description = "Shows the denoised layer when the job has one (`denoise`), else the noisy colour; `layer` picks one.",
+    params(("id" = u64, Path, description = "Job id"), ("layer" = Option<String>, Query, description = "`noisy` or `denoised` (409 `no_denoised` while there is none)")),
     security(("client_token" = [])),
-    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`); or `layer=denoised` and no denoised layer yet", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    let layers = resolve_job(&state, &id).await?;
+pub(crate) async fn job_png(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    Query(q): Query<PreviewQuery>,
+) -> ApiResult<Response> {
+    let layers = q.select(resolve_job(&state, &id).await?)?;
     let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
     let (bytes, ev) = tokio::task::spawn_blocking(move || {
         let ev = layers.preview_ev(exposure);
@@ -355,6 +360,41 @@ pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<S
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     insert_exposure_header(&mut resp, ev);
     Ok(resp)
+}
+
+/// `?layer=noisy|denoised` of the PNG previews (absent: denoised when there is a denoised layer).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PreviewQuery {
+    pub(crate) layer: Option<PreviewLayer>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub(crate) enum PreviewLayer {
+    Noisy,
+    Denoised,
+}
+
+impl PreviewQuery {
+    /// The layers a preview shows: without the denoised layer for `noisy`; 409 for `denoised`
+    /// while there is none.
+    pub(crate) fn select(&self, layers: ImageLayers) -> ApiResult<ImageLayers> {
+        match self.layer {
+            Some(PreviewLayer::Noisy) => Ok(ImageLayers { denoised: None, ..layers }),
+            Some(PreviewLayer::Denoised) if layers.denoised.is_none() => Err(no_denoised()),
+            _ => Ok(layers),
+        }
+    }
+}
+
+pub(crate) fn no_denoised() -> ApiError {
+    ApiError::new(
+        StatusCode::CONFLICT,
+        "no_denoised",
+        "no denoised layer (yet): the job has no `denoise`, its denoise step has not run, or no worker could denoise \
+         (see the job's log)",
+    )
 }
 
 /// The response header that says which exposure a PNG preview used (EV).

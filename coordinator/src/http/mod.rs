@@ -29,9 +29,9 @@ use frames::*;
 use jobs::*;
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
-    API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
-    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId, max_result_bytes, validate_tags,
+    API, DEFAULT_PAGE_LIMIT, DenoiseInput, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId,
+    MAX_PAGE_LIMIT, RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame,
+    WORKER_SECRET_HEADER, WorkerId, decode_denoised, max_denoised_bytes, max_result_bytes, validate_tags,
 };
 use pathfarm_common::scene::bundle::is_scene_id;
 use scenes::*;
@@ -85,6 +85,9 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
         // The result handler reads its body itself, bounded by the lease's tile.
         .route("/leases/{id}/result", put(upload_result))
         .route("/leases/{id}/release", post(release))
+        // Denoise steps (`farm/denoise.rs`): the frame's input, and the layer, read bounded.
+        .route("/leases/{id}/denoise-input", get(denoise_input))
+        .route("/leases/{id}/denoised", put(upload_denoised))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_worker));
     let shared = Router::new()
         .route("/scenes/{id}", get(download_scene))

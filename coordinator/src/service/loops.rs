@@ -8,11 +8,18 @@ pub async fn maintenance_loop(state: Arc<AppState>) {
     let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
     loop {
         tick.tick().await;
-        let (expired, pruned) = {
+        let (expired, pruned, denoise_changed) = {
             let mut farm = state.farm.lock();
             let now = now_ms();
-            (farm.expire(now), farm.prune_workers(now))
+            (farm.expire(now), farm.prune_workers(now), farm.expire_denoise(now))
         };
+        // Denoise steps given up: their frames go on (images written, jobs completed).
+        if !denoise_changed.is_empty() {
+            state.output_ready.notify_one();
+            for id in denoise_changed {
+                state.publish(crate::service::Event::Job { id });
+            }
+        }
         if expired > 0 {
             tracing::warn!(expired, "leases expired; units are pending again");
             state.work_ready.notify_waiters();
