@@ -51,6 +51,9 @@ pub struct RunArgs {
     /// private CA or a self-signed certificate).
     #[arg(long, env = "PATHFARM_CA_CERT")]
     pub ca_cert: Option<PathBuf>,
+    /// Take no denoise steps even when built with OIDN (the tag `denoise` is not reported).
+    #[arg(long, env = "PATHFARM_WORKER_NO_DENOISE")]
+    pub no_denoise: bool,
 }
 
 /// Tags every worker reports by itself: `cpu`; the widest of `avx512f` and `avx2` this CPU
@@ -107,7 +110,7 @@ impl DaemonConfig {
         let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
         let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "worker".into());
         Ok(Self {
-            tags: worker_tags(&args.tags)?,
+            tags: worker_tags(&args.tags)?.into_iter().filter(|t| !(args.no_denoise && t == "denoise")).collect(),
             coordinator: args.coordinator.trim_end_matches('/').to_string(),
             token: args.token,
             threads: threads.max(1),
