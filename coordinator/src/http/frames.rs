@@ -71,7 +71,7 @@ pub(crate) async fn frame_image(
     layer: PreviewQuery,
 ) -> ApiResult<Response> {
     let (id, n, source) = frame_source(&state, &id, &frame)?;
-    let bytes = match source {
+    let (bytes, denoised) = match source {
         FrameSource::File(dir) => {
             // A frame written with a denoised layer has its noisy preview beside.
             let noisy = dir.join(crate::service::NOISY_PREVIEW);
@@ -82,25 +82,29 @@ pub(crate) async fn frame_image(
                 _ => "preview.png",
             };
             let path = dir.join(file);
-            tokio::fs::read(&path).await.map_err(|e| {
+            let denoised = file == "preview.png" && noisy.exists();
+            let bytes = tokio::fs::read(&path).await.map_err(|e| {
                 if e.kind() == std::io::ErrorKind::NotFound {
                     ApiError::not_found(format!("frame {n} of job {id} has no image on disk (its files were removed)"))
                 } else {
                     crate::service::storage_error(&e, "the frame's image").into()
                 }
-            })?
+            })?;
+            (bytes, denoised)
         }
         FrameSource::Film => {
             let st = state.clone();
             let exposure = preview_exposure(&state, id)?;
-            tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
+            tokio::task::spawn_blocking(move || -> ApiResult<(Vec<u8>, bool)> {
                 let layers = resolve_film_banded(&st, id, Some(n))?;
                 if png {
                     let layers = layer.select(layers)?;
                     let ev = layers.preview_ev(exposure);
-                    layers.encode_png(ev).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))
+                    let png = layers.encode_png(ev).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+                    Ok((png, layers.denoised.is_some()))
                 } else {
-                    layers.encode_exr().map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))
+                    let exr = layers.encode_exr().map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))?;
+                    Ok((exr, layers.denoised.is_some()))
                 }
             })
             .await
@@ -109,6 +113,9 @@ pub(crate) async fn frame_image(
     };
     let mut resp = ([(header::CONTENT_TYPE, if png { "image/png" } else { "image/x-exr" })], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    if png {
+        insert_layer_header(&mut resp, denoised);
+    }
     Ok(resp)
 }
 
@@ -136,7 +143,7 @@ pub(crate) async fn frame_exr(
     description = "Shows the frame's denoised layer when it has one (`denoise`), else the noisy colour; `layer` picks one.",
     params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number"), ("layer" = Option<String>, Query, description = "`noisy` or `denoised` (409 `no_denoised` while there is none)")),
     security(("client_token" = [])),
-    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png", headers(("x-pathfarm-preview-layer" = String, description = "`denoised` or `noisy`: the layer shown"))), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn frame_png(
     State(state): State<Arc<AppState>>,

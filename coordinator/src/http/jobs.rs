@@ -340,7 +340,7 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
     description = "Shows the denoised layer when the job has one (`denoise`), else the noisy colour; `layer` picks one.",
     params(("id" = u64, Path, description = "Job id"), ("layer" = Option<String>, Query, description = "`noisy` or `denoised` (409 `no_denoised` while there is none)")),
     security(("client_token" = [])),
-    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`); or `layer=denoised` and no denoised layer yet", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png", headers(("x-pathfarm-preview-layer" = String, description = "`denoised` or `noisy`: the layer shown"))), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`); or `layer=denoised` and no denoised layer yet", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn job_png(
     State(state): State<Arc<AppState>>,
@@ -348,6 +348,7 @@ pub(crate) async fn job_png(
     Query(q): Query<PreviewQuery>,
 ) -> ApiResult<Response> {
     let layers = q.select(resolve_job(&state, &id).await?)?;
+    let denoised = layers.denoised.is_some();
     let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
     let (bytes, ev) = tokio::task::spawn_blocking(move || {
         let ev = layers.preview_ev(exposure);
@@ -359,7 +360,15 @@ pub(crate) async fn job_png(
     let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     insert_exposure_header(&mut resp, ev);
+    insert_layer_header(&mut resp, denoised);
     Ok(resp)
+}
+
+/// The response header that says which layer a PNG preview shows: `denoised` or `noisy`.
+pub const LAYER_HEADER: &str = "x-pathfarm-preview-layer";
+
+pub(crate) fn insert_layer_header(resp: &mut Response, denoised: bool) {
+    resp.headers_mut().insert(LAYER_HEADER, HeaderValue::from_static(if denoised { "denoised" } else { "noisy" }));
 }
 
 /// `?layer=noisy|denoised` of the PNG previews (absent: denoised when there is a denoised layer).
