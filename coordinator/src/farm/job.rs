@@ -24,7 +24,7 @@ pub(super) struct FrameStatus {
 /// with the frames in progress, not with the frames in the job. A single-frame job (`sequence`
 /// false) keeps its film after completion and writes `jobs/ID/image.exr`; a sequence's frame,
 /// once every unit is merged, moves to `finishing` until the server has written
-/// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`Farm::frame_written`]), then its film is
+/// `jobs/ID/frames/NNNN/{image.exr,preview.png}` ([`Farm::frame_written`](super::Farm::frame_written)), then its film is
 /// dropped.
 #[derive(Debug)]
 pub struct Job {
