@@ -131,6 +131,21 @@ impl Job {
         }
     }
 
+    /// After a restore: denoised layers live in memory until written, so frames merged before
+    /// the restart and not written yet go on without theirs (a job that was not finished says so
+    /// in its log).
+    pub(super) fn note_restored_denoise(&mut self, recorded: JobState) {
+        // A sequence's merged frames not written yet; a single frame merged (it counts as done).
+        let unwritten = if self.sequence { self.frames_done } else { 0 };
+        if self.settings.denoise && !recorded.is_finished() && self.frames_merged > unwritten {
+            self.log(
+                "denoise: frames merged before the coordinator restarted are finished without the denoised layer \
+                 (denoised layers are held in memory until written)"
+                    .into(),
+            );
+        }
+    }
+
     /// Every frame is merged and no final step is owed.
     fn done_denoising(&self) -> bool {
         self.frames_merged as usize == self.frames.len() && self.denoise.owed.is_empty()
@@ -561,6 +576,24 @@ mod tests {
         let out = farm.accept_denoised(last.lease_id, layer(&farm, last.lease_id, 3.0), now).expect("stored");
         assert!(out.last && out.job_completed);
         assert_eq!(farm.job(id).expect("job").denoised(0).expect("layer").passes, 3);
+    }
+
+    /// A restart while the final step is owed: the layer lived in memory only, so the restored
+    /// job completes without it and its log says why.
+    #[test]
+    fn a_restart_with_a_final_step_owed_says_the_layer_is_lost() {
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, settings(false), 0).expect("submit");
+        let plain = tagged(&mut farm, "plain", &["cpu"]);
+        tagged(&mut farm, "d", &[DENOISE_TAG]);
+        render_all(&mut farm, plain, 0);
+        assert_eq!(farm.job(id).expect("job").state, JobState::Running);
+        let record = farm.job(id).expect("job").record(0);
+        let checkpoints = farm.job_mut(id).expect("job").take_checkpoints(true, 4);
+        let mut restarted = Farm::new(FarmConfig::default());
+        restarted.restore(record, checkpoints, &[], 1).expect("restore");
+        assert_eq!(restarted.job(id).expect("job").state, JobState::Completed);
+        assert!(log_has(&restarted, id, "restarted are finished without the denoised layer"));
     }
 
     /// A sequence: each frame's final step holds that frame back from being written (not the

@@ -318,6 +318,7 @@ impl Farm {
         if job.state == JobState::Completed && job.finished_ms.is_none() {
             job.finished_ms = Some(now_ms);
         }
+        job.note_restored_denoise(rec.state);
         job.log(format!(
             "restored: {} of {} units merged, {} of {} frames written",
             job.units_merged,
