@@ -152,6 +152,7 @@ fn farm_denoised_layer_is_the_local_denoise_bits_with_adaptive_on() {
         .args(["--max-depth", "6", "--rr-depth", "3", "--adaptive-threshold", "0.25", "--min-spp", "4"])
         .args(["--denoise", "--threads", "1", "--quiet", "--out"])
         .arg(&local)
+        .env("RUST_LOG", "warn")
         .status()
         .expect("run pathfarm-worker render");
     assert!(status.success(), "pathfarm-worker render --denoise failed");
@@ -208,4 +209,58 @@ fn without_a_denoise_worker_the_job_finishes_without_the_layer_and_says_why() {
     assert!(String::from_utf8_lossy(&body).contains("no_denoised"));
     assert_eq!(get(&coord.url, &format!("/jobs/{id}/preview.png?layer=noisy")).0, 200);
     drop(worker);
+}
+
+/// A sequence with denoise: each frame waits for its own denoise step and is written with its
+/// `denoised` layer: the served EXR of every frame is, byte for byte, the local render of that
+/// frame with `denoise` (render_local, resolve, OIDN on `DenoiseInput::of` it); the written
+/// frame's preview shows the denoised layer and `?layer=noisy` the noisy one.
+#[test]
+#[cfg_attr(
+    not(oidn),
+    ignore = "needs OIDN: OIDN_DIR=<site-packages>/pyoidn/oidn and workers built with \
+              --features pathfarm-worker/denoise (scripts/test does both when pyoidn is installed)"
+)]
+fn sequence_frames_are_written_with_their_denoised_layer() {
+    use pathfarm_common::frames::FrameSet;
+    use pathfarm_common::scene::demo::cornell_animated_glb;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let coord = start_coordinator(&dir.path().join("data"), &[]);
+    let workers: Vec<Proc> = start_workers(&coord.url, "d", dir.path(), "cache", 2);
+    let client = Client::new(&coord.url, None).expect("client");
+    let scene = cornell_animated_glb();
+    let mut s = RenderSettings::new(32, 24, 8);
+    s.tile_size = 16;
+    s.seed = 3;
+    s.denoise = true;
+    let created = client.upload_scene(scene.to_vec()).expect("upload");
+    let mut req = job_request(created.scene_id, "denoised frames", s.clone());
+    req.frames = Some(FrameSet::parse("1-2").expect("frames"));
+    let id = client.submit(&req).expect("submit");
+    wait_for("the frames to be written", Duration::from_secs(180), || {
+        let info = client.job(id).expect("job");
+        assert_ne!(info.state, JobState::Failed, "job failed: {:?}", info.error);
+        (info.state == JobState::Completed && info.frames.done == info.frames.total).then_some(())
+    });
+    let bundle = tempfile::tempdir().expect("tempdir");
+    let main = pathfarm_common::scene::bundle::unpack_bundle(&scene, bundle.path()).expect("bundle");
+    let loaded = pathfarm_common::scene::load_scene(&main, &Default::default()).expect("scene");
+    for frame in [1, 2] {
+        let mut at = s.clone();
+        at.frame = frame;
+        let renderer = pathfarm_worker::render::Renderer::new(&loaded, &at).expect("renderer");
+        let mut image = pathfarm_worker::render::render_local(&renderer, |_, _| {}).resolve();
+        image.denoised = Some(pathfarm_worker::denoise::denoise(&image).expect("denoise"));
+        let served = client.frame_exr(id, frame).expect("frame exr");
+        assert!(served == image.encode_exr().expect("encode"), "frame {frame} differs from the local denoised render");
+        let url = |q: &str| format!("{}/api/v1/jobs/{id}/frames/{frame}/preview.png{q}", coord.url);
+        let layer = |q: &str| {
+            let r = reqwest::blocking::get(url(q)).expect("preview");
+            assert_eq!(r.status().as_u16(), 200);
+            r.headers().get("x-pathfarm-preview-layer").map(|v| v.to_str().unwrap_or_default().to_string())
+        };
+        assert_eq!(layer("").as_deref(), Some("denoised"));
+        assert_eq!(layer("?layer=noisy").as_deref(), Some("noisy"));
+    }
+    drop(workers);
 }
