@@ -365,8 +365,9 @@ async function refreshPreview() {
     if (st.selected === id) {
       const img = $('#preview');
       img.onload = () => {
-        const which = (seq ? `frame ${frame} · ` : '') + (shown ? `${shown} · ` : '');
-        $('#preview-cap').textContent = `preview · ${which}${img.naturalWidth}×${img.naturalHeight} · updated ${new Date().toLocaleTimeString()}`;
+        const which = seq ? `frame ${frame} · ` : '';
+        const layer = shown ? ` · ${shown}` : '';
+        $('#preview-cap').textContent = `preview · ${which}${img.naturalWidth}×${img.naturalHeight}${layer} · updated ${new Date().toLocaleTimeString()}`;
       };
       img.src = url;
       if (st.previewUrl) URL.revokeObjectURL(st.previewUrl);
