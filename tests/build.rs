@@ -33,6 +33,14 @@ fn main() {
     if slurm.iter().all(|p| Path::new(p).exists()) {
         println!("cargo:rustc-cfg=slurm_tools");
     }
+    // `cfg(oidn)`: OIDN is here (`OIDN_DIR` names pyoidn's folder with the library), as
+    // scripts/test and .ci/run set it when they build with `--features pathfarm-worker/denoise`;
+    // the farm's denoise bit-identity test needs workers built so, and is ignored without it.
+    println!("cargo:rustc-check-cfg=cfg(oidn)");
+    println!("cargo:rerun-if-env-changed=OIDN_DIR");
+    if std::env::var_os("OIDN_DIR").is_some_and(|d| Path::new(&d).join("lib/libOpenImageDenoise.so").exists()) {
+        println!("cargo:rustc-cfg=oidn");
+    }
     println!("cargo:rustc-check-cfg=cfg(bpy)");
     println!("cargo:rustc-check-cfg=cfg(openapi_client)");
     println!("cargo:rerun-if-env-changed=PATHFARM_RECHECK_PYTHON");

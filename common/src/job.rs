@@ -205,6 +205,11 @@ pub struct RenderSettings {
     /// normal). A request: a farm without a worker that can denoise finishes without the layer.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub denoise: bool,
+    /// With `denoise`, on a farm: also denoise each frame after every completed pass, for the
+    /// preview (the final frame's `denoised` layer is the same either way; a preview never
+    /// holds a frame back). A local render denoises the final frame only.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub denoise_preview: bool,
 }
 
 fn is_zero(v: &f32) -> bool {
@@ -383,6 +388,7 @@ impl RenderSettings {
             focus_distance: None,
             adaptive: None,
             denoise: false,
+            denoise_preview: false,
         }
     }
 
@@ -489,6 +495,11 @@ impl RenderSettings {
                     "integrator.strategy [{s}, {t}] does not exist: t >= 1 and s + t >= 2"
                 )));
             }
+        }
+        if self.denoise_preview && !self.denoise {
+            return Err(SettingsError::Invalid(
+                "denoise_preview needs denoise: a denoised preview is of a job that asks for the denoised layer".into(),
+            ));
         }
         if let Some(adaptive) = &self.adaptive {
             adaptive.validate(self.spp)?;
@@ -800,6 +811,13 @@ mod tests {
             IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
         let e = bad.validate(&Limits::default()).expect_err("bdpt").to_string();
         assert!(e.contains("adaptive sampling is not available with the bdpt integrator"), "{e}");
+        bad = p.clone();
+        bad.denoise = false;
+        bad.denoise_preview = true;
+        let e = bad.validate(&Limits::default()).expect_err("preview without denoise").to_string();
+        assert!(e.contains("denoise_preview needs denoise"), "{e}");
+        bad.denoise = true;
+        assert_eq!(bad.validate(&Limits::default()), Ok(()));
     }
 
     #[test]

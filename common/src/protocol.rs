@@ -469,9 +469,31 @@ pub struct Registered {
     pub lease_timeout_ms: u64,
 }
 
+/// What a lease asks the worker to do.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq, Eq, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum LeaseKind {
+    /// Render the unit (`unit`, `tile`, `pass`, `mask`) and `PUT /leases/{id}/result`.
+    #[default]
+    Render,
+    /// Denoise frame `unit.frame` as merged through pass `unit.pass` (`tile` is the whole
+    /// image): `GET /leases/{id}/denoise-input`, denoise, `PUT /leases/{id}/denoised`. Only
+    /// workers that registered the tag `denoise` are given these.
+    Denoise,
+}
+
+impl LeaseKind {
+    pub fn is_render(&self) -> bool {
+        *self == LeaseKind::Render
+    }
+}
+
 /// `POST /workers/{id}/lease?wait_ms=N` answer (200; 204 when there is no work).
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct LeaseGrant {
+    /// `render` (absent: a render unit, as from coordinators before denoise steps) or `denoise`.
+    #[serde(default, skip_serializing_if = "LeaseKind::is_render")]
+    pub kind: LeaseKind,
     pub lease_id: LeaseId,
     pub job_id: JobId,
     pub scene_id: String,
@@ -832,10 +854,173 @@ impl UnitResultFrame {
     }
 }
 
+// ---------------------------------------------------------------------------------------------
+// Denoise steps: the input and the output
+// ---------------------------------------------------------------------------------------------
+
+/// Magic bytes of a denoise input body (`GET /leases/{id}/denoise-input`).
+pub const DENOISE_INPUT_MAGIC: &[u8; 4] = b"PFDI";
+/// Magic bytes of a denoised layer body (`PUT /leases/{id}/denoised`).
+pub const DENOISED_MAGIC: &[u8; 4] = b"PFDO";
+
+/// What the denoiser reads of a frame: its resolved colour, albedo and normal (each
+/// `width * height`, row-major). Built by [`DenoiseInput::of`] from a resolved film, the one
+/// path by which both `pathfarm-worker render --denoise` and the farm's denoise steps make it,
+/// so the same film gives the same input bits, hence the same denoised layer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DenoiseInput {
+    pub width: u32,
+    pub height: u32,
+    pub color: Vec<[f32; 3]>,
+    pub albedo: Vec<[f32; 3]>,
+    pub normal: Vec<[f32; 3]>,
+}
+
+impl DenoiseInput {
+    /// The denoiser's input of a resolved image ([`crate::film::Film::resolve`]).
+    pub fn of(img: &crate::film::ImageLayers) -> Self {
+        Self {
+            width: img.width,
+            height: img.height,
+            color: img.rgb.clone(),
+            albedo: img.albedo.clone(),
+            normal: img.normal.clone(),
+        }
+    }
+
+    /// Layout: magic `PFDI`, u32 width, u32 height, three sections (colour, albedo, normal:
+    /// `width * height` x 3 little-endian f32 each, lz4), CRC-32 of everything before it.
+    pub fn encode(&self) -> Vec<u8> {
+        encode_planes(DENOISE_INPUT_MAGIC, self.width, self.height, &[&self.color, &self.albedo, &self.normal])
+    }
+
+    /// Parses a body that must be of a `width` x `height` image (refused before anything is
+    /// allocated otherwise); never panics, whatever the bytes.
+    pub fn decode_expecting(bytes: &[u8], width: u32, height: u32) -> Result<Self, DecodeError> {
+        let mut planes = decode_planes(bytes, DENOISE_INPUT_MAGIC, width, height, 3)?.into_iter();
+        let mut next = || planes.next().unwrap_or_default();
+        let (color, albedo, normal) = (next(), next(), next());
+        Ok(Self { width, height, color, albedo, normal })
+    }
+}
+
+/// A denoised layer's body: magic `PFDO`, u32 width, u32 height, one section (R, G, B
+/// little-endian f32 per pixel, lz4), CRC-32.
+pub fn encode_denoised(width: u32, height: u32, rgb: &[[f32; 3]]) -> Vec<u8> {
+    encode_planes(DENOISED_MAGIC, width, height, &[rgb])
+}
+
+/// Parses a denoised layer of a `width` x `height` image (anything else is refused before it
+/// is decompressed).
+pub fn decode_denoised(bytes: &[u8], width: u32, height: u32) -> Result<Vec<[f32; 3]>, DecodeError> {
+    Ok(decode_planes(bytes, DENOISED_MAGIC, width, height, 1)?.into_iter().next().unwrap_or_default())
+}
+
+/// The largest body a denoised layer of a `width` x `height` image can be (lz4's worst case).
+pub fn max_denoised_bytes(width: u32, height: u32) -> u64 {
+    (12 + 4u64).saturating_add(max_section_bytes(u64::from(width) * u64::from(height) * 12))
+}
+
+fn encode_planes(magic: &[u8; 4], width: u32, height: u32, planes: &[&[[f32; 3]]]) -> Vec<u8> {
+    let mut out = Vec::new();
+    out.extend_from_slice(magic);
+    out.extend_from_slice(&width.to_le_bytes());
+    out.extend_from_slice(&height.to_le_bytes());
+    for plane in planes {
+        let raw: Vec<u8> = plane.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+        push_section(&mut out, &raw, Codec::Lz4);
+    }
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
+
+fn decode_planes(
+    bytes: &[u8],
+    magic: &[u8; 4],
+    width: u32,
+    height: u32,
+    count: usize,
+) -> Result<Vec<Vec<[f32; 3]>>, DecodeError> {
+    let section = "denoise";
+    let err = |message: String| DecodeError::Section { section, message };
+    if bytes.len() < 16 {
+        return Err(err(format!("body is truncated ({} bytes)", bytes.len())));
+    }
+    let (body, crc) = bytes.split_at(bytes.len() - 4);
+    if &body[..4] != magic {
+        return Err(err(format!("body does not start with the magic bytes {}", String::from_utf8_lossy(magic))));
+    }
+    let expected = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
+    let actual = crc32fast::hash(body);
+    if expected != actual {
+        return Err(DecodeError::Checksum { expected, actual });
+    }
+    let (w, h) = (
+        u32::from_le_bytes([body[4], body[5], body[6], body[7]]),
+        u32::from_le_bytes([body[8], body[9], body[10], body[11]]),
+    );
+    if (w, h) != (width, height) {
+        return Err(DecodeError::Header(format!("image of {w} x {h}, the lease's frame is {width} x {height}")));
+    }
+    let n = width as usize * height as usize;
+    let mut rest = &body[12..];
+    let mut planes = Vec::with_capacity(count);
+    for _ in 0..count {
+        let raw = read_section(&mut rest, n.saturating_mul(12), section)?;
+        if raw.len() != n * 12 {
+            return Err(err(format!("expected {n} pixels ({} bytes), got {} bytes", n * 12, raw.len())));
+        }
+        let f = |c: &[u8]| f32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+        planes.push(raw.chunks_exact(12).map(|p| [f(&p[0..4]), f(&p[4..8]), f(&p[8..12])]).collect());
+    }
+    if !rest.is_empty() {
+        return Err(err(format!("{} extra bytes", rest.len())));
+    }
+    Ok(planes)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::film::{SampleValue, add_sample};
+
+    #[test]
+    fn denoise_bodies_round_trip_and_refuse_other_sizes() {
+        let px = |i: usize| [i as f32 * 0.5, -(i as f32), f32::INFINITY];
+        let input = DenoiseInput {
+            width: 3,
+            height: 2,
+            color: (0..6).map(px).collect(),
+            albedo: (6..12).map(px).collect(),
+            normal: (12..18).map(px).collect(),
+        };
+        let body = input.encode();
+        assert_eq!(DenoiseInput::decode_expecting(&body, 3, 2), Ok(input.clone()));
+        let e = DenoiseInput::decode_expecting(&body, 2, 3).expect_err("other size").to_string();
+        assert!(e.contains("3 x 2") && e.contains("2 x 3"), "{e}");
+        let mut bad = body.clone();
+        bad[20] ^= 1;
+        assert!(matches!(DenoiseInput::decode_expecting(&bad, 3, 2), Err(DecodeError::Checksum { .. })));
+        assert!(DenoiseInput::decode_expecting(&body[..10], 3, 2).is_err());
+        // A denoised layer: its own magic, one plane; an input body is not one.
+        let out = encode_denoised(3, 2, &input.color);
+        assert!(out.len() as u64 <= max_denoised_bytes(3, 2));
+        assert_eq!(decode_denoised(&out, 3, 2), Ok(input.color.clone()));
+        assert!(decode_denoised(&body, 3, 2).expect_err("input body").to_string().contains("PFDO"));
+        // A body declaring a huge section is refused before allocating.
+        let mut huge = Vec::new();
+        huge.extend_from_slice(DENOISED_MAGIC);
+        huge.extend_from_slice(&3u32.to_le_bytes());
+        huge.extend_from_slice(&2u32.to_le_bytes());
+        huge.push(1);
+        huge.extend_from_slice(&8u64.to_le_bytes());
+        huge.extend_from_slice(&u32::MAX.to_le_bytes());
+        huge.extend_from_slice(&[0; 4]);
+        let crc = crc32fast::hash(&huge);
+        huge.extend_from_slice(&crc.to_le_bytes());
+        assert!(decode_denoised(&huge, 3, 2).expect_err("huge").to_string().contains("at most 72 expected"));
+    }
 
     fn frame(splats: bool) -> UnitResultFrame {
         let rect = TileRect { x0: 8, y0: 16, x1: 24, y1: 20 };

@@ -48,6 +48,10 @@ paths! {
     WORKER_LEASE = "/workers/{id}/lease";
     LEASE_RESULT = "/leases/{id}/result";
     LEASE_RELEASE = "/leases/{id}/release";
+    /// `GET`: a denoise step's input (colour, albedo, normal of the frame).
+    LEASE_DENOISE_INPUT = "/leases/{id}/denoise-input";
+    /// `PUT`: a denoise step's output (the `denoised` layer).
+    LEASE_DENOISED = "/leases/{id}/denoised";
     // Own authentication or none.
     EVENTS = "/events";
     OPENAPI = "/openapi.json";

@@ -122,6 +122,11 @@ struct ServeArgs {
     /// left to hand out, if it fits this and --film-memory-mb.
     #[arg(long, default_value_t = 2)]
     max_open_frames: usize,
+    /// A job with `denoise` waits this long for a worker with the tag `denoise` to take a
+    /// frame's final denoise step; then the frame is finished without the denoised layer and
+    /// the job's log says why.
+    #[arg(long, default_value_t = 30_000)]
+    denoise_grace_ms: u64,
     /// A connection must send a complete request head within this long of being opened (or, on
     /// a kept-alive connection, of the head's first byte); otherwise it is closed.
     #[arg(long, default_value_t = 10_000)]
@@ -195,6 +200,7 @@ fn main() -> anyhow::Result<()> {
     cfg.farm.film_budget_bytes = Some(a.film_memory_mb.saturating_mul(1 << 20));
     cfg.farm.max_open_frames = a.max_open_frames.max(1);
     cfg.farm.max_resident_films = a.max_resident_films.max(1);
+    cfg.farm.denoise_grace_ms = a.denoise_grace_ms;
     cfg.farm.worker_prune_ms = (a.prune_workers_after_ms > 0).then_some(a.prune_workers_after_ms);
     cfg.register_per_minute = a.register_per_minute;
     cfg.register_burst = a.register_burst;

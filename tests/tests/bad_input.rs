@@ -546,3 +546,91 @@ fn tokens_missing_401_wrong_kind_403_right_ok() {
     let out = c.dir.path().join("auth.exr");
     c.wait_completed_exr(id, Duration::from_secs(60), &out);
 }
+
+/// The denoise routes check before they read or allocate: a render lease has no denoise input
+/// (422), a layer of another size is refused (422, counted as a failure of the step, which then
+/// waits again), a body larger than the frame's layer can be is a 413, another worker's secret a
+/// 403; a good layer is stored, completes the job and is the EXR's `denoised` layer.
+#[test]
+fn denoise_routes_refuse_bad_bodies_and_other_leases() {
+    use pathfarm_common::protocol::{DenoiseInput, LeaseKind, encode_denoised, max_denoised_bytes};
+    let mut c = start(&[]);
+    let glb = cornell_demo_glb();
+    let scene_id = c.upload_ok(glb.clone());
+    let job = c.submit_ok(&json!({"scene_id": scene_id, "width": 32, "height": 32, "spp": 2, "tile_size": 16,
+        "passes": {"type": "fixed", "spp": 1}, "denoise": true}));
+    let r = c
+        .worker(c.http.post(c.api("/workers/register")))
+        .json(&json!({"name": "fake denoiser", "threads": 1, "tags": ["denoise"]}))
+        .send()
+        .expect("register");
+    let reg: Registered = r.json().expect("registered");
+    let other = c.register("other");
+    let lease = || -> LeaseGrant {
+        let url = c.api(&format!("/workers/{}/lease?wait_ms=2000", reg.worker_id));
+        let r = c.as_worker(c.http.post(url), &reg).send().expect("lease");
+        assert_eq!(r.status(), StatusCode::OK);
+        r.json().expect("grant")
+    };
+    let put = |lease: u64, body: Vec<u8>, who: &Registered| {
+        c.as_worker(c.http.put(c.api(&format!("/leases/{lease}/denoised"))), who)
+            .header("content-type", "application/octet-stream")
+            .body(body)
+            .send()
+            .expect("PUT denoised")
+    };
+    let input = |lease: u64| c.as_worker(c.http.get(c.api(&format!("/leases/{lease}/denoise-input"))), &reg).send();
+    let scene = load_scene_from_slice(&glb, "cornell.glb", None, &LoadOptions::default()).expect("scene");
+    let renderer = Renderer::new(&scene, &c.job(job).settings).expect("renderer");
+    // 4 tiles x 2 passes; the first render lease also shows a render lease has no input.
+    for i in 0..8 {
+        let g = lease();
+        assert_eq!(g.kind, LeaseKind::Render);
+        if i == 0 {
+            assert_eq!(
+                error_code(input(g.lease_id).expect("GET"), StatusCode::UNPROCESSABLE_ENTITY),
+                "result_mismatch"
+            );
+            assert_eq!(
+                error_code(put(g.lease_id, vec![0; 64], &reg), StatusCode::UNPROCESSABLE_ENTITY),
+                "result_mismatch"
+            );
+        }
+        let out = renderer.render_unit(g.tile, g.pass);
+        let frame =
+            UnitResultFrame { lease_id: g.lease_id, job_id: g.job_id, unit: g.unit, accum: out.accum, splats: None };
+        let r = c
+            .as_worker(c.http.put(c.api(&format!("/leases/{}/result", g.lease_id))), &reg)
+            .body(frame.encode())
+            .send()
+            .expect("PUT result");
+        assert_eq!(r.status(), StatusCode::OK);
+    }
+    assert_eq!(c.job(job).state.as_str(), "running", "the job waits for its denoise step");
+    let g = lease();
+    assert_eq!((g.kind, g.unit.pass), (LeaseKind::Denoise, 1));
+    let body = input(g.lease_id).expect("GET input");
+    assert_eq!(body.status(), StatusCode::OK);
+    let got = DenoiseInput::decode_expecting(&body.bytes().expect("input"), 32, 32).expect("a 32 x 32 input");
+    assert!(got.color.iter().any(|c| c[0] > 0.0), "the input holds the film's colour");
+    // Another worker's secret; a body larger than a 32 x 32 layer can be; a 16 x 16 layer.
+    assert_eq!(error_code(put(g.lease_id, vec![0; 64], &other), StatusCode::FORBIDDEN), "wrong_worker");
+    let huge = vec![0u8; max_denoised_bytes(32, 32) as usize + 1];
+    assert_eq!(error_code(put(g.lease_id, huge, &reg), StatusCode::PAYLOAD_TOO_LARGE), "payload_too_large");
+    let small = encode_denoised(16, 16, &vec![[1.0; 3]; 256]);
+    expect_error(put(g.lease_id, small, &reg), StatusCode::UNPROCESSABLE_ENTITY, &["16 x 16", "32 x 32"]);
+    // That counted as a failure: the step waits again, under a new lease; the old one is gone.
+    let g2 = lease();
+    assert_eq!(g2.kind, LeaseKind::Denoise);
+    let good = encode_denoised(32, 32, &vec![[0.25, 0.5, 0.75]; 1024]);
+    assert_eq!(error_code(put(g.lease_id, good.clone(), &reg), StatusCode::CONFLICT), "lease_lost");
+    assert_eq!(put(g2.lease_id, good, &reg).status(), StatusCode::NO_CONTENT);
+    assert_eq!(c.job(job).state.as_str(), "completed");
+    let exr = c.dir.path().join("farm.exr");
+    let bytes =
+        c.client(c.http.get(c.api(&format!("/jobs/{job}/image.exr")))).send().expect("exr").bytes().expect("exr");
+    std::fs::write(&exr, &bytes).expect("write");
+    let channels = pathfarm_common::film::read_exr(&exr).expect("read");
+    assert!(channels.get("denoised.G").expect("denoised layer").iter().all(|&v| v == 0.5));
+    c.assert_serving();
+}

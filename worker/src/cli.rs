@@ -130,6 +130,10 @@ pub struct SettingsArgs {
     /// job asks for it (`"denoise": true`).
     #[arg(long)]
     pub denoise: bool,
+    /// With `--denoise`, on a farm (`pathfarm submit`): also denoise after every completed pass,
+    /// for the preview. A local render denoises the final frame only.
+    #[arg(long, requires = "denoise")]
+    pub denoise_preview: bool,
 }
 
 /// `--min-spp`'s default: 16 samples, or the job's spp if it has fewer.
@@ -208,6 +212,7 @@ impl SettingsArgs {
             min_spp: self.min_spp.unwrap_or(DEFAULT_MIN_SPP.min(self.spp)),
         });
         s.denoise = self.denoise;
+        s.denoise_preview = self.denoise_preview;
         s
     }
 }

@@ -8,8 +8,8 @@
 use crate::render::{Renderer, UnitResult};
 use anyhow::{Context, bail};
 use pathfarm_common::protocol::{
-    API, JobId, LeaseGrant, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId,
+    API, DenoiseInput, JobId, LeaseGrant, LeaseKind, RegisterRequest, Registered, ReleaseRequest, UnitResultFrame,
+    WORKER_SECRET_HEADER, WorkerId,
 };
 use pathfarm_common::routes;
 use pathfarm_common::scene::bundle::{is_scene_id, scene_id, unpack_bundle};
@@ -52,6 +52,9 @@ pub struct RunArgs {
     /// private CA or a self-signed certificate).
     #[arg(long, env = "PATHFARM_CA_CERT")]
     pub ca_cert: Option<PathBuf>,
+    /// Take no denoise steps even when built with OIDN (the tag `denoise` is not reported).
+    #[arg(long, env = "PATHFARM_WORKER_NO_DENOISE")]
+    pub no_denoise: bool,
 }
 
 /// Tags every worker reports by itself: `cpu`; the widest of `avx512f` and `avx2` this CPU
@@ -108,7 +111,7 @@ impl DaemonConfig {
         let threads = args.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
         let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "worker".into());
         Ok(Self {
-            tags: worker_tags(&args.tags)?,
+            tags: worker_tags(&args.tags)?.into_iter().filter(|t| !(args.no_denoise && t == "denoise")).collect(),
             coordinator: args.coordinator.trim_end_matches('/').to_string(),
             token: args.token,
             threads: threads.max(1),
@@ -354,6 +357,9 @@ impl Daemon {
 
     /// Renders one leased unit and delivers it (or reports the failure).
     fn work(&mut self, worker: WorkerId, grant: LeaseGrant, shutdown: &AtomicBool) {
+        if grant.kind == LeaseKind::Denoise {
+            return self.denoise_step(worker, &grant, shutdown);
+        }
         let lease = grant.lease_id;
         tracing::debug!(
             lease,
@@ -401,6 +407,71 @@ impl Daemon {
         self.upload(lease, body, shutdown);
     }
 
+    /// A denoise step: fetches the frame's colour, albedo and normal, denoises them (OIDN, under
+    /// catch_unwind, heartbeating meanwhile) and uploads the layer; any failure releases the
+    /// lease as failed, with the reason.
+    fn denoise_step(&mut self, worker: WorkerId, grant: &LeaseGrant, shutdown: &AtomicBool) {
+        let lease = grant.lease_id;
+        let (w, h) = (grant.settings.width, grant.settings.height);
+        tracing::debug!(lease, job = grant.job_id, frame = grant.unit.frame, pass = grant.unit.pass, "denoising");
+        let input = guarded("fetching the denoise input", || {
+            crate::denoise::ensure_available()?;
+            let resp = self
+                .as_worker(self.http.get(self.url(&routes::fill(routes::LEASE_DENOISE_INPUT, &[&lease]))))
+                .send()?;
+            if !resp.status().is_success() {
+                let status = resp.status();
+                bail!("denoise input: {status} {}", text(resp));
+            }
+            Ok(DenoiseInput::decode_expecting(&resp.bytes()?, w, h)?)
+        });
+        let denoised = input.and_then(|input| {
+            let t0 = Instant::now();
+            let r = self.with_heartbeats(worker, || guarded("denoising", || crate::denoise::denoise_input(&input)));
+            tracing::debug!(lease, ms = t0.elapsed().as_millis() as u64, "denoised");
+            r
+        });
+        match denoised {
+            Ok(rgb) => {
+                let body = pathfarm_common::protocol::encode_denoised(w, h, &rgb);
+                self.upload_to(lease, routes::LEASE_DENOISED, body, shutdown);
+            }
+            Err(reason) => {
+                tracing::error!(lease, job = grant.job_id, "cannot denoise: {reason}");
+                self.release(lease, true, &reason);
+            }
+        }
+    }
+
+    /// Runs `f` while a thread heartbeats every `heartbeat` (a lost registration is noticed).
+    fn with_heartbeats<T>(&mut self, worker: WorkerId, f: impl FnOnce() -> T) -> T {
+        let (done, wake) = std::sync::mpsc::channel::<()>();
+        let lost = AtomicBool::new(false);
+        let this: &Self = self;
+        let lost_flag = &lost;
+        let result = std::thread::scope(|s| {
+            s.spawn(move || {
+                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = wake.recv_timeout(this.heartbeat) {
+                    let r = this
+                        .as_worker(this.http.post(this.url(&routes::fill(routes::WORKER_HEARTBEAT, &[&worker]))))
+                        .send();
+                    if let Ok(resp) = r
+                        && (resp.status() == StatusCode::NOT_FOUND || resp.status() == StatusCode::FORBIDDEN)
+                    {
+                        lost_flag.store(true, Ordering::Relaxed);
+                    }
+                }
+            });
+            let r = f();
+            drop(done);
+            r
+        });
+        if lost.load(Ordering::Relaxed) {
+            self.worker_id = None;
+        }
+        result
+    }
+
     fn render_with_heartbeats(
         &mut self,
         worker: WorkerId,
@@ -443,9 +514,14 @@ impl Daemon {
     }
 
     fn upload(&self, lease: u64, body: Vec<u8>, shutdown: &AtomicBool) {
+        self.upload_to(lease, routes::LEASE_RESULT, body, shutdown)
+    }
+
+    /// `PUT` to `route` (a lease route) with retries; a refusal releases the lease as failed.
+    fn upload_to(&self, lease: u64, route: &str, body: Vec<u8>, shutdown: &AtomicBool) {
         for attempt in 0..10u32 {
             let r = self
-                .as_worker(self.http.put(self.url(&routes::fill(routes::LEASE_RESULT, &[&lease]))))
+                .as_worker(self.http.put(self.url(&routes::fill(route, &[&lease]))))
                 .header("content-type", "application/octet-stream")
                 .body(body.clone())
                 .send();

@@ -17,17 +17,25 @@
 //! noisy one).
 
 use pathfarm_common::film::ImageLayers;
+use pathfarm_common::protocol::DenoiseInput;
 
 /// True if this binary can denoise (built with the `denoise` feature).
 pub const AVAILABLE: bool = cfg!(feature = "denoise");
 
-/// The denoised colour of `img` (same size, linear RGB): albedo and normal prefiltered, then the
-/// colour with the clean auxiliary images. Deterministic for a given image, OIDN build and CPU.
-#[cfg(feature = "denoise")]
+/// The denoised colour of `img` (same size, linear RGB): [`denoise_input`] of
+/// [`DenoiseInput::of`] the image, as the farm's denoise steps do.
 pub fn denoise(img: &ImageLayers) -> anyhow::Result<Vec<[f32; 3]>> {
+    denoise_input(&DenoiseInput::of(img))
+}
+
+/// The denoised colour of a frame's colour, albedo and normal (same size, linear RGB): albedo
+/// and normal prefiltered, then the colour with the clean auxiliary images. Deterministic for a
+/// given input, OIDN build and CPU.
+#[cfg(feature = "denoise")]
+pub fn denoise_input(img: &DenoiseInput) -> anyhow::Result<Vec<[f32; 3]>> {
     let (w, h) = (img.width as usize, img.height as usize);
     let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
-    let (color, albedo, normal) = (flat(&img.rgb), flat(&img.albedo), flat(&img.normal));
+    let (color, albedo, normal) = (flat(&img.color), flat(&img.albedo), flat(&img.normal));
     anyhow::ensure!(
         color.len() == w * h * 3 && albedo.len() == color.len() && normal.len() == color.len(),
         "image layers do not match the image size {w} x {h}"
@@ -168,6 +176,6 @@ pub fn ensure_available() -> anyhow::Result<()> {
 
 /// Without the `denoise` feature: the error of [`ensure_available`].
 #[cfg(not(feature = "denoise"))]
-pub fn denoise(_img: &ImageLayers) -> anyhow::Result<Vec<[f32; 3]>> {
+pub fn denoise_input(_img: &DenoiseInput) -> anyhow::Result<Vec<[f32; 3]>> {
     Err(anyhow::anyhow!(NOT_AVAILABLE))
 }

@@ -85,6 +85,8 @@ pub struct Job {
     /// film is dropped and its images are served from those files. The EV of the preview when
     /// this run wrote it (`None` after a restart).
     pub(super) image_on_disk: Option<Option<f32>>,
+    /// Denoise steps and denoised layers (`farm/denoise.rs`).
+    pub(super) denoise: super::denoise::JobDenoise,
 }
 
 /// Frames listed in a job's info (the rest: `GET /jobs/{id}/frames`).
@@ -481,6 +483,7 @@ impl Job {
             log: Vec::new(),
             output_dirty: false,
             image_on_disk: None,
+            denoise: Default::default(),
         }
     }
 

@@ -15,6 +15,8 @@ pub(super) struct Lease {
     pub(super) unit: usize,
     pub(super) worker: WorkerId,
     pub(super) deadline_ms: u64,
+    /// A denoise step of frame `frame` (`unit` unused), not a unit (`farm/denoise.rs`).
+    pub(super) denoise: Option<super::denoise::Step>,
 }
 
 impl Farm {
@@ -27,6 +29,10 @@ impl Farm {
         let was_offline = std::mem::replace(&mut w.offline, false);
         if was_offline {
             self.note_unservable();
+        }
+        // A worker that can denoise takes the waiting denoise steps first: they hold frames back.
+        if let Some(grant) = self.lease_denoise(worker, now_ms) {
+            return Ok(Some(grant));
         }
         let tags = &self.workers[&worker].tags;
         // A job whose frames in progress have nothing pending may start its next frames (a
@@ -91,6 +97,7 @@ impl Farm {
             .and_then(|run| run.masks.get(key.tile as usize).cloned().flatten())
             .filter(|m| !m.none());
         let grant = LeaseGrant {
+            kind: Default::default(),
             mask,
             lease_id,
             job_id,
@@ -102,7 +109,7 @@ impl Farm {
         };
         self.leases.insert(
             lease_id,
-            Lease { job: job_id, frame, unit, worker, deadline_ms: now_ms + self.cfg.lease_timeout_ms },
+            Lease { job: job_id, frame, unit, worker, deadline_ms: now_ms + self.cfg.lease_timeout_ms, denoise: None },
         );
         if let Some(w) = self.workers.get_mut(&worker) {
             w.leases.insert(lease_id);
@@ -157,12 +164,19 @@ impl Farm {
                 self.changes.progress(l.job);
                 self.changes.workers.insert(l.worker);
                 if let Some(job) = self.jobs.get_mut(&l.job) {
-                    job.requeue(l.frame, l.unit);
+                    job.give_back(&l, now_ms);
                     let key = job.unit_key(l.frame, l.unit);
-                    job.log(format!(
-                        "lease {id} of worker {} expired: unit frame {} pass {} tile {} is pending again",
-                        l.worker, key.frame, key.pass, key.tile
-                    ));
+                    if l.denoise.is_some() {
+                        job.log(format!(
+                            "lease {id} of worker {} expired: the denoise step of frame {} waits again",
+                            l.worker, key.frame
+                        ));
+                    } else {
+                        job.log(format!(
+                            "lease {id} of worker {} expired: unit frame {} pass {} tile {} is pending again",
+                            l.worker, key.frame, key.pass, key.tile
+                        ));
+                    }
                 }
                 self.counters.leases_expired += 1;
             }
@@ -185,6 +199,10 @@ impl Farm {
         self.changes.work_ready = true;
         self.changes.progress(l.job);
         self.changes.workers.insert(l.worker);
+        if l.denoise.is_some() {
+            self.denoise_released(l, failed, reason, now_ms);
+            return Ok(());
+        }
         let (max_failures, blocklist_after) = (self.cfg.max_unit_failures, self.cfg.blocklist_after);
         let Some(job) = self.jobs.get_mut(&l.job) else { return Ok(()) };
         job.requeue(l.frame, l.unit);
@@ -234,6 +252,12 @@ impl Farm {
         now_ms: u64,
     ) -> Result<MergeOutcome, FarmError> {
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
+        if l.denoise.is_some() {
+            return Err(FarmError::ResultMismatch {
+                lease: lease_id,
+                reason: "this is a denoise lease: PUT its denoised layer to /leases/{id}/denoised".into(),
+            });
+        }
         let job = self.jobs.get(&l.job).ok_or(FarmError::LeaseLost(lease_id))?;
         if !job.open.contains_key(&l.frame) {
             return Err(FarmError::LeaseLost(lease_id));
@@ -336,7 +360,8 @@ impl Farm {
             self.changes.progress(job_id);
         }
         job.status[index].passes_done = run.passes_done;
-        if run.is_complete() && job.status[index].state == FrameState::Rendering {
+        let frame_complete = run.is_complete() && job.status[index].state == FrameState::Rendering;
+        if frame_complete {
             let frame = job.frames.frames()[index];
             job.frame_merged(index);
             out.frames_completed.push(frame);
@@ -346,19 +371,16 @@ impl Farm {
                 job.log(format!("frame {frame} merged"));
             }
         }
-        if job.frames_merged as usize == job.frames.len() && !job.state.is_finished() {
-            let id = job.id;
-            if job.settings.denoise {
-                // The farm does not schedule the denoise step yet (issue 14, second part).
-                job.log(
-                    "denoise was asked for, but this coordinator does not schedule denoise steps yet: finished \
-                     without the denoised layer (render locally with `pathfarm-worker render --denoise`)"
-                        .into(),
-                );
-            }
-            job.log("completed".into());
+        let (id, all_merged) = (job.id, job.frames_merged as usize == job.frames.len() && !job.state.is_finished());
+        // Denoise steps (`farm/denoise.rs`): a frame's final one holds the job open.
+        let owed = (frame_complete || !out.passes_completed.is_empty())
+            && self.denoise_after_merge(id, index, &out.passes_completed, frame_complete, now_ms);
+        if all_merged && !owed {
+            self.log_job(id, "completed".into());
             self.finish(id, JobState::Completed, None, now_ms);
             out.job_completed = true;
+        } else if all_merged && frame_complete {
+            self.log_job(id, "every frame merged; waiting for the denoise step".into());
         }
         out
     }

@@ -15,6 +15,7 @@
 //! makes every progressive image a prefix of the final one (each pixel holds samples `[0, s)`).
 
 mod changes;
+mod denoise;
 mod frame_run;
 mod job;
 mod lease;
@@ -24,6 +25,7 @@ mod tests;
 mod workers;
 
 pub use changes::Changes;
+pub use denoise::{DENOISE_TAG, DenoiseOutcome, DenoisedLayer};
 pub use frame_run::FrameRun;
 use job::FrameStatus;
 pub use job::{Checkpoint, CheckpointHead, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
@@ -68,6 +70,9 @@ pub struct FarmConfig {
     /// Frames of one frame-order job in progress at once, at most (the next frame starts when
     /// the frames in progress have no pending unit left and its film fits the budget).
     pub max_open_frames: usize,
+    /// A job's final denoise step that no worker took for this long is given up: its frame is
+    /// finished without the denoised layer (`farm/denoise.rs`).
+    pub denoise_grace_ms: u64,
 }
 
 /// Default of `--film-memory-mb`: 16 GiB of films in memory.
@@ -89,6 +94,7 @@ impl Default for FarmConfig {
             worker_prune_ms: Some(3_600_000),
             expiry_tick_ms: 250,
             max_open_frames: 2,
+            denoise_grace_ms: 30_000,
         }
     }
 }
@@ -139,6 +145,9 @@ pub enum FarmError {
     /// the worker id belongs to.
     #[error("{0}")]
     WrongWorker(String),
+    /// A denoised layer older than the one the farm holds.
+    #[error("stale denoised layer: {0}")]
+    Stale(String),
 }
 
 fn missing_secret() -> FarmError {
@@ -347,6 +356,7 @@ impl Farm {
         if job.state == JobState::Completed && job.finished_ms.is_none() {
             job.finished_ms = Some(now_ms);
         }
+        job.note_restored_denoise(rec.state);
         job.log(format!(
             "restored: {} of {} units merged, {} of {} frames written",
             job.units_merged,
@@ -501,7 +511,9 @@ impl Farm {
                 }
                 if let Some(job) = self.jobs.get_mut(&l.job) {
                     job.leased = job.leased.saturating_sub(1);
-                    job.requeue(l.frame, l.unit);
+                    if l.denoise.is_none() {
+                        job.requeue(l.frame, l.unit);
+                    }
                 }
             }
         }

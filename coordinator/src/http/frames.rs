@@ -65,29 +65,48 @@ pub(crate) fn frame_source(state: &AppState, id: &str, frame: &str) -> ApiResult
     Ok((id, n, FrameSource::Film))
 }
 
-pub(crate) async fn frame_image(state: Arc<AppState>, id: String, frame: String, png: bool) -> ApiResult<Response> {
+pub(crate) async fn frame_image(
+    state: Arc<AppState>,
+    id: String,
+    frame: String,
+    png: bool,
+    layer: PreviewQuery,
+) -> ApiResult<Response> {
     let (id, n, source) = frame_source(&state, &id, &frame)?;
-    let bytes = match source {
+    let (bytes, denoised) = match source {
         FrameSource::File(dir) => {
-            let path = dir.join(if png { "preview.png" } else { "image.exr" });
-            tokio::fs::read(&path).await.map_err(|e| {
+            // A frame written with a denoised layer has its noisy preview beside.
+            let noisy = dir.join(crate::service::NOISY_PREVIEW);
+            let file = match layer.layer {
+                _ if !png => "image.exr",
+                Some(PreviewLayer::Noisy) if noisy.exists() => crate::service::NOISY_PREVIEW,
+                Some(PreviewLayer::Denoised) if !noisy.exists() => return Err(no_denoised()),
+                _ => "preview.png",
+            };
+            let path = dir.join(file);
+            let denoised = file == "preview.png" && noisy.exists();
+            let bytes = tokio::fs::read(&path).await.map_err(|e| {
                 if e.kind() == std::io::ErrorKind::NotFound {
                     ApiError::not_found(format!("frame {n} of job {id} has no image on disk (its files were removed)"))
                 } else {
                     crate::service::storage_error(&e, "the frame's image").into()
                 }
-            })?
+            })?;
+            (bytes, denoised)
         }
         FrameSource::Film => {
             let st = state.clone();
             let exposure = preview_exposure(&state, id)?;
-            tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
+            tokio::task::spawn_blocking(move || -> ApiResult<(Vec<u8>, bool)> {
                 let layers = resolve_film_banded(&st, id, Some(n))?;
                 if png {
+                    let layers = layer.select(layers)?;
                     let ev = layers.preview_ev(exposure);
-                    layers.encode_png(ev).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))
+                    let png = layers.encode_png(ev).map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
+                    Ok((png, layers.denoised.is_some()))
                 } else {
-                    layers.encode_exr().map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))
+                    let exr = layers.encode_exr().map_err(|e| ApiError::internal(format!("EXR encoding: {e}")))?;
+                    Ok((exr, layers.denoised.is_some()))
                 }
             })
             .await
@@ -96,6 +115,9 @@ pub(crate) async fn frame_image(state: Arc<AppState>, id: String, frame: String,
     };
     let mut resp = ([(header::CONTENT_TYPE, if png { "image/png" } else { "image/x-exr" })], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    if png {
+        insert_layer_header(&mut resp, denoised);
+    }
     Ok(resp)
 }
 
@@ -113,7 +135,7 @@ pub(crate) async fn frame_exr(
     State(state): State<Arc<AppState>>,
     Path((id, frame)): Path<(String, String)>,
 ) -> ApiResult<Response> {
-    frame_image(state, id, frame, false).await
+    frame_image(state, id, frame, false, PreviewQuery::default()).await
 }
 
 #[utoipa::path(
@@ -122,13 +144,15 @@ pub(crate) async fn frame_exr(
     context_path = API,
     tag = "images",
     summary = "One frame as an sRGB PNG preview (the dashboard's thumbnails)",
-    params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number")),
+    description = "Shows the frame's denoised layer when it has one (`denoise`), else the noisy colour; `layer` picks one.",
+    params(("id" = u64, Path, description = "Job id"), ("frame" = i32, Path, description = "Frame number"), ("layer" = Option<String>, Query, description = "`noisy` or `denoised` (409 `no_denoised` while there is none)")),
     security(("client_token" = [])),
-    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png", headers(("x-pathfarm-preview-layer" = String, description = "`denoised` or `noisy`: the layer shown"))), (status = 409, description = "The frame has not started (or the job was cancelled before it finished)", body = ErrorBody), (status = 404, description = "No such job, or the frame is not in its frame set", body = ErrorBody), (status = 400, description = "The id or the frame is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
 pub(crate) async fn frame_png(
     State(state): State<Arc<AppState>>,
     Path((id, frame)): Path<(String, String)>,
+    Query(q): Query<PreviewQuery>,
 ) -> ApiResult<Response> {
-    frame_image(state, id, frame, true).await
+    frame_image(state, id, frame, true, q).await
 }

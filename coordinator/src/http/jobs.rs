@@ -345,14 +345,23 @@ pub(crate) async fn job_exr(State(state): State<Arc<AppState>>, Path(id): Path<S
     context_path = API,
     tag = "images",
     summary = "The image so far as an sRGB PNG preview",
-    params(("id" = u64, Path, description = "Job id")),
+    description = "Shows the denoised layer when the job has one (`denoise`), else the noisy colour; `layer` picks one.",
+    params(("id" = u64, Path, description = "Job id"), ("layer" = Option<String>, Query, description = "`noisy` or `denoised` (409 `no_denoised` while there is none)")),
     security(("client_token" = [])),
-    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png"), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`)", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
+    responses((status = 200, description = "PNG file", body = Vec<u8>, content_type = "image/png", headers(("x-pathfarm-preview-layer" = String, description = "`denoised` or `noisy`: the layer shown"))), (status = 409, description = "The job is a sequence: each frame has its own preview (`/jobs/{id}/frames/{frame}/preview.png`); or `layer=denoised` and no denoised layer yet", body = ErrorBody), (status = 404, description = "No such job", body = ErrorBody), (status = 400, description = "The id is not a number", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token", body = ErrorBody)),
 )]
-pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<String>) -> ApiResult<Response> {
-    let (bytes, ev) = match film_or_file(&state, &id, "preview.png").await? {
-        Err(written) => written,
+pub(crate) async fn job_png(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    Query(q): Query<PreviewQuery>,
+) -> ApiResult<Response> {
+    // A film on disk: the written preview (the noisy one beside it for `?layer=noisy`).
+    let file = if q.layer == Some(PreviewLayer::Noisy) { crate::service::NOISY_PREVIEW } else { "preview.png" };
+    let (bytes, ev, denoised) = match film_or_file(&state, &id, file).await? {
+        Err((bytes, ev)) => (bytes, ev, None),
         Ok(layers) => {
+            let layers = q.select(layers)?;
+            let denoised = layers.denoised.is_some();
             let exposure = preview_exposure(&state, parse_id("job", &id)?)?;
             let (bytes, ev) = tokio::task::spawn_blocking(move || {
                 let ev = layers.preview_ev(exposure);
@@ -361,13 +370,16 @@ pub(crate) async fn job_png(State(state): State<Arc<AppState>>, Path(id): Path<S
             .await
             .map_err(|e| ApiError::internal(e.to_string()))?
             .map_err(|e| ApiError::internal(format!("PNG encoding: {e}")))?;
-            (bytes, Some(ev))
+            (bytes, Some(ev), Some(denoised))
         }
     };
     let mut resp = ([(header::CONTENT_TYPE, "image/png")], bytes).into_response();
     resp.headers_mut().insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
     if let Some(ev) = ev {
         insert_exposure_header(&mut resp, ev);
+    }
+    if let Some(denoised) = denoised {
+        insert_layer_header(&mut resp, denoised);
     }
     Ok(resp)
 }
@@ -419,6 +431,48 @@ async fn written_image(state: &AppState, id: &str, name: &str) -> ApiResult<Opti
         }
     })?;
     Ok(Some((bytes, ev)))
+}
+
+/// The response header that says which layer a PNG preview shows: `denoised` or `noisy`.
+pub const LAYER_HEADER: &str = "x-pathfarm-preview-layer";
+
+pub(crate) fn insert_layer_header(resp: &mut Response, denoised: bool) {
+    resp.headers_mut().insert(LAYER_HEADER, HeaderValue::from_static(if denoised { "denoised" } else { "noisy" }));
+}
+
+/// `?layer=noisy|denoised` of the PNG previews (absent: denoised when there is a denoised layer).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PreviewQuery {
+    pub(crate) layer: Option<PreviewLayer>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub(crate) enum PreviewLayer {
+    Noisy,
+    Denoised,
+}
+
+impl PreviewQuery {
+    /// The layers a preview shows: without the denoised layer for `noisy`; 409 for `denoised`
+    /// while there is none.
+    pub(crate) fn select(&self, layers: ImageLayers) -> ApiResult<ImageLayers> {
+        match self.layer {
+            Some(PreviewLayer::Noisy) => Ok(ImageLayers { denoised: None, ..layers }),
+            Some(PreviewLayer::Denoised) if layers.denoised.is_none() => Err(no_denoised()),
+            _ => Ok(layers),
+        }
+    }
+}
+
+pub(crate) fn no_denoised() -> ApiError {
+    ApiError::new(
+        StatusCode::CONFLICT,
+        "no_denoised",
+        "no denoised layer (yet): the job has no `denoise`, its denoise step has not run, or no worker could denoise \
+         (see the job's log)",
+    )
 }
 
 /// The response header that says which exposure a PNG preview used (EV).

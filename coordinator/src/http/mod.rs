@@ -29,9 +29,9 @@ use frames::*;
 use jobs::*;
 use pathfarm_common::film::ImageLayers;
 use pathfarm_common::protocol::{
-    API, DEFAULT_PAGE_LIMIT, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId, MAX_PAGE_LIMIT,
-    RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame, WORKER_SECRET_HEADER,
-    WorkerId, max_result_bytes, validate_tags,
+    API, DEFAULT_PAGE_LIMIT, DenoiseInput, ErrorBody, ErrorDetail, JobCreated, JobId, JobInfo, JobRequest, LeaseId,
+    MAX_PAGE_LIMIT, RegisterRequest, Registered, ReleaseRequest, ResultAccepted, SceneCreated, UnitResultFrame,
+    WORKER_SECRET_HEADER, WorkerId, decode_denoised, max_denoised_bytes, max_result_bytes, validate_tags,
 };
 use pathfarm_common::routes;
 use pathfarm_common::scene::bundle::is_scene_id;
@@ -86,6 +86,9 @@ pub fn routes(state: Arc<AppState>) -> Router<Arc<AppState>> {
         // The result handler reads its body itself, bounded by the lease's tile.
         .route(routes::LEASE_RESULT, put(upload_result))
         .route(routes::LEASE_RELEASE, post(release))
+        // Denoise steps (`farm/denoise.rs`): the frame's input, and the layer, read bounded.
+        .route(routes::LEASE_DENOISE_INPUT, get(denoise_input))
+        .route(routes::LEASE_DENOISED, put(upload_denoised))
         .route_layer(middleware::from_fn_with_state(state.clone(), require_worker));
     let shared = Router::new()
         .route(routes::SCENE, get(download_scene))

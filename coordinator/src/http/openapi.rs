@@ -107,8 +107,13 @@ pub struct JobRequestBody {
     /// samples on) 8x8 pixel blocks whose relative error is at most `threshold` get no more
     /// samples; `samples.Y` shows the per-pixel count. Not with bdpt.
     pub adaptive: Option<pathfarm_common::adaptive::AdaptiveSettings>,
-    /// Also a `denoised` layer (OIDN) in the EXR, shown by the preview, when a worker can denoise.
+    /// Also a `denoised` layer (OIDN) in the EXR, shown by the preview, made by a worker with the
+    /// tag `denoise` after each frame's last pass; a farm without one (for `--denoise-grace-ms`)
+    /// finishes without the layer and the job's log says why.
     pub denoise: Option<bool>,
+    /// With `denoise`: also denoise after every completed pass (the preview; never holds a frame
+    /// back).
+    pub denoise_preview: Option<bool>,
     /// Distance in focus along the view axis (scene units); required with an aperture.
     #[schema(exclusive_minimum = 0.0)]
     pub focus_distance: Option<f32>,
@@ -335,6 +340,8 @@ fn open_tuples(v: &mut serde_json::Value) {
         crate::http::lease,
         crate::http::upload_result,
         crate::http::release,
+        crate::http::denoise_input,
+        crate::http::upload_denoised,
         crate::http::metrics,
         healthz,
         openapi_doc,
@@ -347,7 +354,7 @@ fn open_tuples(v: &mut serde_json::Value) {
     ),
     components(schemas(
         ErrorBody, ErrorDetail, SceneCreated, JobState, JobCreated, JobInfo, WorkerState, WorkerInfo,
-        RegisterRequest, Registered, LeaseGrant, ReleaseRequest, ResultAccepted, RenderSettings, EnvironmentSettings,
+        RegisterRequest, Registered, LeaseGrant, pathfarm_common::protocol::LeaseKind, ReleaseRequest, ResultAccepted, RenderSettings, EnvironmentSettings,
         IntegratorSettings, MisHeuristic, LightSampling, SamplerKind, PassSchedule, TileRect, Pass, UnitKey,
         JobRequestBody, FrameOrder, FrameState, FrameInfo, FramesSummary, Notify, NotifyEvent, PriorityBody, TileProgress, Snapshot, IdOnly, FrameWritten, Convergence, ConvergencePoint,
         pathfarm_common::adaptive::BlockMaskWire,

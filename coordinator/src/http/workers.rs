@@ -224,6 +224,97 @@ pub(crate) async fn upload_result(
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
 }
 
+#[utoipa::path(
+    get,
+    path = routes::LEASE_DENOISE_INPUT,
+    context_path = API,
+    tag = "worker protocol",
+    summary = "A denoise step's input: the frame's colour, albedo and normal",
+    description = "For a lease of `kind` `denoise`: the frame's film resolved (the same resolve as a local render's), \
+        as a binary body: `PFDI` magic, u32 width, u32 height, three sections (colour, albedo, normal: width x height \
+        x 3 little-endian f32, each a u8 codec, u64 length and lz4 block), CRC-32.",
+    params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
+    security(("worker_token" = [])),
+    responses((status = 200, description = "The input", body = Vec<u8>, content_type = "application/octet-stream"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 409, description = "The lease is no longer held, or its frame's film is gone", body = ErrorBody), (status = 422, description = "A render lease, not a denoise lease", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
+)]
+pub(crate) async fn denoise_input(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let lease_id: LeaseId = parse_id("lease", &id)?;
+    let (job, frame) = {
+        let farm = state.farm.lock();
+        farm.check_lease(lease_id, worker_secret(&headers))?;
+        let (job, frame, _) = farm.denoise_lease(lease_id)?;
+        (job, frame)
+    };
+    let st = state.clone();
+    // Resolved band by band (the farm lock is never held for a whole film), then encoded.
+    let body = tokio::task::spawn_blocking(move || -> ApiResult<Vec<u8>> {
+        let layers = resolve_film_banded(&st, job, Some(frame))?;
+        Ok(DenoiseInput::of(&layers).encode())
+    })
+    .await
+    .map_err(|e| ApiError::internal(format!("denoise input task: {e}")))??;
+    Ok(([(header::CONTENT_TYPE, "application/octet-stream")], body).into_response())
+}
+
+#[utoipa::path(
+    put,
+    path = routes::LEASE_DENOISED,
+    context_path = API,
+    tag = "worker protocol",
+    summary = "Upload a denoise step's layer",
+    description = "The denoised colour of the lease's frame: `PFDO` magic, u32 width, u32 height, one section \
+        (width x height x 3 little-endian f32, raw or lz4), CRC-32. The token, the worker secret, the lease and the \
+        declared `Content-Length` (at most the lz4 worst case of the frame's layer) are checked before the body is \
+        read. A layer of an earlier pass than the one stored is refused (409 `stale`): it never replaces a newer one.",
+    params(("id" = u64, Path, description = "Lease id"), ("X-Pathfarm-Worker-Secret" = String, Header, description = "The worker_secret returned by POST /workers/register")),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream", description = "PFDO body"),
+    security(("worker_token" = [])),
+    responses((status = 204, description = "Stored"), (status = 400, description = "Bad lease id", body = ErrorBody), (status = 413, description = "Larger than the frame's layer can be, or than --max-upload-mb", body = ErrorBody), (status = 409, description = "The lease is no longer held (`lease_lost`), or a newer layer is stored (`stale`)", body = ErrorBody), (status = 422, description = "Corrupt body, another size than the frame's, or a render lease", body = ErrorBody), (status = 401, description = "Missing or invalid token", body = ErrorBody), (status = 403, description = "Wrong role for the token, or the worker secret is missing or another worker's (code `wrong_worker`)", body = ErrorBody)),
+)]
+pub(crate) async fn upload_denoised(
+    State(state): State<Arc<AppState>>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<StatusCode, Response> {
+    let lease_id: LeaseId = parse_id("lease", &id).map_err(refuse_unread)?;
+    let secret = worker_secret(&headers).map(str::to_string);
+    let declared = declared_length(&headers);
+    check_declared(declared, state.config.max_upload_bytes as u64, || "the upload limit".to_string())
+        .map_err(refuse_unread)?;
+    let (w, h) = {
+        let farm = state.farm.lock();
+        let size = farm.check_lease(lease_id, secret.as_deref()).and_then(|()| farm.denoise_lease(lease_id));
+        size.map(|(_, _, size)| size).map_err(|e| refuse_unread(e.into()))?
+    };
+    let bound = max_denoised_bytes(w, h).min(state.config.max_upload_bytes as u64);
+    let what = || format!("the largest denoised layer of lease {lease_id}'s frame");
+    check_declared(declared, bound, what).map_err(refuse_unread)?;
+    let body = read_bounded(body, declared, bound, what).await.map_err(refuse_unread)?;
+    state.metrics.bytes_received.fetch_add(body.len() as u64, Ordering::Relaxed);
+    let rgb = match tokio::task::spawn_blocking(move || decode_denoised(&body, w, h)).await {
+        Ok(Ok(rgb)) => rgb,
+        Ok(Err(e)) => {
+            // Counted as a failure of the step (retried, then given up), like a failed render.
+            let _ = state.act(|farm| farm.release(lease_id, true, &format!("bad denoised layer: {e}"), now_ms()));
+            return Err(ApiError::unprocessable("bad_denoised", e.to_string()).into_response());
+        }
+        Err(e) => return Err(ApiError::internal(format!("denoised layer task: {e}")).into_response()),
+    };
+    let outcome = state
+        .act(|farm| {
+            farm.check_lease(lease_id, secret.as_deref())?;
+            farm.accept_denoised(lease_id, rgb, now_ms())
+        })
+        .map_err(|e| ApiError::from(e).into_response())?;
+    tracing::debug!(job = outcome.job_id, frame = outcome.frame, last = outcome.last, "denoised layer stored");
+    Ok(StatusCode::NO_CONTENT)
+}
+
 /// An error answered before the request's body was read: the connection is closed after it, so
 /// the unread body is never parsed as the next request (and a client cannot make us drain it).
 pub(crate) fn refuse_unread(e: ApiError) -> Response {

@@ -61,6 +61,7 @@ impl From<FarmError> for ServiceError {
             FarmError::InvalidJob(_) => (Failure::Unprocessable, "invalid_job"),
             FarmError::OverBudget(_) => (Failure::Unprocessable, "over_budget"),
             FarmError::WrongWorker(_) => (Failure::Forbidden, "wrong_worker"),
+            FarmError::Stale(_) => (Failure::Conflict, "stale"),
         };
         Self::new(kind, code, e.to_string())
     }

@@ -8,10 +8,11 @@ pub async fn maintenance_loop(state: Arc<AppState>) {
     let mut tick = tokio::time::interval(Duration::from_millis(state.config.farm.expiry_tick_ms.max(1)));
     loop {
         tick.tick().await;
-        // Also applies any change an earlier caller took no care of.
-        let ((expired, _), changes) = state.locked(|farm| {
+        // Also applies any change an earlier caller took no care of. Denoise steps given up:
+        // their frames go on (images written, jobs completed).
+        let ((expired, _, _), changes) = state.locked(|farm| {
             let now = now_ms();
-            (farm.expire(now), farm.prune_workers(now))
+            (farm.expire(now), farm.prune_workers(now), farm.expire_denoise(now))
         });
         if expired > 0 {
             tracing::warn!(expired, "leases expired; units are pending again");

@@ -14,14 +14,35 @@ pub fn write_outputs(
     write_atomic(&dir.join("image.exr"), &layers.encode_exr()?)?;
     let ev = layers.preview_ev(exposure);
     write_atomic(&dir.join("preview.png"), &layers.encode_png(ev)?)?;
+    if layers.denoised.is_some() {
+        // The preview shows the denoised layer; the noisy one beside it (`?layer=noisy`).
+        let noisy = noisy_view(layers);
+        write_atomic(&dir.join(NOISY_PREVIEW), &noisy.encode_png(noisy.preview_ev(exposure))?)?;
+    }
     Ok(ev)
 }
 
-/// A sequence's merged frame: job, index in its frame set, frame number, film.
-type FrameToWrite = (JobId, usize, i32, Arc<Film>, pathfarm_common::film::PreviewExposure);
+/// The noisy preview of a frame that has a denoised layer, beside `preview.png`.
+pub const NOISY_PREVIEW: &str = "preview-noisy.png";
 
-type FrameWrite =
-    (PathBuf, Arc<Film>, pathfarm_common::film::PreviewExposure, tokio::sync::oneshot::Sender<anyhow::Result<()>>);
+/// `layers` without the denoised layer (what a noisy preview shows).
+pub fn noisy_view(layers: &ImageLayers) -> ImageLayers {
+    ImageLayers { denoised: None, ..layers.clone() }
+}
+
+/// A frame's denoised layer, when it has one.
+type Denoised = Option<Arc<Vec<[f32; 3]>>>;
+
+/// A sequence's merged frame: job, index in its frame set, frame number, film, denoised layer.
+type FrameToWrite = (JobId, usize, i32, Arc<Film>, Denoised, pathfarm_common::film::PreviewExposure);
+
+type FrameWrite = (
+    PathBuf,
+    Arc<Film>,
+    Denoised,
+    pathfarm_common::film::PreviewExposure,
+    tokio::sync::oneshot::Sender<anyhow::Result<()>>,
+);
 
 /// One thread that resolves and encodes sequence frames, one after the other. A frame's
 /// working set (float layers, EXR and PNG buffers: ~100 MiB at 1080p) is then reused frame
@@ -35,9 +56,11 @@ impl FrameWriter {
     fn start() -> std::io::Result<Self> {
         let (tx, rx) = std::sync::mpsc::channel::<FrameWrite>();
         std::thread::Builder::new().name("frame-writer".into()).spawn(move || {
-            for (dir, film, exposure, reply) in rx {
+            for (dir, film, denoised, exposure, reply) in rx {
                 let r = (|| -> anyhow::Result<()> {
-                    let ev = write_outputs(&dir, &film.resolve(), exposure)?;
+                    let mut layers = film.resolve();
+                    layers.denoised = denoised.map(|d| d.to_vec());
+                    let ev = write_outputs(&dir, &layers, exposure)?;
                     tracing::debug!(dir = %dir.display(), preview_ev = ev, "frame written");
                     // The frame is written: its checkpoint is of no more use.
                     match std::fs::remove_file(dir.join("checkpoint.bin")) {
@@ -57,10 +80,13 @@ impl FrameWriter {
         &self,
         dir: PathBuf,
         film: Arc<Film>,
+        denoised: Denoised,
         exposure: pathfarm_common::film::PreviewExposure,
     ) -> Result<anyhow::Result<()>, String> {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        self.tx.send((dir, film, exposure, reply)).map_err(|_| "the frame writer thread is gone".to_string())?;
+        self.tx
+            .send((dir, film, denoised, exposure, reply))
+            .map_err(|_| "the frame writer thread is gone".to_string())?;
         answer.await.map_err(|_| "the frame writer thread panicked".to_string())
     }
 }
@@ -93,7 +119,12 @@ pub async fn output_loop(state: Arc<AppState>) {
                     j.output_dirty = false;
                     let exposure = pathfarm_common::film::PreviewExposure::of(&j.settings);
                     if j.sequence {
-                        frames.extend(j.frames_to_write().into_iter().map(|(i, f, film)| (j.id, i, f, film, exposure)));
+                        // A frame whose final denoise step is owed is written once it is done.
+                        let ready = j.frames_to_write().into_iter().filter(|(i, _, _)| !j.denoise_owed(*i));
+                        let with_layer: Vec<FrameToWrite> = ready
+                            .map(|(i, f, film)| (j.id, i, f, film, j.denoised(i).map(|d| d.rgb), exposure))
+                            .collect();
+                        frames.extend(with_layer);
                         None
                     } else {
                         Some((j.id, j.state, exposure))
@@ -103,13 +134,18 @@ pub async fn output_loop(state: Arc<AppState>) {
             (due, frames)
         };
         // A sequence's merged frames: written once, then their films are dropped.
-        for (id, index, frame, film, exposure) in frames {
+        for (id, index, frame, film, denoised, exposure) in frames {
             let dir = super::store::frame_dir(&state.job_dir(id), frame);
-            match writer.write(dir, film, exposure).await {
+            match writer.write(dir, film, denoised, exposure).await {
                 Ok(Ok(())) => {
                     // Its film is freed: the next frame may start now (the changes say so).
-                    let ((written, exists), changes) =
-                        state.locked(|farm| (farm.frame_written(id, index).is_some(), farm.job(id).is_ok()));
+                    let ((written, exists), changes) = state.locked(|farm| {
+                        let written = farm.frame_written(id, index).is_some();
+                        if let Ok(j) = farm.job_mut(id) {
+                            j.drop_denoised(index);
+                        }
+                        (written, farm.job(id).is_ok())
+                    });
                     if let Err(e) = state.apply(changes) {
                         tracing::error!(job = id, frame, "applying the frame's changes: {}", e.message);
                     }
@@ -251,5 +287,15 @@ pub fn resolve_film_banded(state: &AppState, id: JobId, frame: Option<i32>) -> S
         out.variance.extend(r.variance);
         y0 = y1;
     }
+    // The newest denoised layer the farm holds for the frame (`farm/denoise.rs`).
+    out.denoised = {
+        let farm = state.farm.lock();
+        let job = farm.job(id)?;
+        let index = match frame {
+            Some(n) => job.frame_index(n),
+            None => Some(0),
+        };
+        index.and_then(|i| job.denoised(i)).map(|d| d.rgb.to_vec())
+    };
     Ok(out)
 }

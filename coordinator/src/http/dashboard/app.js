@@ -18,6 +18,7 @@ const st = {
   previewBusy: false,
   previewAgain: false,
   frames: null, // the selected sequence's frames (first STRIP_MAX)
+  layer: 'denoised', // which layer the preview shows of a job with `denoise`: 'denoised' or 'noisy'
   frame: null, // the frame whose preview is shown
   thumbs: new Map(), // 'job/frame' -> blob URL of a written frame's preview
   thumbsBusy: false,
@@ -215,6 +216,9 @@ document.addEventListener('click', async (e) => {
   if (row) select(Number(row.dataset.jobId));
 });
 $('#job-close').addEventListener('click', () => select(null));
+for (const radio of document.querySelectorAll('#layer-toggle input')) {
+  radio.addEventListener('change', () => { st.layer = radio.value; refreshPreview(); });
+}
 
 function upsertJob(info) {
   st.jobs.set(info.id, { info, at: Date.now() });
@@ -232,6 +236,8 @@ function select(id) {
   $('#preview').removeAttribute('src');
   $('#job-log').textContent = '…';
   $('#preview-cap').textContent = 'preview';
+  const job = st.jobs.get(id);
+  $('#layer-toggle').hidden = !(job && job.info.settings.denoise);
   renderJobs();
   renderPanel(false);
   drawConvergence();
@@ -353,14 +359,18 @@ async function refreshPreview() {
   if (st.previewBusy) { st.previewAgain = true; return; }
   st.previewBusy = true;
   try {
-    const path = seq ? `/jobs/${id}/frames/${frame}/preview.png` : `/jobs/${id}/preview.png`;
+    // Without `?layer` the preview shows the denoised layer when there is one, else the noisy.
+    const layer = st.layer === 'noisy' ? '?layer=noisy' : '';
+    const path = (seq ? `/jobs/${id}/frames/${frame}/preview.png` : `/jobs/${id}/preview.png`) + layer;
     const r = await api(path, { cache: 'no-store' });
+    const shown = r.headers.get('x-pathfarm-preview-layer');
     const url = URL.createObjectURL(await r.blob());
     if (st.selected === id) {
       const img = $('#preview');
       img.onload = () => {
         const which = seq ? `frame ${frame} · ` : '';
-        $('#preview-cap').textContent = `preview · ${which}${img.naturalWidth}×${img.naturalHeight} · updated ${new Date().toLocaleTimeString()}`;
+        const layer = shown ? ` · ${shown}` : '';
+        $('#preview-cap').textContent = `preview · ${which}${img.naturalWidth}×${img.naturalHeight}${layer} · updated ${new Date().toLocaleTimeString()}`;
       };
       img.src = url;
       if (st.previewUrl) URL.revokeObjectURL(st.previewUrl);
