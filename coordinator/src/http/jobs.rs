@@ -356,9 +356,17 @@ pub(crate) async fn job_png(
     Query(q): Query<PreviewQuery>,
 ) -> ApiResult<Response> {
     // A film on disk: the written preview (the noisy one beside it for `?layer=noisy`).
-    let file = if q.layer == Some(PreviewLayer::Noisy) { crate::service::NOISY_PREVIEW } else { "preview.png" };
+    // A written preview shows the denoised layer when the noisy one was written beside it.
+    let has_denoised_file = state.job_dir(parse_id("job", &id)?).join(crate::service::NOISY_PREVIEW).is_file();
+    let noisy = q.layer == Some(PreviewLayer::Noisy);
+    let file = if noisy && has_denoised_file { crate::service::NOISY_PREVIEW } else { "preview.png" };
     let (bytes, ev, denoised) = match film_or_file(&state, &id, file).await? {
-        Err((bytes, ev)) => (bytes, ev, None),
+        Err((bytes, ev)) => {
+            if q.layer == Some(PreviewLayer::Denoised) && !has_denoised_file {
+                return Err(no_denoised());
+            }
+            (bytes, ev, Some(has_denoised_file && !noisy))
+        }
         Ok(layers) => {
             let layers = q.select(layers)?;
             let denoised = layers.denoised.is_some();
