@@ -3,6 +3,7 @@
 //! ```sh
 //! cargo bench -p pathfarm-worker --bench render            # everything
 //! cargo bench -p pathfarm-worker --bench render -- quick   # skip the Mitsuba comparison
+//! cargo bench -p pathfarm-worker --bench render -- sse2    # baseline kernels, not AVX2
 //! ```
 //!
 //! 1. BVH build time and Mrays/s for primary and diffuse (cosine) rays on
@@ -22,6 +23,7 @@ use pathfarm_common::scene::{LoadOptions, load_scene};
 use pathfarm_worker::render::camera::Camera;
 use pathfarm_worker::render::geometry::Frame;
 use pathfarm_worker::render::scene::RenderScene;
+use pathfarm_worker::render::wide::SimdLevel;
 use pathfarm_worker::render::{Renderer, render_local};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -49,6 +51,11 @@ fn unit(x: u64) -> f32 {
     (hash(x) >> 40) as f32 / (1u64 << 24) as f32
 }
 
+/// The SIMD level the renders use: the CPU's best, or the baseline with the `sse2` argument.
+fn simd_level() -> SimdLevel {
+    if std::env::args().any(|a| a == "sse2") { SimdLevel::Baseline } else { SimdLevel::detect() }
+}
+
 fn bvh_figures() {
     let path = corpus().join("01_vertex_count_32bit/01_vertex_count_32bit.gltf");
     let scene = match load_scene(&path, &LoadOptions::default()) {
@@ -59,7 +66,8 @@ fn bvh_figures() {
         }
     };
     let t0 = Instant::now();
-    let rs = RenderScene::new(&scene);
+    let mut rs = RenderScene::new(&scene);
+    rs.set_simd_level(simd_level());
     let build = t0.elapsed().as_secs_f64();
     println!("bvh: {} triangles, scene + BVH build {:.1} ms", rs.triangle_count(), build * 1e3);
     let (w, h) = (512u32, 512u32);
@@ -107,7 +115,8 @@ fn settings(spp: u32, integrator: IntegratorSettings) -> RenderSettings {
 }
 
 fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
-    let r = Renderer::new(scene, s).expect("renderer");
+    let mut r = Renderer::new(scene, s).expect("renderer");
+    r.set_simd_level(simd_level());
     let t = Instant::now();
     let film = render_local(&r, |_, _| {});
     (t.elapsed().as_secs_f64(), film.resolve())
@@ -181,10 +190,12 @@ fn tiny() {
 
 fn main() {
     if std::env::args().any(|a| a == "tiny") {
+        println!("simd: {} kernels", simd_level().name());
         rayon::ThreadPoolBuilder::new().num_threads(1).build_global().ok();
         return tiny();
     }
     let quick = std::env::args().any(|a| a == "quick");
+    println!("simd: {} kernels", simd_level().name());
     rayon::ThreadPoolBuilder::new().num_threads(2).build_global().ok();
     bvh_figures();
 

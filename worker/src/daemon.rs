@@ -275,7 +275,7 @@ impl Daemon {
             match r {
                 Ok(resp) if resp.status().is_success() => {
                     let reg: Registered = resp.json().context("register answer")?;
-                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, tags = ?self.cfg.tags, "registered");
+                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, tags = ?self.cfg.tags, simd = crate::render::wide::SimdLevel::detect().name(), "registered");
                     self.worker_id = Some(reg.worker_id);
                     self.secret = reg.worker_secret;
                     self.heartbeat = Duration::from_millis(reg.heartbeat_ms.max(100));

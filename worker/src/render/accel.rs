@@ -6,8 +6,9 @@
 //! The BVH build is single-threaded and deterministic, so every process that loads a scene gets
 //! the same tree and breaks ties between equal distances the same way.
 
-use glam::Vec3A;
-use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbvh, ray::RayHit};
+use super::wide::{Avx2, Baseline, NodeTest, SimdLevel};
+use glam::{UVec2, Vec3A};
+use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbvh, ray::Ray};
 use std::time::Duration;
 
 /// A closest hit: distance, triangle index (as given to [`Accel::new`]) and barycentrics of
@@ -31,6 +32,9 @@ pub struct Accel {
     /// a ray at time `u` in [0, 1] meets the triangle lerped between the two. The BVH is built
     /// over the swept boxes (both poses), so it bounds the triangle at every time.
     tris_close: Option<Vec<[Vec3A; 3]>>,
+    /// Where the CPU has AVX2: the queries run the traversal compiled for it, with the 8-wide
+    /// node test (bit-identical results; see [`super::wide`]).
+    avx2: Option<Avx2>,
 }
 
 /// The triangle `v0` moving to `v1`, at time `u` in [0, 1] of the shutter.
@@ -154,7 +158,7 @@ impl Accel {
 
     fn build(tris: &[[Vec3A; 3]], close: Option<&[[Vec3A; 3]]>) -> Self {
         if tris.is_empty() {
-            return Self { bvh: None, tris: Vec::new(), prim_ids: Vec::new(), tris_close: None };
+            return Self { bvh: None, tris: Vec::new(), prim_ids: Vec::new(), tris_close: None, avx2: Avx2::new() };
         }
         // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
         // box's edge (a mesh edge on the box boundary) can otherwise miss a node whose triangle
@@ -178,7 +182,7 @@ impl Accel {
         let ordered = prim_ids.iter().map(|&i| tris[i as usize]).collect();
         let tris_close =
             close.map(|_| prim_ids.iter().map(|&i| close_of(i as usize).unwrap_or(tris[i as usize])).collect());
-        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close }
+        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new() }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -190,12 +194,36 @@ impl Accel {
         self.intersect_at(o, d, t_max, 0.0)
     }
 
+    /// The SIMD level the queries use ([`SimdLevel::detect`] at construction).
+    pub fn simd_level(&self) -> SimdLevel {
+        if self.avx2.is_some() { SimdLevel::Avx2 } else { SimdLevel::Baseline }
+    }
+
+    /// Uses `level` for the queries where the CPU supports it (else the baseline): for tests and
+    /// measurements that compare the kernels. Returns the level in use.
+    pub fn set_simd_level(&mut self, level: SimdLevel) -> SimdLevel {
+        self.avx2 = match level {
+            SimdLevel::Avx2 => Avx2::new(),
+            SimdLevel::Baseline => None,
+        };
+        self.simd_level()
+    }
+
     /// Closest hit at time `time` in [0, 1] of the shutter (moving triangles lerped).
+    #[inline]
     pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<Hit> {
+        match self.avx2 {
+            Some(avx2) => avx2.run(|| self.intersect_dispatch(avx2, o, d, t_max, time)),
+            None => self.intersect_dispatch(Baseline, o, d, t_max, time),
+        }
+    }
+
+    #[inline(always)]
+    fn intersect_dispatch<N: NodeTest>(&self, nodes: N, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<Hit> {
         match dominant_axis(d) {
-            0 => self.intersect_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max, time),
-            1 => self.intersect_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max, time),
-            _ => self.intersect_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max, time),
+            0 => self.intersect_with(nodes, RayShear::<1, 2, 0>::new(o, d), o, d, t_max, time),
+            1 => self.intersect_with(nodes, RayShear::<2, 0, 1>::new(o, d), o, d, t_max, time),
+            _ => self.intersect_with(nodes, RayShear::<0, 1, 2>::new(o, d), o, d, t_max, time),
         }
     }
 
@@ -215,9 +243,11 @@ impl Accel {
         }
     }
 
+    /// Closest-hit traversal (obvhs' `CwBvh::ray_traverse`, with the node test `nodes`).
     #[inline(always)]
-    fn intersect_with<const KX: usize, const KY: usize, const KZ: usize>(
+    fn intersect_with<N: NodeTest, const KX: usize, const KY: usize, const KZ: usize>(
         &self,
+        nodes: N,
         shear: RayShear<KX, KY, KZ>,
         o: Vec3A,
         d: Vec3A,
@@ -225,21 +255,23 @@ impl Accel {
         time: f32,
     ) -> Option<Hit> {
         let bvh = self.bvh.as_ref()?;
-        let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
-        let mut hit = RayHit::none();
+        let mut ray = Ray::new(o, bvh_direction(d), 0.0, t_max);
+        let mut state = bvh.new_traversal(ray.direction);
+        let mut node;
+        let mut hit: Option<u32> = None;
         let mut best = (0.0f32, 0.0f32);
-        let found = bvh.ray_traverse(ray, &mut hit, |r, slot| {
-            // `slot` indexes primitive_indices; tris is stored in that order.
-            match self.test_slot(&shear, slot, r.tmax, time) {
-                Some((t, b1, b2)) => {
-                    best = (b1, b2);
-                    t
+        obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
+            // `primitive_id` indexes primitive_indices; tris is stored in that order.
+            if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time) {
+                best = (b1, b2);
+                if t < ray.tmax {
+                    hit = Some(state.primitive_id);
+                    ray.tmax = t;
                 }
-                None => f32::INFINITY,
             }
         });
-        // `ray_traverse` only accepts t < tmax, so the last recorded barycentrics are the winner's.
-        found.then(|| Hit { t: hit.t, prim: self.prim_ids[hit.primitive_id as usize], b1: best.0, b2: best.1 })
+        // Only t < tmax is accepted, so the last recorded barycentrics are the winner's.
+        hit.map(|slot| Hit { t: ray.tmax, prim: self.prim_ids[slot as usize], b1: best.0, b2: best.1 })
     }
 
     /// Whether anything blocks `o + t d` for `0 < t < t_max` (at shutter open).
@@ -248,17 +280,28 @@ impl Accel {
     }
 
     /// Whether anything blocks the segment at time `time` in [0, 1] of the shutter.
+    #[inline]
     pub fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
-        match dominant_axis(d) {
-            0 => self.occluded_with(RayShear::<1, 2, 0>::new(o, d), o, d, t_max, time),
-            1 => self.occluded_with(RayShear::<2, 0, 1>::new(o, d), o, d, t_max, time),
-            _ => self.occluded_with(RayShear::<0, 1, 2>::new(o, d), o, d, t_max, time),
+        match self.avx2 {
+            Some(avx2) => avx2.run(|| self.occluded_dispatch(avx2, o, d, t_max, time)),
+            None => self.occluded_dispatch(Baseline, o, d, t_max, time),
         }
     }
 
     #[inline(always)]
-    fn occluded_with<const KX: usize, const KY: usize, const KZ: usize>(
+    fn occluded_dispatch<N: NodeTest>(&self, nodes: N, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
+        match dominant_axis(d) {
+            0 => self.occluded_with(nodes, RayShear::<1, 2, 0>::new(o, d), o, d, t_max, time),
+            1 => self.occluded_with(nodes, RayShear::<2, 0, 1>::new(o, d), o, d, t_max, time),
+            _ => self.occluded_with(nodes, RayShear::<0, 1, 2>::new(o, d), o, d, t_max, time),
+        }
+    }
+
+    /// Any-hit traversal (obvhs' `CwBvh::ray_traverse_miss`, with the node test `nodes`).
+    #[inline(always)]
+    fn occluded_with<N: NodeTest, const KX: usize, const KY: usize, const KZ: usize>(
         &self,
+        nodes: N,
         shear: RayShear<KX, KY, KZ>,
         o: Vec3A,
         d: Vec3A,
@@ -266,11 +309,19 @@ impl Accel {
         time: f32,
     ) -> bool {
         let Some(bvh) = self.bvh.as_ref() else { return false };
-        let ray = obvhs::ray::Ray::new(o, bvh_direction(d), 0.0, t_max);
-        !bvh.ray_traverse_miss(ray, |r, slot| match self.test_slot(&shear, slot, r.tmax, time) {
-            Some((t, _, _)) => t,
-            None => f32::INFINITY,
-        })
+        let ray = Ray::new(o, bvh_direction(d), 0.0, t_max);
+        let mut state = bvh.new_traversal(ray.direction);
+        let mut node;
+        let mut blocked = false;
+        'traversal: {
+            obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
+                if self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time).is_some_and(|h| h.0 < ray.tmax) {
+                    blocked = true;
+                    break 'traversal;
+                }
+            });
+        }
+        blocked
     }
 }
 
@@ -384,6 +435,88 @@ mod tests {
             assert!(accel.occluded_at(o, d, 10.0, u), "u {u}");
             let other = if u < 0.5 { u + 0.5 } else { u - 0.5 };
             assert!(accel.intersect_at(o, d, f32::INFINITY, other).is_none(), "u {u} at time {other}");
+        }
+    }
+
+    /// A soup of random triangles in [-2, 2]^3 and the cube, static or moving.
+    fn soup(n: u64, seed: u64) -> Vec<[Vec3A; 3]> {
+        use crate::render::wide::unit;
+        let mut tris = cube();
+        for i in 0..n {
+            let r = |k: u64| unit((seed * 1_000_003 + i) * 16 + k);
+            let c = Vec3A::new(r(0), r(1), r(2)) * 4.0 - 2.0;
+            let e = |k: u64| Vec3A::new(r(k) - 0.5, r(k + 1) - 0.5, r(k + 2) - 0.5) * 0.6;
+            tris.push([c, c + e(3), c + e(6)]);
+        }
+        tris
+    }
+
+    /// The old query (obvhs' own `ray_traverse`): the kernels must give its hits exactly, so
+    /// images stay what they were.
+    fn reference_intersect(accel: &Accel, o: Vec3A, d: Vec3A, t_max: f32) -> Option<Hit> {
+        let bvh = accel.bvh.as_ref()?;
+        let shear = RayShear::<0, 1, 2>::new(o, d);
+        let run = |shear: &dyn Fn(usize, f32) -> Option<(f32, f32, f32)>| {
+            let mut hit = obvhs::ray::RayHit::none();
+            let mut best = (0.0f32, 0.0f32);
+            let found = bvh.ray_traverse(Ray::new(o, bvh_direction(d), 0.0, t_max), &mut hit, |r, slot| {
+                match shear(slot, r.tmax) {
+                    Some((t, b1, b2)) => {
+                        best = (b1, b2);
+                        t
+                    }
+                    None => f32::INFINITY,
+                }
+            });
+            found.then(|| Hit { t: hit.t, prim: accel.prim_ids[hit.primitive_id as usize], b1: best.0, b2: best.1 })
+        };
+        match dominant_axis(d) {
+            0 => {
+                let s = RayShear::<1, 2, 0>::new(o, d);
+                run(&|slot, t| accel.test_slot(&s, slot, t, 0.0))
+            }
+            1 => {
+                let s = RayShear::<2, 0, 1>::new(o, d);
+                run(&|slot, t| accel.test_slot(&s, slot, t, 0.0))
+            }
+            _ => run(&|slot, t| accel.test_slot(&shear, slot, t, 0.0)),
+        }
+    }
+
+    fn bits(h: Option<Hit>) -> Option<(u32, u32, u32, u32)> {
+        h.map(|h| (h.t.to_bits(), h.prim, h.b1.to_bits(), h.b2.to_bits()))
+    }
+
+    /// The AVX2 kernels (where the CPU has them) and the baseline give the same hits, bit for
+    /// bit, and the same as obvhs' traversal; for static and moving triangles.
+    #[test]
+    fn simd_levels_give_bit_identical_hits() {
+        let tris = soup(3000, 1);
+        let moved: Vec<_> = tris.iter().map(|t| t.map(|v| v + Vec3A::new(0.3, -0.1, 0.2))).collect();
+        let (mut base, mut wide) = (Accel::new(&tris), Accel::new(&tris));
+        let (mut base_m, mut wide_m) = (Accel::new_moving(&tris, &moved), Accel::new_moving(&tris, &moved));
+        assert_eq!(base.set_simd_level(SimdLevel::Baseline), SimdLevel::Baseline);
+        assert_eq!(base_m.set_simd_level(SimdLevel::Baseline), SimdLevel::Baseline);
+        let has_avx2 = wide.set_simd_level(SimdLevel::Avx2) == SimdLevel::Avx2;
+        wide_m.set_simd_level(SimdLevel::Avx2);
+        let (mut hits, mut blocked) = (0, 0);
+        for (i, (o, d, t_max)) in crate::render::wide::test_rays(3000).into_iter().enumerate() {
+            let want = base.intersect(o, d, t_max);
+            assert_eq!(bits(want), bits(reference_intersect(&base, o, d, t_max)), "ray {o} {d} {t_max}");
+            assert_eq!(bits(wide.intersect(o, d, t_max)), bits(want), "ray {o} {d} {t_max}");
+            let occluded = base.occluded(o, d, t_max);
+            assert_eq!(occluded, want.is_some(), "ray {o} {d} {t_max}");
+            assert_eq!(wide.occluded(o, d, t_max), occluded);
+            let time = (i % 5) as f32 / 4.0;
+            let want_m = base_m.intersect_at(o, d, t_max, time);
+            assert_eq!(bits(wide_m.intersect_at(o, d, t_max, time)), bits(want_m));
+            assert_eq!(wide_m.occluded_at(o, d, t_max, time), base_m.occluded_at(o, d, t_max, time));
+            hits += usize::from(want.is_some());
+            blocked += usize::from(occluded);
+        }
+        assert!(hits > 400 && blocked > 400, "{hits} hits, {blocked} blocked");
+        if !has_avx2 {
+            eprintln!("this CPU has no AVX2: only the baseline was checked against obvhs");
         }
     }
 }

@@ -16,6 +16,7 @@ pub mod microfacet;
 pub mod sampler;
 pub mod sampling;
 pub mod scene;
+pub mod wide;
 
 use bdpt::{BdptParams, Subpaths, li_bdpt};
 use camera::Camera;
@@ -232,6 +233,17 @@ impl Renderer {
             Some(lens) => camera.clone().with_lens(lens).unwrap_or(camera),
             None => camera,
         }
+    }
+
+    /// The SIMD level the renderer's kernels use on this CPU (workers report it).
+    pub fn simd_level(&self) -> wide::SimdLevel {
+        self.scene.simd_level()
+    }
+
+    /// Uses `level` where the CPU supports it (else the baseline): images are bit-identical
+    /// either way; for tests and measurements. Returns the level in use.
+    pub fn set_simd_level(&mut self, level: wide::SimdLevel) -> wide::SimdLevel {
+        self.scene.set_simd_level(level)
     }
 
     pub fn scene(&self) -> &RenderScene {

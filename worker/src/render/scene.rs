@@ -283,6 +283,16 @@ impl RenderScene {
         self.tris.len()
     }
 
+    /// The SIMD level of the ray queries (see [`super::wide`]).
+    pub fn simd_level(&self) -> super::wide::SimdLevel {
+        self.accel.simd_level()
+    }
+
+    /// Uses `level` for the ray queries where the CPU supports it; returns the level in use.
+    pub fn set_simd_level(&mut self, level: super::wide::SimdLevel) -> super::wide::SimdLevel {
+        self.accel.set_simd_level(level)
+    }
+
     /// Closest hit along a ray (at shutter open).
     pub fn intersect(&self, o: Vec3A, d: Vec3A, t_max: f32) -> Option<SurfaceInteraction> {
         self.intersect_at(o, d, t_max, 0.0)

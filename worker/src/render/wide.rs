@@ -1,0 +1,279 @@
+//! Runtime-dispatched SIMD kernels: the renderer's one module where `unsafe` is allowed
+//! (`std::arch` intrinsics, and calls into `#[target_feature]` functions behind a proof that the
+//! running CPU has the features).
+//!
+//! The release binary targets baseline x86-64 (SSE2), so it runs on any worker; where the CPU
+//! has AVX2 (with BMI1/2, LZCNT, POPCNT and FMA: the x86-64-v3 level), [`Avx2`] runs the BVH
+//! traversal compiled for it, with an 8-wide node test over the CWBVH's 8 children.
+//!
+//! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
+//! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
+//! path, in the same order: no FMA contraction (Rust never fuses `a * b + c`; glam picks its
+//! fused `cross` by the compile-time `cfg(target_feature = "fma")`, which a function-level
+//! `#[target_feature]` does not change), no approximate reciprocals, the same min/max operand
+//! order (so NaNs propagate alike). The unit tests run both levels on the same inputs and
+//! compare bits.
+#![allow(unsafe_code)]
+
+use glam::Vec3A;
+use obvhs::cwbvh::node::CwBvhNode;
+use obvhs::ray::Ray;
+
+/// The instruction-set level the renderer's kernels use on this CPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SimdLevel {
+    /// Baseline x86-64 (SSE2), or a non-x86 target: the code as compiled.
+    Baseline,
+    /// AVX2 + FMA + BMI1/2 + LZCNT + POPCNT (x86-64-v3) kernels.
+    Avx2,
+}
+
+impl SimdLevel {
+    /// The best level the running CPU supports.
+    pub fn detect() -> Self {
+        if Avx2::new().is_some() { Self::Avx2 } else { Self::Baseline }
+    }
+
+    /// The level's name, as workers report it ("sse2" or "avx2").
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Baseline => "sse2",
+            Self::Avx2 => "avx2",
+        }
+    }
+}
+
+/// The node test of a BVH traversal: the hit mask of a CWBVH node's children for a ray, in
+/// obvhs' layout (`CwBvhNode::intersect_ray`).
+pub trait NodeTest: Copy {
+    fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32;
+}
+
+/// The baseline node test (obvhs' SSE2 one: two groups of four children).
+#[derive(Clone, Copy, Debug)]
+pub struct Baseline;
+
+impl NodeTest for Baseline {
+    #[inline(always)]
+    fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
+        node.intersect_ray(ray, oct_inv4)
+    }
+}
+
+/// Proof that the running CPU has the x86-64-v3 features the AVX2 kernels are compiled for: only
+/// [`Avx2::new`] makes one, after checking them.
+#[derive(Clone, Copy, Debug)]
+pub struct Avx2 {
+    _checked: (),
+}
+
+impl Avx2 {
+    /// `Some` where the CPU has AVX2, FMA, BMI1, BMI2, LZCNT and POPCNT.
+    pub fn new() -> Option<Self> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let ok = std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+                && std::arch::is_x86_feature_detected!("bmi1")
+                && std::arch::is_x86_feature_detected!("bmi2")
+                && std::arch::is_x86_feature_detected!("lzcnt")
+                && std::arch::is_x86_feature_detected!("popcnt");
+            ok.then_some(Self { _checked: () })
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        None
+    }
+
+    /// Runs `f` inside a function compiled for x86-64-v3, so that `f` and what it inlines (the
+    /// traversal kernels are `#[inline(always)]`) use AVX2 code (VEX encoding, LZCNT, POPCNT).
+    #[inline(always)]
+    pub fn run<R>(self, f: impl FnOnce() -> R) -> R {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+            fn v3<R>(f: impl FnOnce() -> R) -> R {
+                f()
+            }
+            // SAFETY: `self` exists only where `Avx2::new` found every enabled feature.
+            unsafe { v3(f) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        f()
+    }
+}
+
+impl NodeTest for Avx2 {
+    #[inline(always)]
+    fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            node_hits_avx2(node, ray, oct_inv4)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        node.intersect_ray(ray, oct_inv4)
+    }
+}
+
+/// obvhs' node-test epsilon (`cwbvh::node::EPSILON`, crate-private there): the smallest entry
+/// distance of a child box.
+const NODE_EPSILON: f32 = 0.0001;
+
+/// The 8 quantized child bounds `v` as f32 (exact: they are bytes).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn bytes_to_f32x8(v: &[u8; 8]) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::*;
+    // SAFETY: reads the 8 bytes of `v` (an unaligned 64-bit load).
+    unsafe { _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(_mm_loadl_epi64(v.as_ptr().cast()))) }
+}
+
+/// `CwBvhNode::intersect_ray` over all 8 children at once: per child and axis the same
+/// `q * extent_inv + origin` (multiply, then add), the same max/min order and the same `<=`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn node_hits_avx2(node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
+    use std::arch::x86_64::*;
+    let dir_inv = node.compute_extent() * ray.inv_direction;
+    let origin = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
+    let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
+    let axis = |lo: &[u8; 8], hi: &[u8; 8], negative: bool, dir_inv: f32, origin: f32| {
+        let (lo, hi) = (bytes_to_f32x8(lo), bytes_to_f32x8(hi));
+        let (near, far) = if negative { (hi, lo) } else { (lo, hi) };
+        let (d, o) = (_mm256_set1_ps(dir_inv), _mm256_set1_ps(origin));
+        (_mm256_add_ps(_mm256_mul_ps(near, d), o), _mm256_add_ps(_mm256_mul_ps(far, d), o))
+    };
+    let (tmin_x, tmax_x) = axis(&node.child_min_x, &node.child_max_x, ray.direction.x < 0.0, dir_inv.x, origin.x);
+    let (tmin_y, tmax_y) = axis(&node.child_min_y, &node.child_max_y, ray.direction.y < 0.0, dir_inv.y, origin.y);
+    let (tmin_z, tmax_z) = axis(&node.child_min_z, &node.child_max_z, ray.direction.z < 0.0, dir_inv.z, origin.z);
+    let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
+    let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
+    let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
+    let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(ray.tmax));
+    // `_CMP_LE_OQ` is `cmpleps`' predicate without the signal: false on NaN like it.
+    let mut mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tmin, tmax)) as u32;
+    let mut hit_mask = 0;
+    while mask != 0 {
+        let child = mask.trailing_zeros();
+        mask &= mask - 1;
+        let byte = |x: u64| ((x >> (child * 8)) as u32) & 0xff;
+        hit_mask |= byte(child_bits8) << byte(bit_index8);
+    }
+    hit_mask
+}
+
+#[cfg(test)]
+fn hash(mut x: u64) -> u64 {
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x ^= x >> 33;
+    x = x.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+    x ^ (x >> 33)
+}
+
+#[cfg(test)]
+pub(crate) fn unit(x: u64) -> f32 {
+    (hash(x) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// Rays of every kind the renderer makes: random origins and directions, axis-aligned ones
+/// with +-0 components, tiny and huge components, finite and infinite `tmax`.
+#[cfg(test)]
+pub(crate) fn test_rays(n: u64) -> Vec<(Vec3A, Vec3A, f32)> {
+    let mut rays = Vec::new();
+    for i in 0..n {
+        let r = |k: u64| unit(i * 16 + k) * 2.0 - 1.0;
+        let o = Vec3A::new(r(0), r(1), r(2)) * 3.0;
+        let mut d = Vec3A::new(r(3), r(4), r(5));
+        match i % 8 {
+            0 => d = Vec3A::new(-0.0, 0.0, if r(6) < 0.0 { -1.0 } else { 1.0 }),
+            1 => d = Vec3A::new(d.x, -0.0, 1e-30),
+            2 => d *= 1e-20,
+            3 => d *= 1e20,
+            _ => {}
+        }
+        let t_max = if i % 3 == 0 { f32::INFINITY } else { unit(i * 16 + 7) * 6.0 };
+        rays.push((o, d, t_max));
+    }
+    rays
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use obvhs::BvhBuildParams;
+    use obvhs::aabb::Aabb;
+    use obvhs::cwbvh::builder::build_cwbvh;
+    use std::time::Duration;
+
+    /// The AVX2 node test gives obvhs' hit mask, bit for bit, for every node of a BVH and many
+    /// rays (where the CPU has AVX2; elsewhere there is nothing to compare).
+    #[test]
+    fn avx2_node_test_matches_baseline() {
+        let Some(avx2) = Avx2::new() else { return };
+        let boxes: Vec<Aabb> = (0..2000u64)
+            .map(|i| {
+                let c = Vec3A::new(unit(i * 4), unit(i * 4 + 1), unit(i * 4 + 2)) * 4.0 - 2.0;
+                let h = Vec3A::splat(0.01 + 0.2 * unit(i * 4 + 3));
+                Aabb { min: c - h, max: c + h }
+            })
+            .collect();
+        let bvh = build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut Duration::default());
+        let mut compared = 0u64;
+        let mut nonzero = 0u64;
+        for (o, d, t_max) in test_rays(400) {
+            let ray = Ray::new(o, d + Vec3A::ZERO, 0.0, t_max);
+            let state = bvh.new_traversal(ray.direction);
+            for node in &bvh.nodes {
+                let want = Baseline.hits(node, &ray, state.oct_inv4);
+                let got = avx2.run(|| avx2.hits(node, &ray, state.oct_inv4));
+                assert_eq!(got, want, "ray {o} {d} {t_max}");
+                compared += 1;
+                nonzero += u64::from(want != 0);
+            }
+        }
+        assert!(compared > 10_000 && nonzero > 1_000, "{compared} compared, {nonzero} with hits");
+    }
+}
+
+/// Renders with both levels give the same bits (where the CPU has AVX2).
+#[cfg(test)]
+mod render_tests {
+    use super::SimdLevel;
+    use crate::render::Renderer;
+    use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, Pass, RenderSettings, TileRect};
+    use pathfarm_common::scene::{LoadOptions, load_scene};
+
+    fn render(integrator: IntegratorSettings, level: SimdLevel) -> Option<crate::render::UnitResult> {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../reference/cornell_spheres.glb");
+        let scene = load_scene(&path, &LoadOptions::default()).expect("reference scene");
+        let mut settings = RenderSettings::new(32, 32, 4);
+        settings.integrator = integrator;
+        let mut r = Renderer::new(&scene, &settings).expect("renderer");
+        (r.set_simd_level(level) == level)
+            .then(|| r.render_unit(TileRect { x0: 0, y0: 0, x1: 32, y1: 32 }, Pass { index: 0, s0: 0, s1: 4 }))
+    }
+
+    /// Path, bdpt (its shadow rays and light-subpath splats) and igi (VPL visibility): the AVX2
+    /// traversal gives the baseline's unit result bit for bit.
+    #[test]
+    fn avx2_and_baseline_renders_are_bit_identical() {
+        let path = IntegratorSettings::Path {
+            max_depth: 8,
+            rr_depth: 3,
+            mis: MisHeuristic::Power,
+            light_sampling: LightSampling::SolidAngle,
+        };
+        let bdpt = IntegratorSettings::Bdpt { max_depth: 5, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
+        let igi =
+            IntegratorSettings::Igi { vpls: 16, vpl_sets: 2, g_limit: 10.0, bias_compensation: false, max_depth: 4 };
+        for integrator in [path, bdpt, igi] {
+            let base = render(integrator.clone(), SimdLevel::Baseline).expect("the baseline always runs");
+            let Some(avx2) = render(integrator.clone(), SimdLevel::Avx2) else { return };
+            assert!(base.accum.sums.iter().any(|p| p != &Default::default()), "{integrator:?}: an empty image");
+            assert_eq!(base, avx2, "{integrator:?}");
+        }
+    }
+}
