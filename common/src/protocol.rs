@@ -577,7 +577,8 @@ pub enum Codec {
 }
 
 /// The codec results are sent with. Raw: on the load tool (500 workers, 64 px tiles) raw
-/// sections merge faster end to end than lz4 ones (see ARCHITECTURE.md for the figures).
+/// sections merge faster end to end than lz4 ones (the load tool's figures are in the commit that
+/// chose raw: 2,101-2,843 units/s raw on 2 shared cores).
 pub const RESULT_CODEC: Codec = Codec::Raw;
 
 /// Bytes of one sparse splat entry: u32 pixel index, 3 x u64 sums.
