@@ -6,6 +6,7 @@
 //! cargo build --release -p pathfarm-coordinator --bins --example load
 //! target/release/examples/load --workers 500 --width 1024 --height 1024 --tile 64 --spp 100
 //! target/release/examples/load --workers 50 --width 1920 --height 1080 --spp 1 --frames 1-1000 --stop-after-frames 40
+//! target/release/examples/load --workers 500 --width 1024 --height 1024 --tile 64 --spp 40 --jobs 2
 //! ```
 //!
 //! `--frames` makes the job a sequence (frame order) and prints the coordinator's RSS as frames
@@ -63,6 +64,8 @@ struct Args {
     /// Cancel the job once this many frames are written (a long sequence's memory is flat
     /// long before its end).
     stop_after_frames: Option<u32>,
+    /// Identical jobs submitted at once (their units interleave by fair share).
+    jobs: usize,
 }
 
 fn parse_args() -> anyhow::Result<Args> {
@@ -81,6 +84,7 @@ fn parse_args() -> anyhow::Result<Args> {
         render_ms: 0,
         frames: None,
         stop_after_frames: None,
+        jobs: 1,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -111,11 +115,12 @@ fn parse_args() -> anyhow::Result<Args> {
             "--wait-ms" => a.wait_ms = val()?.parse()?,
             "--render-ms" => a.render_ms = val()?.parse()?,
             "--frames" => a.frames = Some(val()?),
+            "--jobs" => a.jobs = val()?.parse::<usize>()?.max(1),
             "--stop-after-frames" => a.stop_after_frames = Some(val()?.parse()?),
             "-h" | "--help" => {
                 eprintln!(
                     "load [--workers 500] [--width 1024] [--height 1024] [--tile 64] [--spp 100 | --units N] \
-                     [--payload noise|zeros] [--codec raw|lz4] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]]"
+                     [--payload noise|zeros] [--codec raw|lz4] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]] [--jobs 1]"
                 );
                 std::process::exit(0);
             }
@@ -434,9 +439,19 @@ async fn run(a: Args) -> anyhow::Result<()> {
         eprintln!("coordinator RSS before the job: {r:.0} MiB");
     }
     let t0 = Instant::now();
-    let job: serde_json::Value =
-        http.post(format!("{base}{API}{}", routes::JOBS)).json(&body).send().await?.error_for_status()?.json().await?;
-    let job_id = job["id"].as_u64().context("job id")?;
+    let mut job_ids = Vec::new();
+    for _ in 0..a.jobs {
+        let job: serde_json::Value = http
+            .post(format!("{base}{API}{}", routes::JOBS))
+            .json(&body)
+            .send()
+            .await?
+            .error_for_status()?
+            .json()
+            .await?;
+        job_ids.push(job["id"].as_u64().context("job id")?);
+    }
+    let job_id = job_ids[0];
     if let Some(r) = pid.and_then(proc_rss) {
         eprintln!("coordinator RSS after submitting: {r:.0} MiB");
     }
@@ -444,8 +459,18 @@ async fn run(a: Args) -> anyhow::Result<()> {
     let mut last = (Instant::now(), 0u64);
     let info: JobInfo = loop {
         tokio::time::sleep(Duration::from_millis(500)).await;
-        let info: JobInfo =
+        let mut info: JobInfo =
             http.get(format!("{base}{API}{}", routes::fill(routes::JOB, &[&job_id]))).send().await?.json().await?;
+        // More jobs: their units add up, and the run ends when every job has.
+        for id in &job_ids[1..] {
+            let other: JobInfo =
+                http.get(format!("{base}{API}{}", routes::fill(routes::JOB, &[id]))).send().await?.json().await?;
+            info.units_merged += other.units_merged;
+            info.units_total += other.units_total;
+            if !other.state.is_finished() {
+                info.state = other.state;
+            }
+        }
         let now = Instant::now();
         let rate = (info.units_merged - last.1) as f64 / (now - last.0).as_secs_f64();
         last = (now, info.units_merged);
