@@ -178,7 +178,7 @@ impl FilmAssembly {
 
 /// Samples a tile's converged pixels will not get: per pixel in a converged block of `mask`,
 /// the job's spp less the samples it holds (they stop changing once their block converged).
-fn skipped_samples(mask: Option<&BlockMask>, sums: &[PixelSums], rect: TileRect, spp: u32) -> u64 {
+pub fn skipped_samples(mask: Option<&BlockMask>, sums: &[PixelSums], rect: TileRect, spp: u32) -> u64 {
     let Some(mask) = mask else { return 0 };
     let w = rect.width();
     sums.iter()

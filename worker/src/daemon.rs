@@ -427,7 +427,7 @@ impl Daemon {
         });
         let denoised = input.and_then(|input| {
             let t0 = Instant::now();
-            let r = self.with_heartbeats(worker, || guarded("denoising", || crate::denoise::denoise_input(&input)));
+            let r = self.with_heartbeats(worker, |_| guarded("denoising", || crate::denoise::denoise_input(&input)));
             tracing::debug!(lease, ms = t0.elapsed().as_millis() as u64, "denoised");
             r
         });
@@ -444,7 +444,8 @@ impl Daemon {
     }
 
     /// Runs `f` while a thread heartbeats every `heartbeat` (a lost registration is noticed).
-    fn with_heartbeats<T>(&mut self, worker: WorkerId, f: impl FnOnce() -> T) -> T {
+    /// The thread waits on a channel, so it ends the moment `f` does.
+    fn with_heartbeats<T>(&mut self, worker: WorkerId, f: impl FnOnce(&Self) -> T) -> T {
         let (done, wake) = std::sync::mpsc::channel::<()>();
         let lost = AtomicBool::new(false);
         let this: &Self = self;
@@ -462,7 +463,7 @@ impl Daemon {
                     }
                 }
             });
-            let r = f();
+            let r = f(this);
             drop(done);
             r
         });
@@ -478,35 +479,13 @@ impl Daemon {
         renderer: &Renderer,
         grant: &LeaseGrant,
     ) -> Result<UnitResult, String> {
-        // The heartbeat thread waits on a channel, so it ends the moment the render does.
-        let (done, wake) = std::sync::mpsc::channel::<()>();
-        let lost = AtomicBool::new(false);
-        let this: &Self = self;
-        let lost_flag = &lost;
-        let result = std::thread::scope(|s| {
-            s.spawn(move || {
-                while let Err(std::sync::mpsc::RecvTimeoutError::Timeout) = wake.recv_timeout(this.heartbeat) {
-                    let r = this
-                        .as_worker(this.http.post(this.url(&routes::fill(routes::WORKER_HEARTBEAT, &[&worker]))))
-                        .send();
-                    if let Ok(resp) = r
-                        && (resp.status() == StatusCode::NOT_FOUND || resp.status() == StatusCode::FORBIDDEN)
-                    {
-                        lost_flag.store(true, Ordering::Relaxed);
-                    }
-                }
-            });
+        let result = self.with_heartbeats(worker, |this| {
             // Adaptive sampling: the lease's mask names the blocks that get no samples; a mask
             // the renderer refuses (another tile's layout, bdpt) fails the unit.
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 this.pool.install(|| renderer.render_unit_masked(grant.tile, grant.pass, grant.mask.as_ref()))
-            }));
-            drop(done);
-            r
+            }))
         });
-        if lost.load(Ordering::Relaxed) {
-            self.worker_id = None;
-        }
         match result {
             Ok(r) => r.map_err(|e| format!("cannot render the unit: {e}")),
             Err(p) => Err(format!("the renderer panicked: {}", panic_message(p.as_ref()))),

@@ -2,8 +2,9 @@
 //! unit), film and adaptive decisions.
 
 use pathfarm_common::adaptive::{self, AdaptiveSettings, BlockMask};
+use pathfarm_common::assembly::skipped_samples;
 use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
-use pathfarm_common::job::{Plan, TileRect};
+use pathfarm_common::job::Plan;
 use pathfarm_common::protocol::LeaseId;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -24,23 +25,6 @@ pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&B
             format!("pixel ({x}, {y}) holds {:.3} samples and {:.3} hits; {why}", p.weight(), f64::from(p.hits))
         })
     })
-}
-
-/// Samples a tile's converged pixels will not get: per pixel in a converged block of `mask`,
-/// the job's spp less the samples it holds (they stop changing once their block converged).
-pub(super) fn skipped_samples(
-    mask: Option<&BlockMask>,
-    sums: &[pathfarm_common::film::PixelSums],
-    rect: TileRect,
-    spp: u32,
-) -> u64 {
-    let Some(mask) = mask else { return 0 };
-    let w = rect.width();
-    sums.iter()
-        .enumerate()
-        .filter(|(i, _)| mask.pixel_converged(*i as u32 % w, *i as u32 / w))
-        .map(|(_, p)| u64::from(spp.saturating_sub(p.weight)))
-        .sum()
 }
 
 /// One frame whose film exists: its merge state and film. Frames not started have none of
