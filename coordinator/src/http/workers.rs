@@ -436,9 +436,7 @@ pub(crate) fn decode_and_accept(
     });
     // A merged result is in effect whether or not a record could be saved (the checkpoint loop
     // saves it again); the worker is told it was merged.
-    if let Err(e) = state.apply(changes) {
-        tracing::error!(lease = lease_id, "applying a result's changes: {}", e.message);
-    }
+    state.apply_logged(changes, &format!("lease {lease_id}'s result"));
     Ok(r)
 }
 

@@ -17,9 +17,7 @@ pub async fn maintenance_loop(state: Arc<AppState>) {
         if expired > 0 {
             tracing::warn!(expired, "leases expired; units are pending again");
         }
-        if let Err(e) = state.apply(changes) {
-            tracing::error!("applying the maintenance's changes: {}", e.message);
-        }
+        state.apply_logged(changes, "the maintenance");
         if let Some(after) = state.config.scene_gc_after_ms {
             collect_scenes(&state, now_ms().saturating_sub(after));
         }

@@ -375,8 +375,14 @@ impl AppState {
     /// Appends a line to a job's log and publishes the change.
     pub fn log_job(&self, id: JobId, line: String) {
         let ((), changes) = self.locked(|farm| farm.log_job(id, line));
+        self.apply_logged(changes, &format!("job {id}'s log line"));
+    }
+
+    /// [`AppState::apply`] where the change is in effect whatever happens: an error (a record
+    /// not saved; the checkpoint loop saves it again) is logged with `what` changed.
+    pub fn apply_logged(&self, changes: crate::farm::Changes, what: &str) {
         if let Err(e) = self.apply(changes) {
-            tracing::error!(job = id, "applying a log line's changes: {}", e.message);
+            tracing::error!("applying {what}'s changes: {}", e.message);
         }
     }
 

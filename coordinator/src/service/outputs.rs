@@ -146,9 +146,7 @@ pub async fn output_loop(state: Arc<AppState>) {
                         }
                         (written, farm.job(id).is_ok())
                     });
-                    if let Err(e) = state.apply(changes) {
-                        tracing::error!(job = id, frame, "applying the frame's changes: {}", e.message);
-                    }
+                    state.apply_logged(changes, &format!("job {id}'s frame {frame} written"));
                     if written {
                         tracing::info!(job = id, frame, "frame written");
                     } else if !exists {

@@ -58,7 +58,7 @@ pub fn apply_residency(state: &AppState) -> bool {
                     "writing a film to disk failed, it stays in memory: {e:#}"
                 );
                 let (_, changes) = state.locked(|farm| farm.return_film(*f, cp.film, now_ms()));
-                apply(state, changes);
+                state.apply_logged(changes, "a film kept in memory");
             }
         }
     }
@@ -68,21 +68,13 @@ pub fn apply_residency(state: &AppState) -> bool {
             .map_err(|e| format!("reading {}: {e}", path.display()))
             .and_then(|b| store::decode_checkpoint(&b).map_err(|e| format!("{}: {e:#}", path.display())));
         let (out, changes) = state.locked(|farm| farm.attach_film(*f, cp, now_ms()));
-        apply(state, changes);
+        state.apply_logged(changes, "a film's read-back");
         match out {
             Ok(out) => tracing::debug!(job = f.job, frame = f.frame, folded = out.folded, "film read back from disk"),
             Err(e) => tracing::error!(job = f.job, frame = f.frame, "{e}"),
         }
     }
     true
-}
-
-/// Results folded when a film came back: progress, outputs, completion and waiting workers
-/// are announced (the farm's changes).
-fn apply(state: &AppState, changes: crate::farm::Changes) {
-    if let Err(e) = state.apply(changes) {
-        tracing::error!("applying a film's read-back: {}", e.message);
-    }
 }
 
 #[cfg(test)]
