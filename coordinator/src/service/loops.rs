@@ -31,21 +31,30 @@ pub async fn checkpoint_loop(state: Arc<AppState>) {
     // Per job: what the last checkpoint held, and when the next one may start. A checkpoint
     // copies the film under the farm lock and compresses it; for big films that is costly, so
     // the next one waits at least nine times as long as the last took (at most ~10% of a core),
-    // unless the job's state or priority changed.
+    // unless the job's state or priority changed, or the job went quiet: a job that merged
+    // nothing since the last tick gets its last merges saved now (when work stops, nothing merged
+    // waits out a back-off that only exists to bound the cost while results flow).
     let mut seen: HashMap<JobId, ((u64, JobState, i32), Instant)> = HashMap::new();
+    let mut last_tick: HashMap<JobId, u64> = HashMap::new();
     loop {
         tokio::time::sleep(state.config.checkpoint_interval).await;
         let due: Vec<JobId> = {
             let farm = state.farm.lock();
-            farm.jobs()
+            let now = Instant::now();
+            let due = farm
+                .jobs()
                 .filter(|j| match seen.get(&j.id) {
                     None => true,
                     Some(((merged, st, prio), next)) => {
-                        (*st, *prio) != (j.state, j.priority) || (*merged != j.units_merged && Instant::now() >= *next)
+                        let quiet = last_tick.get(&j.id) == Some(&j.units_merged);
+                        (*st, *prio) != (j.state, j.priority) || (*merged != j.units_merged && (quiet || now >= *next))
                     }
                 })
                 .map(|j| j.id)
-                .collect()
+                .collect();
+            last_tick = farm.jobs().map(|j| (j.id, j.units_merged)).collect();
+            seen.retain(|id, _| last_tick.contains_key(id));
+            due
         };
         for id in due {
             let t0 = Instant::now();
