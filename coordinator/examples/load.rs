@@ -19,7 +19,8 @@
 //! running (no CPU or memory figures).
 //!
 //! A result is a real `PFR2` frame (header, the section of the tile's 64-byte pixel sums, CRC),
-//! built per lease from a section encoded once per tile size, so the workers cost little.
+//! built per lease from a section encoded once per tile size and shared by every body (no copy;
+//! the CRC of the header is combined with the section's), so the workers cost little.
 //! `--payload noise` (default) puts 3 random low bytes in every sum and random AOV means,
 //! `--payload zeros` sends all-zero sums; `--codec raw|lz4` stores the section as it is (the
 //! default, `RESULT_CODEC`) or lz4-compressed.
@@ -32,6 +33,7 @@
 #![allow(clippy::print_stdout)]
 
 use anyhow::{Context, bail};
+use axum::body::Bytes;
 use pathfarm_common::film::{PIXEL_BYTES, PixelSums};
 use pathfarm_common::job::TileRect;
 use pathfarm_common::protocol::{
@@ -165,8 +167,24 @@ fn section(w: u32, h: u32, noise: bool, codec: Codec) -> Vec<u8> {
     out
 }
 
-/// A result body for a grant, in the `PFR2` layout of `UnitResultFrame::encode`.
-fn frame(g: &LeaseGrant, section: &[u8]) -> Vec<u8> {
+/// A tile size's encoded section, shared by every result of that size, with its CRC state.
+struct Section {
+    bytes: Bytes,
+    crc: crc32fast::Hasher,
+}
+
+impl Section {
+    fn new(bytes: Vec<u8>) -> Self {
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&bytes);
+        Section { bytes: Bytes::from(bytes), crc }
+    }
+}
+
+/// A result body for a grant, in the `PFR2` layout of `UnitResultFrame::encode`: the header is
+/// built per lease, the section is shared (not copied) and its CRC combined with the header's,
+/// so a simulated worker costs little besides sending the bytes. Returns the body and its length.
+fn frame(g: &LeaseGrant, section: &Section) -> (reqwest::Body, u64) {
     let header = serde_json::json!({
         "lease_id": g.lease_id,
         "job_id": g.job_id,
@@ -176,14 +194,17 @@ fn frame(g: &LeaseGrant, section: &[u8]) -> Vec<u8> {
         "splats": null,
     });
     let header = serde_json::to_vec(&header).unwrap_or_default();
-    let mut out = Vec::with_capacity(8 + header.len() + section.len() + 4);
-    out.extend_from_slice(RESULT_MAGIC);
-    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    out.extend_from_slice(&header);
-    out.extend_from_slice(section);
-    let crc = crc32fast::hash(&out);
-    out.extend_from_slice(&crc.to_le_bytes());
-    out
+    let mut head = Vec::with_capacity(8 + header.len());
+    head.extend_from_slice(RESULT_MAGIC);
+    head.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    head.extend_from_slice(&header);
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(&head);
+    crc.combine(&section.crc);
+    let tail = crc.finalize().to_le_bytes().to_vec();
+    let len = (head.len() + section.bytes.len() + tail.len()) as u64;
+    let parts: [std::io::Result<Bytes>; 3] = [Ok(Bytes::from(head)), Ok(section.bytes.clone()), Ok(Bytes::from(tail))];
+    (reqwest::Body::wrap_stream(futures_util::stream::iter(parts)), len)
 }
 
 /// `VmRSS` of a process in MiB.
@@ -222,7 +243,7 @@ async fn worker(
     http: reqwest::Client,
     base: String,
     i: usize,
-    sections: Arc<HashMap<(u32, u32), Vec<u8>>>,
+    sections: Arc<HashMap<(u32, u32), Section>>,
     stats: Arc<Stats>,
     wait_ms: u64,
     render_ms: u64,
@@ -269,11 +290,12 @@ async fn worker(
         }
         let TileRect { x0, y0, x1, y1 } = g.tile;
         let sec = sections.get(&(x1 - x0, y1 - y0)).context("tile size")?;
-        let body = frame(&g, sec);
+        let (body, len) = frame(&g, sec);
         let r = http
             .put(format!("{base}{API}{}", routes::fill(routes::LEASE_RESULT, &[&g.lease_id])))
             .header(WORKER_SECRET_HEADER, &reg.worker_secret)
             .header("content-type", "application/octet-stream")
+            .header("content-length", len)
             .body(body)
             .send()
             .await;
@@ -390,11 +412,11 @@ async fn run(a: Args) -> anyhow::Result<()> {
     for w in [a.tile, a.width % a.tile] {
         for h in [a.tile, a.height % a.tile] {
             if w > 0 && h > 0 {
-                sections.insert((w, h), section(w, h, noise, a.codec));
+                sections.insert((w, h), Section::new(section(w, h, noise, a.codec)));
             }
         }
     }
-    let full = sections.get(&(a.tile, a.tile)).map_or(0, Vec::len);
+    let full = sections.get(&(a.tile, a.tile)).map_or(0, |s| s.bytes.len());
     eprintln!(
         "result body: {} bytes ({} KiB raw, {:?}); film {PIXEL_BYTES} bytes per pixel",
         full,
