@@ -565,47 +565,77 @@ pub enum ImageError {
 impl ImageLayers {
     /// The EXR channel list, as (name, values) pairs.
     pub fn exr_channels(&self) -> Vec<(&'static str, Vec<f32>)> {
-        let c3 = |v: &[[f32; 3]], c: usize| v.iter().map(|p| p[c]).collect::<Vec<f32>>();
-        vec![
-            ("R", c3(&self.rgb, 0)),
-            ("G", c3(&self.rgb, 1)),
-            ("B", c3(&self.rgb, 2)),
-            ("albedo.R", c3(&self.albedo, 0)),
-            ("albedo.G", c3(&self.albedo, 1)),
-            ("albedo.B", c3(&self.albedo, 2)),
-            ("normal.X", c3(&self.normal, 0)),
-            ("normal.Y", c3(&self.normal, 1)),
-            ("normal.Z", c3(&self.normal, 2)),
-            ("depth.Z", self.depth.clone()),
-            ("samples.Y", self.samples.clone()),
-            ("variance.Y", self.variance.clone()),
-        ]
-        .into_iter()
-        .chain(
-            self.denoised
-                .iter()
-                .flat_map(|d| [("denoised.R", c3(d, 0)), ("denoised.G", c3(d, 1)), ("denoised.B", c3(d, 2))]),
-        )
-        .collect()
+        self.clone().into_exr_channels()
+    }
+
+    /// [`ImageLayers::exr_channels`] from layers given up: each interleaved layer is split into
+    /// its planes and dropped before the next, and the planar ones move, so at most one
+    /// layer is held twice (a 4K frame's layers are ~400 MB).
+    pub fn into_exr_channels(self) -> Vec<(&'static str, Vec<f32>)> {
+        fn planes(v: Vec<[f32; 3]>, names: [&'static str; 3], out: &mut Vec<(&'static str, Vec<f32>)>) {
+            for (c, name) in names.into_iter().enumerate() {
+                out.push((name, v.iter().map(|p| p[c]).collect()));
+            }
+        }
+        let mut out = Vec::with_capacity(15);
+        planes(self.rgb, ["R", "G", "B"], &mut out);
+        planes(self.albedo, ["albedo.R", "albedo.G", "albedo.B"], &mut out);
+        planes(self.normal, ["normal.X", "normal.Y", "normal.Z"], &mut out);
+        out.push(("depth.Z", self.depth));
+        out.push(("samples.Y", self.samples));
+        out.push(("variance.Y", self.variance));
+        if let Some(d) = self.denoised {
+            planes(d, ["denoised.R", "denoised.G", "denoised.B"], &mut out);
+        }
+        out
+    }
+
+    /// Writes `channels` as a float32 OpenEXR file (ZIP compression, lossless) to `w`.
+    fn write_exr_channels(
+        width: u32,
+        height: u32,
+        channels: Vec<(&'static str, Vec<f32>)>,
+        w: impl std::io::Write + std::io::Seek,
+    ) -> Result<(), exr::error::Error> {
+        use exr::prelude::*;
+        let size = (width as usize, height as usize);
+        let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
+            channels.into_iter().map(|(name, v)| AnyChannel::new(name, FlatSamples::F32(v))).collect();
+        let attrs = LayerAttributes { software_name: Some(Text::from("pathfarm")), ..Default::default() };
+        let layer = Layer::new(size, attrs, Encoding::SMALL_LOSSLESS, AnyChannels::sort(channels));
+        Image::from_layer(layer).write().to_buffered(w)
     }
 
     /// Encodes the layers as a float32 OpenEXR file in memory (ZIP compression, lossless).
     pub fn encode_exr(&self) -> Result<Vec<u8>, exr::error::Error> {
-        use exr::prelude::*;
-        let size = (self.width as usize, self.height as usize);
-        let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
-            self.exr_channels().into_iter().map(|(name, v)| AnyChannel::new(name, FlatSamples::F32(v))).collect();
-        let attrs = LayerAttributes { software_name: Some(Text::from("pathfarm")), ..Default::default() };
-        let layer = Layer::new(size, attrs, Encoding::SMALL_LOSSLESS, AnyChannels::sort(channels));
         let mut buf = std::io::Cursor::new(Vec::new());
-        Image::from_layer(layer).write().to_buffered(&mut buf)?;
+        Self::write_exr_channels(self.width, self.height, self.exr_channels(), &mut buf)?;
         Ok(buf.into_inner())
     }
 
     /// Writes the EXR atomically: a temporary file beside `path`, then a rename.
     pub fn write_exr(&self, path: &Path) -> Result<(), ImageError> {
-        let bytes = self.encode_exr().map_err(|source| ImageError::Exr { path: path.display().to_string(), source })?;
-        write_atomic(path, &bytes)
+        self.clone().into_exr_file(path)
+    }
+
+    /// [`ImageLayers::write_exr`] from layers given up ([`ImageLayers::into_exr_channels`]),
+    /// streamed to the file: the encoded file is never held in memory whole. The same bytes as
+    /// [`ImageLayers::encode_exr`].
+    pub fn into_exr_file(self, path: &Path) -> Result<(), ImageError> {
+        let (width, height) = (self.width, self.height);
+        let channels = self.into_exr_channels();
+        let mut failed = None;
+        let written = write_atomic_with(path, |w| {
+            Self::write_exr_channels(width, height, channels, w).map_err(|e| {
+                let io = std::io::Error::other(e.to_string());
+                failed = Some(e);
+                io
+            })
+        });
+        match (written, failed) {
+            (Err(_), Some(source)) => Err(ImageError::Exr { path: path.display().to_string(), source }),
+            (r, _) => r,
+        }
     }
 
     /// The exposure (EV) that brings the log-average luminance of the shown colour (denoised if
@@ -676,6 +706,15 @@ pub fn encode_srgb8(v: f32) -> u8 {
 /// directory, fsynced, renamed over `path`, then the directory fsynced. On failure the temporary
 /// file is removed and `path` keeps its old contents.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
+    write_atomic_with(path, |w| std::io::Write::write_all(w, bytes))
+}
+
+/// [`write_atomic`] for a file written piece by piece by `write` (into a buffered writer of the
+/// temporary file), so a large file is never held in memory whole.
+pub fn write_atomic_with(
+    path: &Path,
+    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
+) -> Result<(), ImageError> {
     let io = |source| ImageError::Io { path: path.display().to_string(), source };
     let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(io)?;
@@ -685,9 +724,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ImageError> {
     let seq = SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}.{}.{seq}.tmp", std::process::id()));
     let written = (|| {
-        use std::io::Write;
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(&tmp)?);
+        write(&mut w)?;
+        let f = w.into_inner().map_err(std::io::IntoInnerError::into_error)?;
         // Durable before it replaces the old file: a crash leaves the old or the new bytes.
         f.sync_all()?;
         std::fs::rename(&tmp, path)?;
@@ -973,6 +1012,40 @@ mod tests {
         let mut b = [0u8; PIXEL_BYTES];
         p.write_le(&mut b);
         assert_eq!(PixelSums::read_le(&b), p);
+    }
+
+    /// The EXR streamed from layers given up is the file `encode_exr` makes, byte for byte,
+    /// with and without a denoised layer.
+    #[test]
+    fn streamed_exr_file_is_the_encoded_exr() {
+        let mut film = Film::new(37, 21);
+        let mut t = TileAccum::new(TileRect { x0: 0, y0: 0, x1: 37, y1: 21 });
+        for y in 0..21 {
+            for x in 0..37 {
+                let f = (x * 21 + y) as f32;
+                add_sample(
+                    t.pixel_mut(x, y),
+                    &SampleValue {
+                        radiance: [f * 0.01, 0.5, 1.0 / (1.0 + f)],
+                        albedo: [0.25, 0.5, 0.75],
+                        normal: [0.0, 0.6, 0.8],
+                        depth: (x % 5 != 0).then_some(f),
+                    },
+                );
+            }
+        }
+        film.add_tile(&t);
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut layers = film.resolve();
+        for denoised in [None, Some(vec![[0.125f32, 0.25, 0.5]; 37 * 21])] {
+            layers.denoised = denoised;
+            let path = dir.path().join("image.exr");
+            layers.clone().into_exr_file(&path).expect("write");
+            assert!(std::fs::read(&path).expect("read") == layers.encode_exr().expect("encode"));
+            let back = read_exr(&path).expect("read back");
+            assert_eq!(back.get("denoised.G").is_some(), layers.denoised.is_some());
+            assert_eq!(back.get("R").expect("R"), layers.rgb.iter().map(|p| p[0]).collect::<Vec<_>>());
+        }
     }
 
     #[test]

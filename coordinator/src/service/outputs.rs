@@ -5,30 +5,28 @@ use super::*;
 
 /// Writes `image.exr` and `preview.png` of a job atomically.
 /// The PNG is exposed as the job asks (`exposure`, `auto_exposure`); returns the EV it used.
+/// The previews come first; the EXR is then made from the layers given up and streamed to its
+/// file, so a 4K frame is not held twice (layers and channels) or as a whole encoded file.
 pub fn write_outputs(
     dir: &Path,
-    layers: &ImageLayers,
+    mut layers: ImageLayers,
     exposure: pathfarm_common::film::PreviewExposure,
 ) -> anyhow::Result<f32> {
     std::fs::create_dir_all(dir)?;
-    write_atomic(&dir.join("image.exr"), &layers.encode_exr()?)?;
     let ev = layers.preview_ev(exposure);
     write_atomic(&dir.join("preview.png"), &layers.encode_png(ev)?)?;
-    if layers.denoised.is_some() {
+    if let Some(denoised) = layers.denoised.take() {
         // The preview shows the denoised layer; the noisy one beside it (`?layer=noisy`).
-        let noisy = noisy_view(layers);
-        write_atomic(&dir.join(NOISY_PREVIEW), &noisy.encode_png(noisy.preview_ev(exposure))?)?;
+        let noisy = layers.encode_png(layers.preview_ev(exposure));
+        layers.denoised = Some(denoised);
+        write_atomic(&dir.join(NOISY_PREVIEW), &noisy?)?;
     }
+    layers.into_exr_file(&dir.join("image.exr"))?;
     Ok(ev)
 }
 
 /// The noisy preview of a frame that has a denoised layer, beside `preview.png`.
 pub const NOISY_PREVIEW: &str = "preview-noisy.png";
-
-/// `layers` without the denoised layer (what a noisy preview shows).
-pub fn noisy_view(layers: &ImageLayers) -> ImageLayers {
-    ImageLayers { denoised: None, ..layers.clone() }
-}
 
 /// A frame's denoised layer, when it has one.
 type Denoised = Option<Arc<Vec<[f32; 3]>>>;
@@ -60,7 +58,7 @@ impl FrameWriter {
                 let r = (|| -> anyhow::Result<()> {
                     let mut layers = film.resolve();
                     layers.denoised = denoised.map(|d| d.to_vec());
-                    let ev = write_outputs(&dir, &layers, exposure)?;
+                    let ev = write_outputs(&dir, layers, exposure)?;
                     tracing::debug!(dir = %dir.display(), preview_ev = ev, "frame written");
                     // The frame is written: its checkpoint is of no more use.
                     match std::fs::remove_file(dir.join("checkpoint.bin")) {
@@ -171,7 +169,7 @@ pub async fn output_loop(state: Arc<AppState>) {
             // Resolved band by band, so the farm lock is never held for a whole film.
             let r = tokio::task::spawn_blocking(move || -> anyhow::Result<f32> {
                 let layers = resolve_banded(&st, id).map_err(|e| anyhow::anyhow!(e.message))?;
-                write_outputs(&dir, &layers, exposure)
+                write_outputs(&dir, layers, exposure)
             })
             .await;
             match r {

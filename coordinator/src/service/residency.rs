@@ -64,9 +64,7 @@ pub fn apply_residency(state: &AppState) -> bool {
     }
     for f in &plan.load {
         let path = checkpoint_path(state, f);
-        let cp = std::fs::read(&path)
-            .map_err(|e| format!("reading {}: {e}", path.display()))
-            .and_then(|b| store::decode_checkpoint(&b).map_err(|e| format!("{}: {e:#}", path.display())));
+        let cp = store::load_checkpoint(&path).map_err(|e| format!("{}: {e:#}", path.display()));
         let (out, changes) = state.locked(|farm| farm.attach_film(*f, cp, now_ms()));
         state.apply_logged(changes, "a film's read-back");
         match out {

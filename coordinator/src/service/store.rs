@@ -8,10 +8,12 @@
 
 use crate::farm::{Checkpoint, CheckpointHead, JobRecord};
 use anyhow::{Context, bail};
-use pathfarm_common::film::{Film, PIXEL_BYTES, write_atomic};
+use pathfarm_common::film::{Film, PIXEL_BYTES, write_atomic_with};
 use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::RenderSettings;
-use pathfarm_common::protocol::{Codec, FrameOrder, JobId, JobState, Notify, push_pixels, read_pixels};
+use pathfarm_common::protocol::{
+    Codec, FrameOrder, JobId, JobState, Notify, max_section_bytes, push_pixels, read_pixels,
+};
 use rusqlite::{Connection, OptionalExtension, params};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -365,6 +367,15 @@ const CHECKPOINT_CHUNK_PIXELS: usize = 1 << 20;
 /// `CHECKPOINT_CHUNK_PIXELS` ([`PixelSums::write_le`](pathfarm_common::film::PixelSums::write_le)
 /// layout), CRC-32.
 pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
+    let mut out = Vec::new();
+    // Writing to a Vec cannot fail.
+    let _ = write_checkpoint_to(&mut out, cp);
+    out
+}
+
+/// [`encode_checkpoint`] written to `w` one section at a time, its CRC computed on the way: a
+/// 4K film's checkpoint is never held in memory whole (one section, 64 MiB, at a time).
+fn write_checkpoint_to(w: &mut impl std::io::Write, cp: &Checkpoint) -> std::io::Result<()> {
     let header = CheckpointHeader {
         job_id: cp.job_id,
         frame: cp.frame,
@@ -374,52 +385,93 @@ pub fn encode_checkpoint(cp: &Checkpoint) -> Vec<u8> {
         next_pass: cp.next_pass.clone(),
     };
     let header = serde_json::to_vec(&header).unwrap_or_default();
-    let mut out = Vec::new();
-    out.extend_from_slice(CHECKPOINT_MAGIC);
-    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    out.extend_from_slice(&header);
+    let mut crc = crc32fast::Hasher::new();
+    let mut put = |w: &mut dyn std::io::Write, bytes: &[u8]| {
+        crc.update(bytes);
+        w.write_all(bytes)
+    };
+    put(w, CHECKPOINT_MAGIC)?;
+    put(w, &(header.len() as u32).to_le_bytes())?;
+    put(w, &header)?;
+    let mut section = Vec::new();
     for chunk in cp.film.sums.chunks(CHECKPOINT_CHUNK_PIXELS) {
-        push_pixels(&mut out, chunk, Codec::Lz4);
+        section.clear();
+        push_pixels(&mut section, chunk, Codec::Lz4);
+        put(w, &section)?;
     }
-    let crc = crc32fast::hash(&out);
-    out.extend_from_slice(&crc.to_le_bytes());
-    out
+    w.write_all(&crc.finalize().to_le_bytes())
 }
 
 /// Decodes and verifies a checkpoint. One of an older coordinator (`PFC1`: 13 x 128-bit sums per
 /// pixel) is refused with an error that says so.
 pub fn decode_checkpoint(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
-    if bytes.len() >= 4 && &bytes[..4] == b"PFC1" {
+    decode_checkpoint_from(bytes)
+}
+
+/// Reads and verifies the checkpoint at `path`, one section at a time (the file is never held
+/// in memory whole: a 4K film's is hundreds of MB).
+pub fn load_checkpoint(path: &Path) -> anyhow::Result<Checkpoint> {
+    let f = std::fs::File::open(path).with_context(|| format!("reading {}", path.display()))?;
+    decode_checkpoint_from(std::io::BufReader::with_capacity(1 << 20, f))
+}
+
+/// [`decode_checkpoint`] from a reader: header, then each section read, checked against its
+/// bound before anything is allocated, and decoded into the film; the CRC is checked at the end,
+/// and nothing may follow it.
+fn decode_checkpoint_from(mut r: impl std::io::Read) -> anyhow::Result<Checkpoint> {
+    let mut crc = crc32fast::Hasher::new();
+    let mut take = |r: &mut dyn std::io::Read, buf: &mut [u8], what: &str| -> anyhow::Result<()> {
+        r.read_exact(buf).with_context(|| format!("checkpoint truncated in its {what}"))?;
+        crc.update(buf);
+        Ok(())
+    };
+    let mut start = [0u8; 8];
+    take(&mut r, &mut start[..4], "magic").context("not a checkpoint")?;
+    if &start[..4] == b"PFC1" {
         bail!(
             "a checkpoint of the PFC1 format (128-bit sums) of an older coordinator is not read: the frame renders again from zero"
         );
     }
-    if bytes.len() < 12 || &bytes[..4] != CHECKPOINT_MAGIC {
+    if &start[..4] != CHECKPOINT_MAGIC {
         bail!("not a checkpoint");
     }
-    let (body, crc) = bytes.split_at(bytes.len() - 4);
-    let expected = u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]);
-    if crc32fast::hash(body) != expected {
-        bail!("checkpoint checksum mismatch");
+    take(&mut r, &mut start[4..], "header length")?;
+    let hlen = u32::from_le_bytes([start[4], start[5], start[6], start[7]]) as usize;
+    if hlen > 64 << 20 {
+        bail!("checkpoint header of {hlen} bytes");
     }
-    let hlen = u32::from_le_bytes([body[4], body[5], body[6], body[7]]) as usize;
-    if 8 + hlen > body.len() {
-        bail!("checkpoint header truncated");
-    }
-    let h: CheckpointHeader = serde_json::from_slice(&body[8..8 + hlen])?;
+    let mut header = vec![0u8; hlen];
+    take(&mut r, &mut header, "header")?;
+    let h: CheckpointHeader = serde_json::from_slice(&header)?;
     if h.pixel_bytes != PIXEL_BYTES as u32 {
         bail!("checkpoint has {} bytes per pixel, this coordinator {PIXEL_BYTES}", h.pixel_bytes);
     }
-    let mut rest = &body[8 + hlen..];
-    let n = h.width as usize * h.height as usize;
     let mut film = Film::new(h.width, h.height);
+    let mut section = Vec::new();
     for chunk in film.sums.chunks_mut(CHECKPOINT_CHUNK_PIXELS) {
+        let mut prefix = [0u8; 9];
+        take(&mut r, &mut prefix, "film")?;
+        let len = u64::from_le_bytes(prefix[1..9].try_into().unwrap_or_default());
+        let bound = max_section_bytes((chunk.len() * PIXEL_BYTES) as u64);
+        if len > bound {
+            bail!("checkpoint section of {len} bytes for {} pixels", chunk.len());
+        }
+        section.clear();
+        section.extend_from_slice(&prefix);
+        section.resize(9 + len as usize, 0);
+        take(&mut r, &mut section[9..], "film")?;
+        let mut rest = section.as_slice();
         let pixels = read_pixels(&mut rest, chunk.len(), "film")?;
         chunk.copy_from_slice(&pixels);
     }
-    debug_assert_eq!(film.sums.len(), n);
-    if !rest.is_empty() {
-        bail!("checkpoint has {} trailing bytes", rest.len());
+    let expected = crc.finalize();
+    let mut stored = [0u8; 4];
+    r.read_exact(&mut stored).context("checkpoint truncated before its checksum")?;
+    if u32::from_le_bytes(stored) != expected {
+        bail!("checkpoint checksum mismatch");
+    }
+    if r.read(&mut [0u8; 1])? != 0 {
+        bail!("checkpoint has trailing bytes");
     }
     Ok(Checkpoint { job_id: h.job_id, frame: h.frame, next_pass: h.next_pass, film })
 }
@@ -469,15 +521,17 @@ pub fn write_checkpoint(path: &Path, cp: &Checkpoint) -> anyhow::Result<()> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir)?;
     }
-    write_atomic(path, &encode_checkpoint(cp))?;
+    write_atomic_with(path, |w| write_checkpoint_to(w, cp))?;
     Ok(())
 }
 
 /// Reads a checkpoint if there is one; a damaged one is reported and ignored (the job restarts
 /// from zero rather than from wrong sums).
 pub fn read_checkpoint(path: &Path) -> Option<Checkpoint> {
-    let bytes = std::fs::read(path).ok()?;
-    match decode_checkpoint(&bytes) {
+    if !path.exists() {
+        return None;
+    }
+    match load_checkpoint(path) {
         Ok(cp) => Some(cp),
         Err(e) => {
             tracing::error!(path = %path.display(), "ignoring a checkpoint that cannot be read (damaged or of an older format): {e:#}");
@@ -515,6 +569,41 @@ mod tests {
         old[..4].copy_from_slice(b"PFC1");
         let e = decode_checkpoint(&old).expect_err("PFC1");
         assert!(e.to_string().contains("PFC1 format"), "{e}");
+    }
+
+    /// A film of two sections is written section by section and read back the same way: the file
+    /// is `encode_checkpoint`'s bytes; damage anywhere, a section declaring more than its bound,
+    /// a missing end or trailing bytes are refused.
+    #[test]
+    fn checkpoints_stream_section_by_section() {
+        let (w, h) = (1025, 1024);
+        let mut film = Film::new(w, h);
+        for (i, p) in film.sums.iter_mut().enumerate().step_by(997) {
+            p.rgb = [i as u64, 3 * i as u64, 7];
+            p.weight = i as u32 % 9;
+        }
+        let cp = Checkpoint { job_id: 9, frame: 2, next_pass: vec![3; 17], film };
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("checkpoint.bin");
+        write_checkpoint(&path, &cp).expect("write");
+        let bytes = std::fs::read(&path).expect("read");
+        assert!(bytes == encode_checkpoint(&cp), "the streamed file differs from the encoded checkpoint");
+        assert!(load_checkpoint(&path).expect("load") == cp);
+        for at in [9, bytes.len() / 2, bytes.len() - 5] {
+            let mut bad = bytes.clone();
+            bad[at] ^= 0x10;
+            assert!(decode_checkpoint(&bad).is_err(), "damage at byte {at} not found");
+        }
+        let mut longer = bytes.clone();
+        longer.push(0);
+        assert!(decode_checkpoint(&longer).expect_err("trailing").to_string().contains("trailing"));
+        assert!(decode_checkpoint(&bytes[..bytes.len() - 4]).is_err());
+        // The first section's declared length, far beyond its bound: refused before reading it.
+        let hlen = u32::from_le_bytes(bytes[4..8].try_into().expect("4 bytes")) as usize;
+        let mut huge = bytes.clone();
+        huge[8 + hlen + 1..8 + hlen + 9].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        let e = decode_checkpoint(&huge).expect_err("huge section");
+        assert!(e.to_string().contains("section of"), "{e}");
     }
 
     #[test]
