@@ -4,6 +4,7 @@
 //! cargo bench -p pathfarm-worker --bench render            # everything
 //! cargo bench -p pathfarm-worker --bench render -- quick   # skip the Mitsuba comparison
 //! cargo bench -p pathfarm-worker --bench render -- sse2    # baseline kernels, not AVX2
+//! cargo bench -p pathfarm-worker --bench render -- scalar  # path: one path at a time, not the wavefront
 //! ```
 //!
 //! 1. BVH build time and Mrays/s for primary and diffuse (cosine) rays on
@@ -23,6 +24,7 @@ use pathfarm_common::scene::{LoadOptions, load_scene};
 use pathfarm_worker::render::camera::Camera;
 use pathfarm_worker::render::geometry::Frame;
 use pathfarm_worker::render::scene::RenderScene;
+use pathfarm_worker::render::wavefront::PathKernel;
 use pathfarm_worker::render::wide::SimdLevel;
 use pathfarm_worker::render::{Renderer, render_local};
 use std::path::{Path, PathBuf};
@@ -54,6 +56,11 @@ fn unit(x: u64) -> f32 {
 /// The SIMD level the renders use: the CPU's best, or the baseline with the `sse2` argument.
 fn simd_level() -> SimdLevel {
     if std::env::args().any(|a| a == "sse2") { SimdLevel::Baseline } else { SimdLevel::detect() }
+}
+
+/// The path kernel the renders use: the wavefront, or one path at a time with `scalar`.
+fn path_kernel() -> PathKernel {
+    if std::env::args().any(|a| a == "scalar") { PathKernel::Scalar } else { PathKernel::Wavefront }
 }
 
 fn bvh_figures() {
@@ -117,6 +124,7 @@ fn settings(spp: u32, integrator: IntegratorSettings) -> RenderSettings {
 fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
     let mut r = Renderer::new(scene, s).expect("renderer");
     r.set_simd_level(simd_level());
+    r.set_path_kernel(path_kernel());
     let t = Instant::now();
     let film = render_local(&r, |_, _| {});
     (t.elapsed().as_secs_f64(), film.resolve())
@@ -190,12 +198,12 @@ fn tiny() {
 
 fn main() {
     if std::env::args().any(|a| a == "tiny") {
-        println!("simd: {} kernels", simd_level().name());
+        println!("simd: {} kernels, {:?} path kernel", simd_level().name(), path_kernel());
         rayon::ThreadPoolBuilder::new().num_threads(1).build_global().ok();
         return tiny();
     }
     let quick = std::env::args().any(|a| a == "quick");
-    println!("simd: {} kernels", simd_level().name());
+    println!("simd: {} kernels, {:?} path kernel", simd_level().name(), path_kernel());
     rayon::ThreadPoolBuilder::new().num_threads(2).build_global().ok();
     bvh_figures();
 
