@@ -23,7 +23,7 @@ use super::geometry::{Ray, offset_ray_origin};
 use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter};
 use super::light::LightSampleContext;
 use super::material::shade;
-use super::sampler::Sampler;
+use super::sampler::{BounceDraws, Replay, Sampler};
 use super::scene::{RenderScene, SurfaceInteraction};
 use glam::{UVec2, Vec3A};
 use pathfarm_common::film::SampleValue;
@@ -71,6 +71,9 @@ pub struct Wavefront<S> {
     paths: Vec<PathState<S>>,
     live: Vec<u32>,
     next_live: Vec<u32>,
+    /// Positions in `live` of the paths that shade this bounce, and their numbers.
+    shading: Vec<u32>,
+    draws: Vec<BounceDraws>,
     rays: Vec<RayQuery>,
     hits: Vec<Option<Hit>>,
     surfaces: Vec<Option<SurfaceInteraction>>,
@@ -85,6 +88,8 @@ impl<S: Sampler> Default for Wavefront<S> {
             paths: Vec::with_capacity(BATCH),
             live: Vec::with_capacity(BATCH),
             next_live: Vec::with_capacity(BATCH),
+            shading: Vec::with_capacity(BATCH),
+            draws: Vec::with_capacity(BATCH),
             rays: Vec::with_capacity(BATCH),
             hits: Vec::with_capacity(BATCH),
             surfaces: Vec::with_capacity(BATCH),
@@ -150,13 +155,30 @@ impl<S: Sampler> Wavefront<S> {
                 RayQuery { o: p.ray.o, d: p.ray.d, t_max: f32::INFINITY, time: p.time }
             }));
             scene.intersect_many(&self.rays, &mut self.hits, &mut self.surfaces);
-            // Shading stage: emission, BSDF, light sample, scattering, roulette.
+            // Arrival stage: emission, environment, depth limit.
+            self.shading.clear();
+            for (k, &i) in self.live.iter().enumerate() {
+                if arrive(scene, params, &mut self.paths[i as usize], self.surfaces[k].as_ref()) {
+                    self.shading.push(k as u32);
+                }
+            }
+            // The random numbers of the bounce, for every shading path at once.
+            self.draws.clear();
+            let (paths, live) = (&self.paths, &self.live);
+            S::bounce_draws_many(
+                self.shading.iter().map(|&k| &paths[live[k as usize] as usize].sampler),
+                scene.simd_level(),
+                &mut self.draws,
+            );
+            // Shading stage: BSDF, light sample, scattering, roulette.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
-            for (k, &i) in self.live.iter().enumerate() {
+            for (&k, draws) in self.shading.iter().zip(&self.draws) {
+                let i = self.live[k as usize];
+                let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut self.paths[i as usize];
-                let pending = bounce(scene, params, path, self.surfaces[k].as_ref());
+                let pending = scatter(scene, params, path, si, draws);
                 if let Some((ray, shadow)) = pending.shadow {
                     self.shadow_rays.push(ray);
                     self.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
@@ -188,15 +210,16 @@ struct Bounce {
     alive: bool,
 }
 
-/// One iteration of `li_path`'s loop after its closest-hit query found `si`, line for line.
+/// The first part of one iteration of `li_path`'s loop after its closest-hit query found `si`,
+/// line for line: emission found, the environment, the depth limit. Whether the path goes on to
+/// [`scatter`].
 #[inline]
-fn bounce<S: Sampler>(
+fn arrive<S: Sampler>(
     scene: &RenderScene,
     params: &PathParams,
     path: &mut PathState<S>,
     si: Option<&SurfaceInteraction>,
-) -> Bounce {
-    let done = Bounce { shadow: None, alive: false };
+) -> bool {
     let ray = path.ray;
     let time = path.time;
     let Some(si) = si else {
@@ -211,7 +234,7 @@ fn bounce<S: Sampler>(
                     });
             }
         }
-        return done;
+        return false;
     };
     let wo = -ray.d;
     if path.depth == 0 {
@@ -235,9 +258,26 @@ fn bounce<S: Sampler>(
             path.out.albedo = sh.albedo.to_array();
             path.out.normal = sh.ns.to_array();
         }
-        return done;
+        return false;
     }
-    let sh = shade(scene, si, wo, path.sampler.get_1d());
+    true
+}
+
+/// The rest of the iteration after [`arrive`], line for line: shading, the light sample (its
+/// shadow ray queued), BSDF sampling and roulette, with the bounce's numbers drawn ahead.
+#[inline]
+fn scatter<S: Sampler>(
+    scene: &RenderScene,
+    params: &PathParams,
+    path: &mut PathState<S>,
+    si: &SurfaceInteraction,
+    draws: &BounceDraws,
+) -> Bounce {
+    let done = Bounce { shadow: None, alive: false };
+    let time = path.time;
+    let wo = -path.ray.d;
+    let mut sampler = Replay { inner: &mut path.sampler, draws };
+    let sh = shade(scene, si, wo, sampler.get_1d());
     if path.depth == 0 {
         path.out.albedo = sh.albedo.to_array();
         path.out.normal = sh.ns.to_array();
@@ -245,8 +285,8 @@ fn bounce<S: Sampler>(
     let Some(bsdf) = &sh.bsdf else { return done };
     let mut shadow = None;
     if !bsdf.is_delta() {
-        let u_select = path.sampler.get_1d();
-        let u = path.sampler.get_2d();
+        let u_select = sampler.get_1d();
+        let u = sampler.get_2d();
         match nee_sample(scene, si.p, &sh, wo, u_select, u, params, time) {
             Some(nee) => {
                 let (o, d, t_max) = RenderScene::shadow_ray(si.p, sh.ng, &nee.ls);
@@ -256,7 +296,7 @@ fn bounce<S: Sampler>(
             None => path.l += path.beta * Vec3A::ZERO,
         }
     }
-    let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, &mut path.sampler) else {
+    let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, &mut sampler) else {
         return Bounce { shadow, alive: false };
     };
     path.beta *= weight;
@@ -271,7 +311,7 @@ fn bounce<S: Sampler>(
         return Bounce { shadow, alive: false };
     }
     if path.depth >= params.rr_depth {
-        let u_rr = path.sampler.get_1d();
+        let u_rr = sampler.get_1d();
         let q = (path.beta.max_element() * path.eta_scale).min(RR_MAX_SURVIVAL);
         if u_rr >= q {
             return Bounce { shadow, alive: false };
