@@ -40,8 +40,7 @@ fn checker() -> Texture {
     let texels = (0..n * n)
         .map(|i| {
             let (x, y) = (i % n, i / n);
-            let c = if (x / 4 + y / 4) % 2 == 0 { Vec4::new(0.9, 0.6, 0.2, 1.0) } else { Vec4::new(0.2, 0.5, 0.9, 0.3) };
-            c
+            if (x / 4 + y / 4) % 2 == 0 { Vec4::new(0.9, 0.6, 0.2, 1.0) } else { Vec4::new(0.2, 0.5, 0.9, 0.3) }
         })
         .collect();
     Texture {
@@ -151,7 +150,12 @@ fn cases() -> Vec<Case> {
     };
     add("cornell area", &cornell, settings(24, 6, path(8, 5, MisHeuristic::Power, LightSampling::Area)), None);
     add("cornell solid angle", &cornell, settings(24, 6, default_path()), None);
-    add("cornell no depth limit", &cornell, settings(16, 4, path(0, 2, MisHeuristic::Power, LightSampling::Area)), None);
+    add(
+        "cornell no depth limit",
+        &cornell,
+        settings(16, 4, path(0, 2, MisHeuristic::Power, LightSampling::Area)),
+        None,
+    );
     add("cornell depth 1", &cornell, settings(16, 4, path(1, 5, MisHeuristic::Power, LightSampling::Area)), None);
     add(
         "cornell direct balance",

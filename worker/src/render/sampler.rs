@@ -311,11 +311,7 @@ impl Sampler for IndependentSampler {
 
     fn bounce_draws(&self) -> BounceDraws {
         let at = |o: u32| self.value(self.dim.wrapping_add(o));
-        BounceDraws {
-            base: self.dim,
-            d1: BOUNCE_1D.map(at),
-            d2: BOUNCE_2D.map(|o| Vec2::new(at(o), at(o + 1))),
-        }
+        BounceDraws { base: self.dim, d1: BOUNCE_1D.map(at), d2: BOUNCE_2D.map(|o| Vec2::new(at(o), at(o + 1))) }
     }
 }
 
@@ -410,11 +406,7 @@ impl Sampler for SobolSampler {
 
     fn bounce_draws(&self) -> BounceDraws {
         let at = |o: u32| Self { dim: self.dim.wrapping_add(o), ..self.clone() };
-        BounceDraws {
-            base: self.dim,
-            d1: BOUNCE_1D.map(|o| at(o).get_1d()),
-            d2: BOUNCE_2D.map(|o| at(o).get_2d()),
-        }
+        BounceDraws { base: self.dim, d1: BOUNCE_1D.map(|o| at(o).get_1d()), d2: BOUNCE_2D.map(|o| at(o).get_2d()) }
     }
 
     fn bounce_draws_many<'a>(

@@ -9,7 +9,7 @@
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
-//! ([`nee_sample`], [`sample_scatter`], [`emission_weight`], [`shade`]); its sampler draws the
+//! ([`nee_sample`], [`sample_scatter`], `emission_weight`, [`shade`]); its sampler draws the
 //! same dimensions (the samplers are addressed by (seed, pixel, sample index, dimension), so a
 //! path's numbers never depend on its neighbours); its radiance sums its terms in the scalar
 //! order (a shadow ray's contribution is added in the shadow stage, before the next bounce adds

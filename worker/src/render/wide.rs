@@ -4,7 +4,9 @@
 //!
 //! The release binary targets baseline x86-64 (SSE2), so it runs on any worker; where the CPU
 //! has AVX2 (with BMI1/2, LZCNT, POPCNT and FMA: the x86-64-v3 level), [`Avx2`] runs the BVH
-//! traversal compiled for it, with an 8-wide node test over the CWBVH's 8 children.
+//! traversal compiled for it, with an 8-wide node test over the CWBVH's 8 children, and the
+//! Sobol sampler's Owen scrambles for 8 requests at once (the wavefront integrator draws a
+//! bounce's numbers for a batch of paths with them).
 //!
 //! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
 //! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
@@ -134,13 +136,7 @@ impl Avx2 {
     /// Both coordinates of 8 Sobol 2D requests: [`Avx2::sobol_x`], and the second coordinate
     /// `nested_uniform_scramble(sobol_dim1(shuffled), s3)` of the same shuffled index.
     #[inline(always)]
-    pub fn sobol_xy(
-        self,
-        rev_index: &[u32; 8],
-        s1: &[u32; 8],
-        s2: &[u32; 8],
-        s3: &[u32; 8],
-    ) -> ([u32; 8], [u32; 8]) {
+    pub fn sobol_xy(self, rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: &[u32; 8]) -> ([u32; 8], [u32; 8]) {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe {
@@ -328,7 +324,8 @@ mod tests {
         let Some(avx2) = Avx2::new() else { return };
         for round in 0..2000u64 {
             let word = |k: u64| (hash(round * 64 + k) >> 7) as u32;
-            let index: [u32; 8] = std::array::from_fn(|i| if round % 3 == 0 { i as u32 + round as u32 } else { word(i as u64) });
+            let index: [u32; 8] =
+                std::array::from_fn(|i| if round % 3 == 0 { i as u32 + round as u32 } else { word(i as u64) });
             let rev = index.map(u32::reverse_bits);
             let (s1, s2, s3): ([u32; 8], [u32; 8], [u32; 8]) = (
                 std::array::from_fn(|i| word(8 + i as u64)),
@@ -339,7 +336,15 @@ mod tests {
             let (x2, y2) = avx2.run(|| avx2.sobol_xy(&rev, &s1, &s2, &s3));
             for i in 0..8 {
                 let (want_x, want_y) = sobol_scalar(rev[i], s1[i], s2[i], Some(s3[i]));
-                assert_eq!((x[i], x2[i], y2[i]), (want_x, want_x, want_y), "index {} seeds {} {} {}", index[i], s1[i], s2[i], s3[i]);
+                assert_eq!(
+                    (x[i], x2[i], y2[i]),
+                    (want_x, want_x, want_y),
+                    "index {} seeds {} {} {}",
+                    index[i],
+                    s1[i],
+                    s2[i],
+                    s3[i]
+                );
             }
         }
     }
