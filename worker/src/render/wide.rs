@@ -49,6 +49,64 @@ impl SimdLevel {
 /// obvhs' layout (`CwBvhNode::intersect_ray`).
 pub trait NodeTest: Copy {
     fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32;
+
+    /// Whether [`NodeTest::triangles`] has a kernel (the traversal then tests a node's
+    /// primitives 8 at a time).
+    const WIDE_TRIANGLES: bool = false;
+
+    /// The watertight test of 8 triangles at once ([`TriangleLanes`]), where the level has a
+    /// kernel for it; `None` tests them one by one.
+    #[inline(always)]
+    fn triangles(self, v: [&[f32; 8]; 9], ray: &ShearedRay) -> Option<TriangleLanes> {
+        let _ = (v, ray);
+        None
+    }
+}
+
+/// A ray of the watertight test in its permuted frame: origin components along (KX, KY, KZ),
+/// and the shear (`accel`'s `RayShear`).
+#[derive(Clone, Copy, Debug)]
+pub struct ShearedRay {
+    pub o: [f32; 3],
+    pub sx: f32,
+    pub sy: f32,
+    pub sz: f32,
+}
+
+/// The watertight ray-triangle test (`accel`'s `RayShear::intersect`) of 8 triangles, up to its
+/// two comparisons with the ray's `t_max`, which change as a closest-hit query accepts hits and
+/// are made lane by lane, in order, by [`TriangleLanes::accept`].
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TriangleLanes {
+    /// Lanes that pass every test that does not involve `t_max`.
+    pub pass: u32,
+    /// Lanes the scalar test must decide: an edge function of exactly 0 (the scalar test
+    /// recomputes it in f64) or a NaN (whose min/max the SIMD ops order differently).
+    pub scalar: u32,
+    pub det: [f32; 8],
+    pub t_scaled: [f32; 8],
+    pub t: [f32; 8],
+    pub b1: [f32; 8],
+    pub b2: [f32; 8],
+}
+
+impl TriangleLanes {
+    /// Lane `k`'s hit (t, b1, b2) for a ray that ends at `t_max`: the scalar test's result for
+    /// a lane not in `scalar`.
+    #[inline(always)]
+    pub fn accept(&self, k: usize, t_max: f32) -> Option<(f32, f32, f32)> {
+        if self.pass & (1 << k) == 0 {
+            return None;
+        }
+        let (det, t_scaled) = (self.det[k], self.t_scaled[k]);
+        if det < 0.0 && t_scaled < t_max * det {
+            return None;
+        }
+        if det > 0.0 && t_scaled > t_max * det {
+            return None;
+        }
+        Some((self.t[k], self.b1[k], self.b2[k]))
+    }
 }
 
 /// The baseline node test (obvhs' SSE2 one: two groups of four children).
@@ -114,6 +172,108 @@ impl NodeTest for Avx2 {
         }
         #[cfg(not(target_arch = "x86_64"))]
         node.intersect_ray(ray, oct_inv4)
+    }
+
+    const WIDE_TRIANGLES: bool = cfg!(target_arch = "x86_64");
+
+    #[inline(always)]
+    fn triangles(self, v: [&[f32; 8]; 9], ray: &ShearedRay) -> Option<TriangleLanes> {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            Some(triangles_avx2(v, ray))
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (v, ray);
+            None
+        }
+    }
+}
+
+/// The watertight test's error bounds (pbrt-v4's `gamma(n)`), shared with `accel`.
+pub(crate) const GAMMA3: f32 = 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
+pub(crate) const GAMMA5: f32 = 5.0 * f32::EPSILON * 0.5 / (1.0 - 5.0 * f32::EPSILON * 0.5);
+pub(crate) const GAMMA7: f32 = 7.0 * f32::EPSILON * 0.5 / (1.0 - 7.0 * f32::EPSILON * 0.5);
+
+/// `RayShear::intersect` on 8 triangles: per lane the scalar test's f32 operations in its
+/// order (multiply, then add or subtract: no FMA), min/max only where no operand is NaN.
+/// `v[3 i + j]` holds vertex `i`'s component along the permuted axis `j` of the 8 triangles.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn triangles_avx2(v: [&[f32; 8]; 9], r: &ShearedRay) -> TriangleLanes {
+    use std::arch::x86_64::*;
+    // SAFETY: unaligned loads of 8 f32 from arrays of 8 f32.
+    let ld = |a: &[f32; 8]| unsafe { _mm256_loadu_ps(a.as_ptr()) };
+    let s = _mm256_set1_ps;
+    let (sub, mul, add) = (_mm256_sub_ps, _mm256_mul_ps, _mm256_add_ps);
+    let (or, and) = (_mm256_or_ps, _mm256_and_ps);
+    let zero = _mm256_setzero_ps();
+    let (o, sx, sy, sz) = ([s(r.o[0]), s(r.o[1]), s(r.o[2])], s(r.sx), s(r.sy), s(r.sz));
+    let p = |i: usize| {
+        let (x, y, z) = (sub(ld(v[3 * i]), o[0]), sub(ld(v[3 * i + 1]), o[1]), sub(ld(v[3 * i + 2]), o[2]));
+        (add(x, mul(sx, z)), add(y, mul(sy, z)), z)
+    };
+    let ((p0x, p0y, p0z), (p1x, p1y, p1z), (p2x, p2y, p2z)) = (p(0), p(1), p(2));
+    let e0 = sub(mul(p1x, p2y), mul(p1y, p2x));
+    let e1 = sub(mul(p2x, p0y), mul(p2y, p0x));
+    let e2 = sub(mul(p0x, p1y), mul(p0y, p1x));
+    let eq0 = |e| _mm256_cmp_ps::<_CMP_EQ_OQ>(e, zero);
+    let lt0 = |e| _mm256_cmp_ps::<_CMP_LT_OQ>(e, zero);
+    let gt0 = |e| _mm256_cmp_ps::<_CMP_GT_OQ>(e, zero);
+    let edge_zero = or(or(eq0(e0), eq0(e1)), eq0(e2));
+    let outside = and(or(or(lt0(e0), lt0(e1)), lt0(e2)), or(or(gt0(e0), gt0(e1)), gt0(e2)));
+    // Every lane outside its triangle, none with a zero edge function (nor a NaN, which no
+    // comparison calls outside): no hits, nothing for the scalar test.
+    if _mm256_movemask_ps(_mm256_andnot_ps(edge_zero, outside)) == 0xff {
+        return TriangleLanes::default();
+    }
+    let det = add(add(e0, e1), e2);
+    let (p0z, p1z, p2z) = (mul(p0z, sz), mul(p1z, sz), mul(p2z, sz));
+    let t_scaled = add(add(mul(e0, p0z), mul(e1, p1z)), mul(e2, p2z));
+    // det < 0 needs t_scaled < 0, det > 0 needs t_scaled > 0; det == 0 fails both.
+    let sign_ok = or(and(lt0(det), lt0(t_scaled)), and(gt0(det), gt0(t_scaled)));
+    let inv_det = _mm256_div_ps(s(1.0), det);
+    let t = mul(t_scaled, inv_det);
+    let abs = |x| _mm256_andnot_ps(s(-0.0), x);
+    let max3 = |a, b, c| _mm256_max_ps(_mm256_max_ps(abs(a), abs(b)), abs(c));
+    let max_zt = max3(p0z, p1z, p2z);
+    let delta_z = mul(s(GAMMA3), max_zt);
+    let max_xt = max3(p0x, p1x, p2x);
+    let max_yt = max3(p0y, p1y, p2y);
+    let delta_x = mul(s(GAMMA5), add(max_xt, max_zt));
+    let delta_y = mul(s(GAMMA5), add(max_yt, max_zt));
+    let delta_e =
+        mul(s(2.0), add(add(mul(mul(s(GAMMA7), max_xt), max_yt), mul(delta_y, max_xt)), mul(delta_x, max_yt)));
+    let max_e = max3(e0, e1, e2);
+    let delta_t = mul(
+        mul(s(3.0), add(add(mul(mul(s(GAMMA3), max_e), max_zt), mul(delta_e, max_zt)), mul(delta_z, max_e))),
+        abs(inv_det),
+    );
+    let far_enough = _mm256_cmp_ps::<_CMP_GT_OQ>(t, delta_t);
+    // A NaN anywhere the max ops or the comparisons see it: the scalar test decides the lane.
+    let nan = |a, b| _mm256_cmp_ps::<_CMP_UNORD_Q>(a, b);
+    let any_nan = or(
+        or(or(nan(p0x, p0y), nan(p1x, p1y)), or(nan(p2x, p2y), nan(p0z, p1z))),
+        or(or(nan(p2z, e0), nan(e1, e2)), or(nan(t_scaled, t), nan(delta_t, det))),
+    );
+    let scalar = or(edge_zero, any_nan);
+    let pass = _mm256_andnot_ps(or(outside, scalar), and(sign_ok, far_enough));
+    let store = |x: __m256| {
+        let mut out = [0f32; 8];
+        // SAFETY: an unaligned store of 8 f32 to an array of 8 f32.
+        unsafe { _mm256_storeu_ps(out.as_mut_ptr(), x) };
+        out
+    };
+    TriangleLanes {
+        pass: _mm256_movemask_ps(pass) as u32,
+        scalar: _mm256_movemask_ps(scalar) as u32,
+        det: store(det),
+        t_scaled: store(t_scaled),
+        t: store(t),
+        b1: store(mul(e1, inv_det)),
+        b2: store(mul(e2, inv_det)),
     }
 }
 
