@@ -6,7 +6,7 @@
 //! The BVH build is single-threaded and deterministic, so every process that loads a scene gets
 //! the same tree and breaks ties between equal distances the same way.
 
-use super::wide::{Avx2, Baseline, GAMMA3, GAMMA5, GAMMA7, NodeTest, ShearedRay, SimdLevel};
+use super::wide::{Avx2, Baseline, NodeTest, SimdLevel};
 use glam::{UVec2, Vec3A};
 use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbvh, ray::Ray};
 use std::time::Duration;
@@ -44,24 +44,6 @@ pub struct Accel {
     /// Where the CPU has AVX2: the queries run the traversal compiled for it, with the 8-wide
     /// node test (bit-identical results; see [`super::wide`]).
     avx2: Option<Avx2>,
-    /// The static triangles' vertices by component (`[vertex * 3 + axis][slot]`), padded with
-    /// 8 zeros, for the 8-wide triangle test; `None` with motion blur.
-    soa: Option<Box<[Vec<f32>; 9]>>,
-}
-
-/// The fewest primitives of a node's group that the 8-wide triangle test takes (fewer are
-/// tested one by one, which costs less).
-const WIDE_GROUP: u32 = 4;
-
-/// Vertex components of 8 consecutive slots from `start`, in the permuted order of the
-/// watertight test (`None` past the padded end).
-#[inline(always)]
-fn soa_lanes<const KX: usize, const KY: usize, const KZ: usize>(
-    soa: &[Vec<f32>; 9],
-    start: usize,
-) -> Option<[&[f32; 8]; 9]> {
-    let at = |c: usize| soa[c].get(start..)?.first_chunk::<8>();
-    Some([at(KX)?, at(KY)?, at(KZ)?, at(3 + KX)?, at(3 + KY)?, at(3 + KZ)?, at(6 + KX)?, at(6 + KY)?, at(6 + KZ)?])
 }
 
 /// The triangle `v0` moving to `v1`, at time `u` in [0, 1] of the shutter.
@@ -97,12 +79,6 @@ impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
     fn new(o: Vec3A, d: Vec3A) -> Self {
         let (dx, dy, dz) = (d[KX], d[KY], d[KZ]);
         Self { o, sx: -dx / dz, sy: -dy / dz, sz: 1.0 / dz }
-    }
-
-    /// The ray in the permuted frame, for the 8-wide kernels.
-    #[inline(always)]
-    fn sheared(&self) -> ShearedRay {
-        ShearedRay { o: [self.o[KX], self.o[KY], self.o[KZ]], sx: self.sx, sy: self.sy, sz: self.sz }
     }
 
     /// Returns (t, b1, b2) of a hit with `0 < t < t_max`.
@@ -149,6 +125,9 @@ impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
         let t = t_scaled * inv_det;
         // Conservative lower bound on t (pbrt-v4 Triangle::Intersect): reject hits that may lie
         // behind the origin because of rounding.
+        const GAMMA3: f32 = 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
+        const GAMMA5: f32 = 5.0 * f32::EPSILON * 0.5 / (1.0 - 5.0 * f32::EPSILON * 0.5);
+        const GAMMA7: f32 = 7.0 * f32::EPSILON * 0.5 / (1.0 - 7.0 * f32::EPSILON * 0.5);
         let max_zt = p0z.abs().max(p1z.abs()).max(p2z.abs());
         let delta_z = GAMMA3 * max_zt;
         let max_xt = p0x.abs().max(p1x.abs()).max(p2x.abs());
@@ -188,14 +167,7 @@ impl Accel {
 
     fn build(tris: &[[Vec3A; 3]], close: Option<&[[Vec3A; 3]]>) -> Self {
         if tris.is_empty() {
-            return Self {
-                bvh: None,
-                tris: Vec::new(),
-                prim_ids: Vec::new(),
-                tris_close: None,
-                avx2: Avx2::new(),
-                soa: None,
-            };
+            return Self { bvh: None, tris: Vec::new(), prim_ids: Vec::new(), tris_close: None, avx2: Avx2::new() };
         }
         // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
         // box's edge (a mesh edge on the box boundary) can otherwise miss a node whose triangle
@@ -219,15 +191,7 @@ impl Accel {
         let ordered = prim_ids.iter().map(|&i| tris[i as usize]).collect();
         let tris_close =
             close.map(|_| prim_ids.iter().map(|&i| close_of(i as usize).unwrap_or(tris[i as usize])).collect());
-        let soa = tris_close.is_none().then(|| {
-            let ordered: &Vec<[Vec3A; 3]> = &ordered;
-            Box::new(std::array::from_fn(|c| {
-                let mut v: Vec<f32> = ordered.iter().map(|t| t[c / 3][c % 3]).collect();
-                v.extend([0.0; 8]);
-                v
-            }))
-        });
-        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new(), soa }
+        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new() }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -305,48 +269,13 @@ impl Accel {
         let mut node;
         let mut hit: Option<u32> = None;
         let mut best = (0.0f32, 0.0f32);
-        let sheared = shear.sheared();
         obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
             // `primitive_id` indexes primitive_indices; tris is stored in that order.
-            match &self.soa {
-                // The rest of the node's primitive group at once, 8 triangles a kernel call,
-                // accepted in the traversal's order (highest index first).
-                Some(soa) if N::WIDE_TRIANGLES && state.primitive_group.y.count_ones() + 1 >= WIDE_GROUP => {
-                    let base = state.primitive_group.x;
-                    let mut group = state.primitive_group.y | (1 << (state.primitive_id - base));
-                    state.primitive_group.y = 0;
-                    while group != 0 {
-                        let high = 31 - group.leading_zeros();
-                        let low = high.saturating_sub(7);
-                        let lanes = soa_lanes::<KX, KY, KZ>(soa, (base + low) as usize)
-                            .and_then(|v| nodes.triangles(v, &sheared));
-                        for local in (low..=high).rev().filter(|l| group & (1 << l) != 0) {
-                            let slot = base + local;
-                            let r = match &lanes {
-                                Some(l) if l.scalar & (1 << (local - low)) == 0 => {
-                                    l.accept((local - low) as usize, ray.tmax)
-                                }
-                                _ => shear.intersect(&self.tris[slot as usize], ray.tmax),
-                            };
-                            if let Some((t, b1, b2)) = r {
-                                best = (b1, b2);
-                                if t < ray.tmax {
-                                    hit = Some(slot);
-                                    ray.tmax = t;
-                                }
-                            }
-                        }
-                        group &= (1 << low) - 1;
-                    }
-                }
-                _ => {
-                    if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time) {
-                        best = (b1, b2);
-                        if t < ray.tmax {
-                            hit = Some(state.primitive_id);
-                            ray.tmax = t;
-                        }
-                    }
+            if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time) {
+                best = (b1, b2);
+                if t < ray.tmax {
+                    hit = Some(state.primitive_id);
+                    ray.tmax = t;
                 }
             }
         });
@@ -417,44 +346,11 @@ impl Accel {
         let mut state = bvh.new_traversal(ray.direction);
         let mut node;
         let mut blocked = false;
-        let sheared = shear.sheared();
         'traversal: {
             obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
-                match &self.soa {
-                    // The rest of the node's primitive group at once: any hit blocks.
-                    Some(soa) if N::WIDE_TRIANGLES && state.primitive_group.y.count_ones() + 1 >= WIDE_GROUP => {
-                        let base = state.primitive_group.x;
-                        let mut group = state.primitive_group.y | (1 << (state.primitive_id - base));
-                        state.primitive_group.y = 0;
-                        while group != 0 {
-                            let high = 31 - group.leading_zeros();
-                            let low = high.saturating_sub(7);
-                            let lanes = soa_lanes::<KX, KY, KZ>(soa, (base + low) as usize)
-                                .and_then(|v| nodes.triangles(v, &sheared));
-                            for local in (low..=high).filter(|l| group & (1 << l) != 0) {
-                                let r = match &lanes {
-                                    Some(l) if l.scalar & (1 << (local - low)) == 0 => {
-                                        l.accept((local - low) as usize, ray.tmax)
-                                    }
-                                    _ => shear.intersect(&self.tris[(base + local) as usize], ray.tmax),
-                                };
-                                if r.is_some_and(|h| h.0 < ray.tmax) {
-                                    blocked = true;
-                                    break 'traversal;
-                                }
-                            }
-                            group &= (1 << low) - 1;
-                        }
-                    }
-                    _ => {
-                        if self
-                            .test_slot(&shear, state.primitive_id as usize, ray.tmax, time)
-                            .is_some_and(|h| h.0 < ray.tmax)
-                        {
-                            blocked = true;
-                            break 'traversal;
-                        }
-                    }
+                if self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time).is_some_and(|h| h.0 < ray.tmax) {
+                    blocked = true;
+                    break 'traversal;
                 }
             });
         }
@@ -576,108 +472,6 @@ mod tests {
     }
 
     /// A soup of random triangles in [-2, 2]^3 and the cube, static or moving.
-    /// The 8-wide triangle test, then `accept` lane by lane, gives the scalar watertight
-    /// test's result bit for bit at every `t_max`, or leaves the lane to it: random triangles,
-    /// rays through a grid's vertices and edges (edge functions of exactly 0), degenerate and
-    /// huge triangles.
-    #[test]
-    fn wide_triangle_test_matches_the_scalar_test() {
-        use crate::render::wide::{NodeTest, unit};
-        let Some(avx2) = Avx2::new() else { return };
-        let mut tris = soup(400, 7);
-        // A unit grid in z = 0 and a few degenerate or extreme triangles.
-        for y in -3..3 {
-            for x in -3..3 {
-                let v = |dx: i32, dy: i32| Vec3A::new((x + dx) as f32, (y + dy) as f32, 0.0);
-                tris.push([v(0, 0), v(1, 0), v(1, 1)]);
-                tris.push([v(0, 0), v(1, 1), v(0, 1)]);
-            }
-        }
-        tris.push([Vec3A::ZERO, Vec3A::X, Vec3A::X * 2.0]);
-        tris.push([Vec3A::ONE; 3]);
-        tris.push([Vec3A::splat(-3e38), Vec3A::new(3e38, -3e38, 1.0), Vec3A::new(0.0, 3e38, -1.0)]);
-        let mut rays = crate::render::wide::test_rays(300);
-        for y in -3..=3 {
-            for x in -3..=3 {
-                // Through grid vertices and edge midpoints, straight down and slanted.
-                for (dx, dy) in [(0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)] {
-                    let target = Vec3A::new(x as f32 + dx, y as f32 + dy, 0.0);
-                    for o in [target + Vec3A::Z * 2.0, Vec3A::new(0.25, -0.5, 3.0)] {
-                        rays.push((o, (target - o).normalize(), f32::INFINITY));
-                    }
-                }
-            }
-        }
-        let (mut compared, mut scalar_lanes, mut hits) = (0u64, 0u64, 0u64);
-        let mut check = |o: Vec3A, d: Vec3A, t_maxes: &[f32], kx: usize, ky: usize, kz: usize| {
-            let padded = |c: usize| -> Vec<f32> {
-                let mut v: Vec<f32> = tris.iter().map(|t| t[c / 3][c % 3]).collect();
-                v.extend([0.0; 8]);
-                v
-            };
-            let soa: [Vec<f32>; 9] = std::array::from_fn(padded);
-            let run = |start: usize,
-                       lanes: &dyn Fn(&[Vec<f32>; 9], usize) -> Option<[&[f32; 8]; 9]>,
-                       sheared,
-                       single: &dyn Fn(usize, f32) -> Option<(f32, f32, f32)>| {
-                let v = lanes(&soa, start).expect("padded");
-                let lanes = avx2.run(|| avx2.triangles(v, &sheared)).expect("avx2 has the kernel");
-                let mut out = (0u64, 0u64, 0u64);
-                for k in 0..8.min(tris.len() - start) {
-                    if lanes.scalar & (1 << k) != 0 {
-                        out.1 += 1;
-                        continue;
-                    }
-                    for &t_max in t_maxes {
-                        let want = single(start + k, t_max);
-                        let got = lanes.accept(k, t_max);
-                        let bits =
-                            |h: Option<(f32, f32, f32)>| h.map(|h| (h.0.to_bits(), h.1.to_bits(), h.2.to_bits()));
-                        assert_eq!(bits(got), bits(want), "triangle {} ray {o} {d} t_max {t_max}", start + k);
-                        out.0 += 1;
-                        out.2 += u64::from(want.is_some());
-                    }
-                }
-                out
-            };
-            let mut total = (0, 0, 0);
-            for start in (0..tris.len()).step_by(8) {
-                let r = match (kx, ky, kz) {
-                    (1, 2, 0) => {
-                        let sh = RayShear::<1, 2, 0>::new(o, d);
-                        run(start, &soa_lanes::<1, 2, 0>, sh.sheared(), &|i, t| sh.intersect(&tris[i], t))
-                    }
-                    (2, 0, 1) => {
-                        let sh = RayShear::<2, 0, 1>::new(o, d);
-                        run(start, &soa_lanes::<2, 0, 1>, sh.sheared(), &|i, t| sh.intersect(&tris[i], t))
-                    }
-                    _ => {
-                        let sh = RayShear::<0, 1, 2>::new(o, d);
-                        run(start, &soa_lanes::<0, 1, 2>, sh.sheared(), &|i, t| sh.intersect(&tris[i], t))
-                    }
-                };
-                total = (total.0 + r.0, total.1 + r.1, total.2 + r.2);
-            }
-            total
-        };
-        for (i, (o, d, t_max)) in rays.into_iter().enumerate() {
-            let t_maxes = [t_max, f32::INFINITY, 0.5 + 4.0 * unit(i as u64), 1e-3];
-            let axes = match dominant_axis(d) {
-                0 => (1, 2, 0),
-                1 => (2, 0, 1),
-                _ => (0, 1, 2),
-            };
-            let r = check(o, d, &t_maxes, axes.0, axes.1, axes.2);
-            compared += r.0;
-            scalar_lanes += r.1;
-            hits += r.2;
-        }
-        assert!(
-            compared > 100_000 && hits > 500 && scalar_lanes > 50,
-            "{compared} compared, {hits} hits, {scalar_lanes} scalar lanes"
-        );
-    }
-
     fn soup(n: u64, seed: u64) -> Vec<[Vec3A; 3]> {
         use crate::render::wide::unit;
         let mut tris = cube();
