@@ -179,7 +179,8 @@ fn newest_libllvm() -> Option<PathBuf> {
 }
 
 /// `tiny`: one small path-traced render on one thread, for instruction counts under
-/// `valgrind --tool=callgrind` (repeatable whatever the machine's load).
+/// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny igi`: the same
+/// with the igi integrator.
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -189,10 +190,20 @@ fn tiny() {
         mis: MisHeuristic::Power,
         light_sampling: LightSampling::Area,
     };
+    let mut name = "path (area)";
+    if std::env::args().any(|a| a == "igi") {
+        s = RenderSettings::new(32, 32, 8);
+        s.integrator =
+            IntegratorSettings::Igi { vpls: 64, vpl_sets: 4, g_limit: 10.0, bias_compensation: true, max_depth: 8 };
+        name = "igi (64 VPLs, compensation)";
+    }
     let (t, img) = time_render(&scene, &s);
     println!(
-        "tiny: 64x64x16 path (area) in {t:.3} s, mean R {:.4}",
-        img.rgb.iter().map(|p| p[0]).sum::<f32>() / 4096.0
+        "tiny: {}x{}x{} {name} in {t:.3} s, mean R {:.4}",
+        s.width,
+        s.height,
+        s.spp,
+        img.rgb.iter().map(|p| p[0]).sum::<f32>() / img.rgb.len() as f32
     );
 }
 

@@ -287,11 +287,20 @@ impl Accel {
     /// exactly [`Accel::intersect_at`] of its ray, with one SIMD dispatch for the batch.
     pub fn intersect_many(&self, rays: &[RayQuery], hits: &mut Vec<Option<Hit>>) {
         hits.clear();
+        // Plain loops, not iterator adapters: their code stays inside the function compiled for
+        // AVX2 (an adapter's `fold` is a function of its own, compiled for the baseline, which
+        // cannot inline the AVX2 node test).
         match self.avx2 {
             Some(avx2) => avx2.run(|| {
-                hits.extend(rays.iter().map(|r| self.intersect_dispatch(avx2, r.o, r.d, r.t_max, r.time)));
+                for r in rays {
+                    hits.push(self.intersect_dispatch(avx2, r.o, r.d, r.t_max, r.time));
+                }
             }),
-            None => hits.extend(rays.iter().map(|r| self.intersect_dispatch(Baseline, r.o, r.d, r.t_max, r.time))),
+            None => {
+                for r in rays {
+                    hits.push(self.intersect_dispatch(Baseline, r.o, r.d, r.t_max, r.time));
+                }
+            }
         }
     }
 
@@ -299,11 +308,18 @@ impl Accel {
     /// exactly [`Accel::occluded_at`] of its ray, with one SIMD dispatch for the batch.
     pub fn occluded_many(&self, rays: &[RayQuery], blocked: &mut Vec<bool>) {
         blocked.clear();
+        // Plain loops: see `intersect_many`.
         match self.avx2 {
             Some(avx2) => avx2.run(|| {
-                blocked.extend(rays.iter().map(|r| self.occluded_dispatch(avx2, r.o, r.d, r.t_max, r.time)));
+                for r in rays {
+                    blocked.push(self.occluded_dispatch(avx2, r.o, r.d, r.t_max, r.time));
+                }
             }),
-            None => blocked.extend(rays.iter().map(|r| self.occluded_dispatch(Baseline, r.o, r.d, r.t_max, r.time))),
+            None => {
+                for r in rays {
+                    blocked.push(self.occluded_dispatch(Baseline, r.o, r.d, r.t_max, r.time));
+                }
+            }
         }
     }
 

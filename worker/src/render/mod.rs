@@ -22,7 +22,7 @@ pub mod wide;
 use bdpt::{BdptParams, Subpaths, li_bdpt};
 use camera::Camera;
 use glam::{UVec2, Vec2, Vec3A};
-use igi::{IgiParams, VplCache, li_igi};
+use igi::{IgiParams, IgiScratch, VplCache, li_igi};
 use integrator::{PathParams, li_path};
 use pathfarm_common::adaptive::BlockMask;
 use pathfarm_common::assembly::FilmAssembly;
@@ -341,6 +341,7 @@ impl Renderer {
                 let mut row = Vec::with_capacity(tile.width() as usize);
                 let mut splats = Vec::new();
                 let mut paths = Subpaths::default();
+                let mut igi_scratch = IgiScratch::default();
                 for x in tile.x0..tile.x1 {
                     if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
                         // A converged block: no samples, nothing added by the merge.
@@ -391,7 +392,15 @@ impl Renderer {
                             Integrator::Igi(params) => {
                                 sampler.start_pixel_sample(pixel, s, 0);
                                 match vpls.as_ref().and_then(|v| v.get((s - pass.s0) as usize)) {
-                                    Some(vpls) => li_igi(&self.scene, &self.camera, pixel, &mut sampler, params, vpls),
+                                    Some(vpls) => li_igi(
+                                        &self.scene,
+                                        &self.camera,
+                                        pixel,
+                                        &mut sampler,
+                                        params,
+                                        vpls,
+                                        &mut igi_scratch,
+                                    ),
                                     None => film::SampleValue::default(),
                                 }
                             }
