@@ -1,12 +1,14 @@
 //! The wavefront path integrator gives the scalar `li_path`'s unit results bit for bit, at every
 //! SIMD level, over scenes that use every feature the path integrator has; and a sample's value
-//! does not depend on the batch it was traced in (split invariance).
+//! does not depend on the batch it was traced in (split invariance); and path, direct, igi and
+//! bdpt units are those of the renderer before the wavefront (golden digests).
 
 mod common;
 
 use common::{file_scene, glb_scene, reference};
 use glam::{Vec2, Vec3, Vec4};
 use pathfarm_common::adaptive::BlockMask;
+use pathfarm_common::film::PIXEL_BYTES;
 use pathfarm_common::job::{
     EnvironmentSettings, IntegratorSettings, LightSampling, MisHeuristic, Pass, RenderSettings, SamplerKind, TileRect,
 };
@@ -293,4 +295,54 @@ fn wavefront_samples_do_not_depend_on_their_batch() {
         .map(|(a, b)| ([a.0[0] + b.0[0], a.0[1] + b.0[1], a.0[2] + b.0[2]], a.1 + b.1, a.2 + b.2, a.3 + b.3, a.4 + b.4))
         .collect();
     assert_eq!(added, exact_sums(&whole));
+}
+
+/// FNV-1a over a whole-image unit's pixel sums in their wire layout.
+fn digest(scene: &Scene, integrator: IntegratorSettings, size: u32, spp: u32) -> u64 {
+    let s = settings(size, spp, integrator);
+    let r = Renderer::new(scene, &s).expect("renderer");
+    let unit = r.render_unit(full_tile(&s), Pass { index: 0, s0: 0, s1: spp });
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let mut buf = [0u8; PIXEL_BYTES];
+    for p in &unit.accum.sums {
+        p.write_le(&mut buf);
+        for b in buf {
+            h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    h
+}
+
+/// The estimators are those of the renderer before the wavefront (main at dfd437a, one path at
+/// a time, VPL shadow rays one by one): the same unit results, bit for bit, at the default
+/// kernels. The digests were printed by this function's body built against that commit's
+/// renderer; a deliberate change of an estimator (or of the film's fixed-point encoding) changes
+/// them, and they must then be printed anew.
+#[test]
+fn unit_results_are_those_of_the_renderer_before_the_wavefront() {
+    let spheres = file_scene(&reference().join("cornell_spheres.glb"));
+    let cornell = file_scene(&reference().join("cornell_mitsuba.glb"));
+    let caustics = glb_scene(&demo::caustics_glb());
+    let direct = IntegratorSettings::Direct { mis: MisHeuristic::Balance, light_sampling: LightSampling::SolidAngle };
+    let igi = IntegratorSettings::Igi { vpls: 16, vpl_sets: 2, g_limit: 2.0, bias_compensation: true, max_depth: 6 };
+    let bdpt = IntegratorSettings::Bdpt { max_depth: 6, mis: MisHeuristic::Power, rr_depth: 3, strategy: None };
+    let got = [
+        ("path cornell area", digest(&cornell, path(8, 3, MisHeuristic::Power, LightSampling::Area), 32, 8)),
+        ("path spheres solid angle", digest(&spheres, default_path(), 32, 8)),
+        ("path caustics", digest(&caustics, default_path(), 24, 8)),
+        ("direct cornell", digest(&cornell, direct, 24, 8)),
+        ("igi spheres", digest(&spheres, igi, 24, 4)),
+        ("bdpt spheres", digest(&spheres, bdpt, 24, 4)),
+    ];
+    let want = [
+        ("path cornell area", 0x3a84_bec9_9b63_dbb0),
+        ("path spheres solid angle", 0xb2e5_14b6_3d91_745b),
+        ("path caustics", 0x139a_90b9_f972_3d4f),
+        ("direct cornell", 0x2d92_7c4f_bb25_3182),
+        ("igi spheres", 0xa6b3_c6be_ecd5_ec71),
+        ("bdpt spheres", 0x1961_d538_02e7_e0c9),
+    ];
+    for ((name, got), (_, want)) in got.iter().zip(want) {
+        assert_eq!(*got, want, "{name}: 0x{got:016x}, not the earlier renderer's 0x{want:016x}");
+    }
 }
