@@ -224,10 +224,12 @@ def main():
 
     passes = args.spp // args.spp_per_pass
     times = []
+    cpu_times = []
     image = None
     for repeat in range(max(1, args.repeats)):
         acc = np.zeros((args.res, args.res, 3), dtype=np.float64)
         t0 = time.perf_counter()
+        c0 = time.process_time()
         for p in range(passes):
             img = mi.render(scene, spp=args.spp_per_pass, seed=args.seed + p)
             dr.eval(img)
@@ -236,9 +238,13 @@ def main():
             if passes > 1:
                 print(f"pass {p + 1}/{passes}: {time.perf_counter() - t0:.1f} s", flush=True)
         times.append(time.perf_counter() - t0)
+        # CPU time of every thread of the process: on a loaded machine, samples per CPU-second
+        # say more than wall time.
+        cpu_times.append(time.process_time() - c0)
         if image is None:
             image = (acc / passes).astype(np.float32)
     seconds = sorted(times)[len(times) // 2]
+    cpu_seconds = sorted(cpu_times)[len(cpu_times) // 2]
 
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     bitmap = mi.Bitmap(image, mi.Bitmap.PixelFormat.RGB)
@@ -260,6 +266,9 @@ def main():
         "render_s": [round(t, 3) for t in times],
         "render_median_s": round(seconds, 3),
         "samples_per_s_median": round(args.res * args.res * args.spp / seconds, 1),
+        "cpu_s": [round(t, 3) for t in cpu_times],
+        "cpu_median_s": round(cpu_seconds, 3),
+        "samples_per_cpu_s_median": round(args.res * args.res * args.spp / cpu_seconds, 1),
         "mean_rgb": [float(x) for x in image.reshape(-1, 3).mean(axis=0)],
     }
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:

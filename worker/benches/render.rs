@@ -13,8 +13,10 @@
 //! 3. Path tracing on the Cornell box at 256 x 256, max depth 8, 64 spp, 2 threads, in samples/s;
 //!    when the `mitsuba` Python package is installed, the same scene with Mitsuba 3's
 //!    `scalar_rgb` and `llvm_ad_rgb` variants (scripts/make-reference.py) and the
-//!    ratios; and the equal-time error: RMSE against the 16k-spp reference of our render given
-//!    the wall time of Mitsuba's llvm render of 64 spp, and of Mitsuba's.
+//!    ratios, of wall-clock throughput and of throughput per CPU-second (all threads' CPU time:
+//!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
+//!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
+//!    and of Mitsuba's.
 
 #![allow(clippy::print_stdout)] // a benchmark prints its figures
 
@@ -121,13 +123,35 @@ fn settings(spp: u32, integrator: IntegratorSettings) -> RenderSettings {
     s
 }
 
-fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
+/// CPU time of every thread of this process so far, in seconds (`/proc/self/stat`'s utime and
+/// stime, in Linux's 100 Hz clock ticks); `None` where there is no such file.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The fields after the command name (which is in parentheses and may hold spaces).
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let ticks = |i: usize| fields.get(i)?.parse::<u64>().ok();
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
+    Some((ticks(11)? + ticks(12)?) as f64 / 100.0)
+}
+
+/// Renders `s` and returns the wall seconds, the CPU seconds (all threads) and the image.
+fn time_render_cpu(
+    scene: &pathfarm_common::scene::Scene,
+    s: &RenderSettings,
+) -> (f64, Option<f64>, pathfarm_common::film::ImageLayers) {
     let mut r = Renderer::new(scene, s).expect("renderer");
     r.set_simd_level(simd_level());
     r.set_path_kernel(path_kernel());
+    let c = cpu_seconds();
     let t = Instant::now();
     let film = render_local(&r, |_, _| {});
-    (t.elapsed().as_secs_f64(), film.resolve())
+    let wall = t.elapsed().as_secs_f64();
+    (wall, c.zip(cpu_seconds()).map(|(a, b)| b - a), film.resolve())
+}
+
+fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
+    let (wall, _, img) = time_render_cpu(scene, s);
+    (wall, img)
 }
 
 fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
@@ -141,8 +165,17 @@ fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
     (sum / (a.len() * 3) as f64).sqrt()
 }
 
-/// Runs the reference script; returns (samples/s median, render seconds median, output exr).
-fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
+/// What the reference script measured: samples/s and render seconds (medians of wall time),
+/// samples per CPU-second (median), and the image it wrote.
+struct MitsubaRun {
+    samples_per_s: f64,
+    seconds: f64,
+    samples_per_cpu_s: Option<f64>,
+    exr: PathBuf,
+}
+
+/// Runs the reference script.
+fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
     let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{variant}_{spp}.exr"));
     let script = repo().join("scripts/make-reference.py");
     let mut cmd = Command::new("python3");
@@ -161,7 +194,19 @@ fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
     let text = String::from_utf8_lossy(&o.stdout);
     let line = text.lines().find_map(|l| l.strip_prefix("RESULT "))?;
     let v: serde_json::Value = serde_json::from_str(line).ok()?;
-    Some((v["samples_per_s_median"].as_f64()?, v["render_median_s"].as_f64()?, out))
+    Some(MitsubaRun {
+        samples_per_s: v["samples_per_s_median"].as_f64()?,
+        seconds: v["render_median_s"].as_f64()?,
+        samples_per_cpu_s: v["samples_per_cpu_s_median"].as_f64(),
+        exr: out,
+    })
+}
+
+/// "x M samples per CPU-second" (the render's throughput per busy core, which the machine's
+/// load disturbs less than wall time), or nothing where it was not measured.
+fn per_cpu_second(samples_per_cpu_s: Option<f64>) -> String {
+    samples_per_cpu_s
+        .map_or_else(|| "CPU time not measured".into(), |s| format!("{:.2} M samples per CPU-second", s / 1e6))
 }
 
 /// The newest `libLLVM-N.so` in the system library directory.
@@ -238,24 +283,42 @@ fn main() {
         256.0 * 256.0 * 64.0 / t_sa / 1e6
     );
     let path = path_with(LightSampling::Area);
-    let (t, _) = time_render(&scene, &settings(64, path.clone()));
+    let (t, cpu, _) = time_render_cpu(&scene, &settings(64, path.clone()));
     let ours = 256.0 * 256.0 * 64.0 / t;
+    let ours_cpu = cpu.map(|c| 256.0 * 256.0 * 64.0 / c);
     println!(
-        "path: cornell 256x256x64 max_depth 8, 2 threads, area light sampling: {:.2} M samples/s ({t:.2} s)",
-        ours / 1e6
+        "path: cornell 256x256x64 max_depth 8, 2 threads, area light sampling: {:.2} M samples/s ({t:.2} s); {}",
+        ours / 1e6,
+        per_cpu_second(ours_cpu)
     );
     if quick {
         return;
     }
     let exr = pathfarm_common::film::read_exr(&reference.join("cornell_mitsuba_box_16384spp.exr")).expect("reference");
     let (r, g, b) = (exr.get("R").expect("R"), exr.get("G").expect("G"), exr.get("B").expect("B"));
-    let Some((scalar, _, _)) = mitsuba("scalar_rgb", 64) else {
+    let Some(scalar) = mitsuba("scalar_rgb", 64) else {
         println!("mitsuba: not installed (pip install mitsuba) - no comparison");
         return;
     };
-    println!("mitsuba scalar_rgb: {:.2} M samples/s; ours / scalar_rgb = {:.2}", scalar / 1e6, ours / scalar);
-    let Some((llvm, llvm_s, llvm_exr)) = mitsuba("llvm_ad_rgb", 64) else { return };
-    println!("mitsuba llvm_ad_rgb: {:.2} M samples/s; ours / llvm_ad_rgb = {:.2}", llvm / 1e6, ours / llvm);
+    let ratios = |m: &MitsubaRun| {
+        let cpu =
+            ours_cpu.zip(m.samples_per_cpu_s).map_or(String::new(), |(o, m)| format!(", per CPU-second {:.2}", o / m));
+        format!("{:.2}{cpu}", ours / m.samples_per_s)
+    };
+    println!(
+        "mitsuba scalar_rgb: {:.2} M samples/s; {}; ours / scalar_rgb = {}",
+        scalar.samples_per_s / 1e6,
+        per_cpu_second(scalar.samples_per_cpu_s),
+        ratios(&scalar)
+    );
+    let Some(llvm) = mitsuba("llvm_ad_rgb", 64) else { return };
+    println!(
+        "mitsuba llvm_ad_rgb: {:.2} M samples/s; {}; ours / llvm_ad_rgb = {}",
+        llvm.samples_per_s / 1e6,
+        per_cpu_second(llvm.samples_per_cpu_s),
+        ratios(&llvm)
+    );
+    let (llvm_s, llvm_exr) = (llvm.seconds, llvm.exr);
     // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
     let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
     let (t_eq, img) = time_render(&scene, &settings(spp, path));
