@@ -224,8 +224,8 @@ fn newest_libllvm() -> Option<PathBuf> {
 }
 
 /// `tiny`: one small path-traced render on one thread, for instruction counts under
-/// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny igi`: the same
-/// with the igi integrator.
+/// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny igi` and
+/// `tiny bdpt`: the same with those integrators.
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -241,6 +241,11 @@ fn tiny() {
         s.integrator =
             IntegratorSettings::Igi { vpls: 64, vpl_sets: 4, g_limit: 10.0, bias_compensation: true, max_depth: 8 };
         name = "igi (64 VPLs, compensation)";
+    }
+    if std::env::args().any(|a| a == "bdpt") {
+        s = RenderSettings::new(32, 32, 16);
+        s.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 5, strategy: None };
+        name = "bdpt";
     }
     let (t, img) = time_render(&scene, &s);
     println!(
