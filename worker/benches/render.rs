@@ -17,6 +17,8 @@
 //!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
 //!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
 //!    and of Mitsuba's.
+//! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
+//!    Mitsuba's throughput on the same view when installed.
 
 #![allow(clippy::print_stdout)] // a benchmark prints its figures
 
@@ -176,7 +178,12 @@ struct MitsubaRun {
 
 /// Runs the reference script.
 fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
-    let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{variant}_{spp}.exr"));
+    mitsuba_with(variant, spp, "cornell", &[])
+}
+
+/// [`mitsuba`] with more arguments for the script (another scene); `tag` names its output.
+fn mitsuba_with(variant: &str, spp: u32, tag: &str, extra: &[&std::ffi::OsStr]) -> Option<MitsubaRun> {
+    let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{tag}_{variant}_{spp}.exr"));
     let script = repo().join("scripts/make-reference.py");
     let mut cmd = Command::new("python3");
     // drjit's LLVM backend needs a recent libLLVM (Debian's default 14 fails with "Cannot select
@@ -189,6 +196,7 @@ fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
         .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp.to_string()])
         .args(["--res", "256", "--repeats", "3", "--threads", "2", "--max-depth", "8", "--out"])
         .arg(&out)
+        .args(extra)
         .output()
         .ok()?;
     let text = String::from_utf8_lossy(&o.stdout);
@@ -200,6 +208,61 @@ fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
         samples_per_cpu_s: v["samples_per_cpu_s_median"].as_f64(),
         exr: out,
     })
+}
+
+/// Path tracing on the 130k-triangle 01_vertex_count_32bit at 256 x 256, 64 spp, max depth 8,
+/// 2 threads, from the default camera under a constant environment of radiance 1 (the scene has
+/// neither camera nor lights); without `quick`, the same scene in Mitsuba (the script's
+/// `--gltf`: PLY meshes, its `principled` BSDF for the glTF material, so only the throughput
+/// compares).
+fn large_scene_figures(quick: bool) {
+    let path = corpus().join("01_vertex_count_32bit/01_vertex_count_32bit.gltf");
+    let Ok(scene) = load_scene(&path, &LoadOptions::default()) else {
+        println!("path 130k: cannot load {}", path.display());
+        return;
+    };
+    let spp = 64;
+    let mut s = settings(
+        spp,
+        IntegratorSettings::Path {
+            max_depth: 8,
+            rr_depth: 5,
+            mis: MisHeuristic::Power,
+            light_sampling: LightSampling::Area,
+        },
+    );
+    s.environment = Some(pathfarm_common::job::EnvironmentSettings {
+        file: None,
+        color: Some([1.0; 3]),
+        intensity: 1.0,
+        rotation_deg: 0.0,
+    });
+    let samples = 256.0 * 256.0 * f64::from(spp);
+    let (t, cpu, _) = time_render_cpu(&scene, &s);
+    let ours = samples / t;
+    let ours_cpu = cpu.map(|c| samples / c);
+    println!(
+        "path: 01_vertex_count_32bit 256x256x{spp} max_depth 8, 2 threads, constant environment: {:.2} M samples/s ({t:.2} s); {}",
+        ours / 1e6,
+        per_cpu_second(ours_cpu)
+    );
+    if quick {
+        return;
+    }
+    for variant in ["scalar_rgb", "llvm_ad_rgb"] {
+        let Some(m) = mitsuba_with(variant, spp, "vertex_count", &["--gltf".as_ref(), path.as_os_str()]) else {
+            println!("mitsuba {variant} on 01_vertex_count_32bit: no result");
+            continue;
+        };
+        let cpu =
+            ours_cpu.zip(m.samples_per_cpu_s).map_or(String::new(), |(o, m)| format!(", per CPU-second {:.2}", o / m));
+        println!(
+            "mitsuba {variant} on 01_vertex_count_32bit: {:.2} M samples/s; {}; ours / {variant} = {:.2}{cpu}",
+            m.samples_per_s / 1e6,
+            per_cpu_second(m.samples_per_cpu_s),
+            ours / m.samples_per_s
+        );
+    }
 }
 
 /// "x M samples per CPU-second" (the render's throughput per busy core, which the machine's
@@ -296,6 +359,7 @@ fn main() {
         ours / 1e6,
         per_cpu_second(ours_cpu)
     );
+    large_scene_figures(quick);
     if quick {
         return;
     }
