@@ -28,6 +28,12 @@ perspective sensor. Anything else is refused rather than approximated.
 
     python3 scripts/make-reference.py --glb reference/cornell_spheres.glb --max-depth 16 \
         --spp 8192 --spp-per-pass 512 --out reference/cornell_spheres_8192spp.exr
+
+With `--gltf FILE` (the renderer benchmark's 130k-triangle `01_vertex_count_32bit`) the script
+times a plain .gltf as pathfarm renders it without camera or lights: the default camera and a
+constant environment (`--env`); its material becomes Mitsuba's `principled` BSDF, which is close
+to pathfarm's glTF BSDF but not the same, so only the throughput compares. Every run also reports
+the CPU time of all its threads (`cpu_s`, `samples_per_cpu_s_median`).
 """
 import argparse
 import json
@@ -175,6 +181,69 @@ def glb_scene_dict(path, ply_dir, res, max_depth):
     return scene
 
 
+def gltf_throughput_scene_dict(path, ply_dir, res, max_depth, env):
+    """A throughput-comparison scene from a plain .gltf (external buffers; untransformed meshes
+    with POSITION and NORMAL; metallic-roughness materials), as pathfarm renders it without a
+    camera or lights: the default camera (`default_camera_for_bounds`: 40 degrees vertical, on
+    the side of the bounds' thinnest axis, far enough that the bounding sphere fits) and a
+    constant environment of radiance `env`. Materials become Mitsuba's `principled` BSDF with
+    the glTF base colour, metallic and roughness: close to, not the same as, pathfarm's glTF
+    BSDF, so the images are not compared, only the throughput."""
+    import numpy as np
+    with open(path) as f:
+        doc = json.load(f)
+    base_dir = os.path.dirname(os.path.abspath(path))
+    buffers = []
+    for b in doc["buffers"]:
+        with open(os.path.join(base_dir, b["uri"]), "rb") as f:
+            buffers.append(f.read())
+    os.makedirs(ply_dir, exist_ok=True)
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": max_depth},
+             "environment": {"type": "constant", "radiance": {"type": "rgb", "value": [env] * 3}}}
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for n, node in enumerate(doc["nodes"]):
+        if "mesh" not in node:
+            continue
+        if any(k in node for k in ("translation", "rotation", "scale", "matrix")):
+            sys.exit(f"node {n}: transformed meshes are not converted")
+        for p, prim in enumerate(doc["meshes"][node["mesh"]]["primitives"]):
+            def get(index):
+                view = doc["bufferViews"][doc["accessors"][index]["bufferView"]]
+                return accessor(doc, buffers[view.get("buffer", 0)], index, np)
+            pos = get(prim["attributes"]["POSITION"])
+            nrm = get(prim["attributes"]["NORMAL"])
+            faces = get(prim["indices"]).reshape(-1, 3)
+            lo, hi = np.minimum(lo, pos.min(axis=0)), np.maximum(hi, pos.max(axis=0))
+            ply = os.path.join(ply_dir, f"node{n}_{p}.ply")
+            write_ply(ply, pos, nrm, faces)
+            pbr = doc["materials"][prim["material"]].get("pbrMetallicRoughness", {}) if "material" in prim else {}
+            bsdf = {"type": "principled",
+                    "base_color": {"type": "rgb", "value": pbr.get("baseColorFactor", [1, 1, 1, 1])[:3]},
+                    "metallic": pbr.get("metallicFactor", 1.0), "roughness": pbr.get("roughnessFactor", 1.0)}
+            scene[f"shape_{n}_{p}"] = {"type": "ply", "filename": ply, "bsdf": bsdf}
+    # pathfarm_common::scene::default_camera_for_bounds at aspect 1.
+    center, extent = (lo + hi) * 0.5, hi - lo
+    radius = max(float(np.linalg.norm(extent)) * 0.5, 1e-3)
+    yfov = math.radians(40.0)
+    distance = radius / math.sin(yfov * 0.5)
+    def thinner(a, b):
+        return a < b * 0.99
+    if thinner(extent[0], extent[2]) and extent[0] <= extent[1]:
+        back, up = np.array([1.0, 0, 0]), [0, 1, 0]
+    elif thinner(extent[1], extent[2]) and thinner(extent[1], extent[0]):
+        back, up = np.array([0, 1.0, 0]), [0, 0, -1]
+    else:
+        back, up = np.array([0, 0, 1.0]), [0, 1, 0]
+    import mitsuba as mi
+    eye = center + back * distance
+    scene["sensor"] = {
+        "type": "perspective", "fov": 40.0, "fov_axis": "y",
+        "to_world": mi.ScalarTransform4f().look_at(origin=eye.tolist(), target=center.tolist(), up=up),
+        "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+    }
+    return scene
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--variant", default="llvm_ad_rgb")
@@ -186,6 +255,9 @@ def main():
     ap.add_argument("--threads", type=int, default=0, help="0 = all cores")
     ap.add_argument("--out", default=DEFAULT_OUT)
     ap.add_argument("--glb", help="render this .glb written by our exporter instead of mitsuba.cornell_box()")
+    ap.add_argument("--gltf", help="time this plain .gltf (the corpus' 01_vertex_count_32bit) lit by a constant "
+                    "environment (--env) from pathfarm's default camera; for throughput only")
+    ap.add_argument("--env", type=float, default=1.0, help="--gltf: the environment's radiance")
     ap.add_argument("--keep-ply", action="store_true", help="keep the converted PLY meshes")
     ap.add_argument("--repeats", type=int, default=1,
                     help="render this many times (timing; the image is the first); the LLVM variant "
@@ -212,6 +284,9 @@ def main():
     if args.glb:
         ply_dir = os.path.splitext(os.path.abspath(args.out))[0] + ".ply"
         scene_dict = glb_scene_dict(args.glb, ply_dir, args.res, args.max_depth)
+    elif args.gltf:
+        ply_dir = os.path.splitext(os.path.abspath(args.out))[0] + ".ply"
+        scene_dict = gltf_throughput_scene_dict(args.gltf, ply_dir, args.res, args.max_depth, args.env)
     else:
         scene_dict = mi.cornell_box()
         scene_dict["sensor"]["film"]["width"] = args.res
@@ -224,10 +299,12 @@ def main():
 
     passes = args.spp // args.spp_per_pass
     times = []
+    cpu_times = []
     image = None
     for repeat in range(max(1, args.repeats)):
         acc = np.zeros((args.res, args.res, 3), dtype=np.float64)
         t0 = time.perf_counter()
+        c0 = time.process_time()
         for p in range(passes):
             img = mi.render(scene, spp=args.spp_per_pass, seed=args.seed + p)
             dr.eval(img)
@@ -236,16 +313,20 @@ def main():
             if passes > 1:
                 print(f"pass {p + 1}/{passes}: {time.perf_counter() - t0:.1f} s", flush=True)
         times.append(time.perf_counter() - t0)
+        # CPU time of every thread of the process: on a loaded machine, samples per CPU-second
+        # say more than wall time.
+        cpu_times.append(time.process_time() - c0)
         if image is None:
             image = (acc / passes).astype(np.float32)
     seconds = sorted(times)[len(times) // 2]
+    cpu_seconds = sorted(cpu_times)[len(cpu_times) // 2]
 
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     bitmap = mi.Bitmap(image, mi.Bitmap.PixelFormat.RGB)
     bitmap.write(args.out)
     meta = {
         "renderer": "mitsuba",
-        "scene": os.path.basename(args.glb) if args.glb else "mitsuba.cornell_box()",
+        "scene": os.path.basename(args.glb or args.gltf or "") or "mitsuba.cornell_box()",
         "mitsuba_version": mi.__version__,
         "variant": args.variant,
         "threads": dr.thread_count(),
@@ -260,6 +341,9 @@ def main():
         "render_s": [round(t, 3) for t in times],
         "render_median_s": round(seconds, 3),
         "samples_per_s_median": round(args.res * args.res * args.spp / seconds, 1),
+        "cpu_s": [round(t, 3) for t in cpu_times],
+        "cpu_median_s": round(cpu_seconds, 3),
+        "samples_per_cpu_s_median": round(args.res * args.res * args.spp / cpu_seconds, 1),
         "mean_rgb": [float(x) for x in image.reshape(-1, 3).mean(axis=0)],
     }
     with open(os.path.splitext(args.out)[0] + ".json", "w") as f:

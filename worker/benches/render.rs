@@ -4,6 +4,7 @@
 //! cargo bench -p pathfarm-worker --bench render            # everything
 //! cargo bench -p pathfarm-worker --bench render -- quick   # skip the Mitsuba comparison
 //! cargo bench -p pathfarm-worker --bench render -- sse2    # baseline kernels, not AVX2
+//! cargo bench -p pathfarm-worker --bench render -- scalar  # path: one path at a time, not the wavefront
 //! ```
 //!
 //! 1. BVH build time and Mrays/s for primary and diffuse (cosine) rays on
@@ -12,8 +13,12 @@
 //! 3. Path tracing on the Cornell box at 256 x 256, max depth 8, 64 spp, 2 threads, in samples/s;
 //!    when the `mitsuba` Python package is installed, the same scene with Mitsuba 3's
 //!    `scalar_rgb` and `llvm_ad_rgb` variants (scripts/make-reference.py) and the
-//!    ratios; and the equal-time error: RMSE against the 16k-spp reference of our render given
-//!    the wall time of Mitsuba's llvm render of 64 spp, and of Mitsuba's.
+//!    ratios, of wall-clock throughput and of throughput per CPU-second (all threads' CPU time:
+//!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
+//!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
+//!    and of Mitsuba's.
+//! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
+//!    Mitsuba's throughput on the same view when installed.
 
 #![allow(clippy::print_stdout)] // a benchmark prints its figures
 
@@ -23,6 +28,7 @@ use pathfarm_common::scene::{LoadOptions, load_scene};
 use pathfarm_worker::render::camera::Camera;
 use pathfarm_worker::render::geometry::Frame;
 use pathfarm_worker::render::scene::RenderScene;
+use pathfarm_worker::render::wavefront::PathKernel;
 use pathfarm_worker::render::wide::SimdLevel;
 use pathfarm_worker::render::{Renderer, render_local};
 use std::path::{Path, PathBuf};
@@ -54,6 +60,11 @@ fn unit(x: u64) -> f32 {
 /// The SIMD level the renders use: the CPU's best, or the baseline with the `sse2` argument.
 fn simd_level() -> SimdLevel {
     if std::env::args().any(|a| a == "sse2") { SimdLevel::Baseline } else { SimdLevel::detect() }
+}
+
+/// The path kernel the renders use: the wavefront, or one path at a time with `scalar`.
+fn path_kernel() -> PathKernel {
+    if std::env::args().any(|a| a == "scalar") { PathKernel::Scalar } else { PathKernel::Wavefront }
 }
 
 fn bvh_figures() {
@@ -114,12 +125,35 @@ fn settings(spp: u32, integrator: IntegratorSettings) -> RenderSettings {
     s
 }
 
-fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
+/// CPU time of every thread of this process so far, in seconds (`/proc/self/stat`'s utime and
+/// stime, in Linux's 100 Hz clock ticks); `None` where there is no such file.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The fields after the command name (which is in parentheses and may hold spaces).
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let ticks = |i: usize| fields.get(i)?.parse::<u64>().ok();
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
+    Some((ticks(11)? + ticks(12)?) as f64 / 100.0)
+}
+
+/// Renders `s` and returns the wall seconds, the CPU seconds (all threads) and the image.
+fn time_render_cpu(
+    scene: &pathfarm_common::scene::Scene,
+    s: &RenderSettings,
+) -> (f64, Option<f64>, pathfarm_common::film::ImageLayers) {
     let mut r = Renderer::new(scene, s).expect("renderer");
     r.set_simd_level(simd_level());
+    r.set_path_kernel(path_kernel());
+    let c = cpu_seconds();
     let t = Instant::now();
     let film = render_local(&r, |_, _| {});
-    (t.elapsed().as_secs_f64(), film.resolve())
+    let wall = t.elapsed().as_secs_f64();
+    (wall, c.zip(cpu_seconds()).map(|(a, b)| b - a), film.resolve())
+}
+
+fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
+    let (wall, _, img) = time_render_cpu(scene, s);
+    (wall, img)
 }
 
 fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
@@ -133,9 +167,23 @@ fn rmse(a: &[[f32; 3]], r: &[f32], g: &[f32], b: &[f32]) -> f64 {
     (sum / (a.len() * 3) as f64).sqrt()
 }
 
-/// Runs the reference script; returns (samples/s median, render seconds median, output exr).
-fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
-    let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{variant}_{spp}.exr"));
+/// What the reference script measured: samples/s and render seconds (medians of wall time),
+/// samples per CPU-second (median), and the image it wrote.
+struct MitsubaRun {
+    samples_per_s: f64,
+    seconds: f64,
+    samples_per_cpu_s: Option<f64>,
+    exr: PathBuf,
+}
+
+/// Runs the reference script.
+fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
+    mitsuba_with(variant, spp, "cornell", &[])
+}
+
+/// [`mitsuba`] with more arguments for the script (another scene); `tag` names its output.
+fn mitsuba_with(variant: &str, spp: u32, tag: &str, extra: &[&std::ffi::OsStr]) -> Option<MitsubaRun> {
+    let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{tag}_{variant}_{spp}.exr"));
     let script = repo().join("scripts/make-reference.py");
     let mut cmd = Command::new("python3");
     // drjit's LLVM backend needs a recent libLLVM (Debian's default 14 fails with "Cannot select
@@ -148,12 +196,80 @@ fn mitsuba(variant: &str, spp: u32) -> Option<(f64, f64, PathBuf)> {
         .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp.to_string()])
         .args(["--res", "256", "--repeats", "3", "--threads", "2", "--max-depth", "8", "--out"])
         .arg(&out)
+        .args(extra)
         .output()
         .ok()?;
     let text = String::from_utf8_lossy(&o.stdout);
     let line = text.lines().find_map(|l| l.strip_prefix("RESULT "))?;
     let v: serde_json::Value = serde_json::from_str(line).ok()?;
-    Some((v["samples_per_s_median"].as_f64()?, v["render_median_s"].as_f64()?, out))
+    Some(MitsubaRun {
+        samples_per_s: v["samples_per_s_median"].as_f64()?,
+        seconds: v["render_median_s"].as_f64()?,
+        samples_per_cpu_s: v["samples_per_cpu_s_median"].as_f64(),
+        exr: out,
+    })
+}
+
+/// Path tracing on the 130k-triangle 01_vertex_count_32bit at 256 x 256, 64 spp, max depth 8,
+/// 2 threads, from the default camera under a constant environment of radiance 1 (the scene has
+/// neither camera nor lights); without `quick`, the same scene in Mitsuba (the script's
+/// `--gltf`: PLY meshes, its `principled` BSDF for the glTF material, so only the throughput
+/// compares).
+fn large_scene_figures(quick: bool) {
+    let path = corpus().join("01_vertex_count_32bit/01_vertex_count_32bit.gltf");
+    let Ok(scene) = load_scene(&path, &LoadOptions::default()) else {
+        println!("path 130k: cannot load {}", path.display());
+        return;
+    };
+    let spp = 64;
+    let mut s = settings(
+        spp,
+        IntegratorSettings::Path {
+            max_depth: 8,
+            rr_depth: 5,
+            mis: MisHeuristic::Power,
+            light_sampling: LightSampling::Area,
+        },
+    );
+    s.environment = Some(pathfarm_common::job::EnvironmentSettings {
+        file: None,
+        color: Some([1.0; 3]),
+        intensity: 1.0,
+        rotation_deg: 0.0,
+    });
+    let samples = 256.0 * 256.0 * f64::from(spp);
+    let (t, cpu, _) = time_render_cpu(&scene, &s);
+    let ours = samples / t;
+    let ours_cpu = cpu.map(|c| samples / c);
+    println!(
+        "path: 01_vertex_count_32bit 256x256x{spp} max_depth 8, 2 threads, constant environment: {:.2} M samples/s ({t:.2} s); {}",
+        ours / 1e6,
+        per_cpu_second(ours_cpu)
+    );
+    if quick {
+        return;
+    }
+    for variant in ["scalar_rgb", "llvm_ad_rgb"] {
+        let Some(m) = mitsuba_with(variant, spp, "vertex_count", &["--gltf".as_ref(), path.as_os_str()]) else {
+            println!("mitsuba {variant} on 01_vertex_count_32bit: no result");
+            continue;
+        };
+        let cpu =
+            ours_cpu.zip(m.samples_per_cpu_s).map_or(String::new(), |(o, m)| format!(", per CPU-second {:.2}", o / m));
+        println!(
+            "mitsuba {variant} on 01_vertex_count_32bit: {:.2} M samples/s; {}; ours / {variant} = {:.2}{cpu}",
+            m.samples_per_s / 1e6,
+            per_cpu_second(m.samples_per_cpu_s),
+            ours / m.samples_per_s
+        );
+    }
+}
+
+/// "x M samples per CPU-second" (the render's throughput per busy core, which the machine's
+/// load disturbs less than wall time), or nothing where it was not measured.
+fn per_cpu_second(samples_per_cpu_s: Option<f64>) -> String {
+    samples_per_cpu_s
+        .map_or_else(|| "CPU time not measured".into(), |s| format!("{:.2} M samples per CPU-second", s / 1e6))
 }
 
 /// The newest `libLLVM-N.so` in the system library directory.
@@ -171,7 +287,8 @@ fn newest_libllvm() -> Option<PathBuf> {
 }
 
 /// `tiny`: one small path-traced render on one thread, for instruction counts under
-/// `valgrind --tool=callgrind` (repeatable whatever the machine's load).
+/// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny igi` and
+/// `tiny bdpt`: the same with those integrators.
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -181,21 +298,36 @@ fn tiny() {
         mis: MisHeuristic::Power,
         light_sampling: LightSampling::Area,
     };
+    let mut name = "path (area)";
+    if std::env::args().any(|a| a == "igi") {
+        s = RenderSettings::new(32, 32, 8);
+        s.integrator =
+            IntegratorSettings::Igi { vpls: 64, vpl_sets: 4, g_limit: 10.0, bias_compensation: true, max_depth: 8 };
+        name = "igi (64 VPLs, compensation)";
+    }
+    if std::env::args().any(|a| a == "bdpt") {
+        s = RenderSettings::new(32, 32, 16);
+        s.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 5, strategy: None };
+        name = "bdpt";
+    }
     let (t, img) = time_render(&scene, &s);
     println!(
-        "tiny: 64x64x16 path (area) in {t:.3} s, mean R {:.4}",
-        img.rgb.iter().map(|p| p[0]).sum::<f32>() / 4096.0
+        "tiny: {}x{}x{} {name} in {t:.3} s, mean R {:.4}",
+        s.width,
+        s.height,
+        s.spp,
+        img.rgb.iter().map(|p| p[0]).sum::<f32>() / img.rgb.len() as f32
     );
 }
 
 fn main() {
     if std::env::args().any(|a| a == "tiny") {
-        println!("simd: {} kernels", simd_level().name());
+        println!("simd: {} kernels, {:?} path kernel", simd_level().name(), path_kernel());
         rayon::ThreadPoolBuilder::new().num_threads(1).build_global().ok();
         return tiny();
     }
     let quick = std::env::args().any(|a| a == "quick");
-    println!("simd: {} kernels", simd_level().name());
+    println!("simd: {} kernels, {:?} path kernel", simd_level().name(), path_kernel());
     rayon::ThreadPoolBuilder::new().num_threads(2).build_global().ok();
     bvh_figures();
 
@@ -219,24 +351,43 @@ fn main() {
         256.0 * 256.0 * 64.0 / t_sa / 1e6
     );
     let path = path_with(LightSampling::Area);
-    let (t, _) = time_render(&scene, &settings(64, path.clone()));
+    let (t, cpu, _) = time_render_cpu(&scene, &settings(64, path.clone()));
     let ours = 256.0 * 256.0 * 64.0 / t;
+    let ours_cpu = cpu.map(|c| 256.0 * 256.0 * 64.0 / c);
     println!(
-        "path: cornell 256x256x64 max_depth 8, 2 threads, area light sampling: {:.2} M samples/s ({t:.2} s)",
-        ours / 1e6
+        "path: cornell 256x256x64 max_depth 8, 2 threads, area light sampling: {:.2} M samples/s ({t:.2} s); {}",
+        ours / 1e6,
+        per_cpu_second(ours_cpu)
     );
+    large_scene_figures(quick);
     if quick {
         return;
     }
     let exr = pathfarm_common::film::read_exr(&reference.join("cornell_mitsuba_box_16384spp.exr")).expect("reference");
     let (r, g, b) = (exr.get("R").expect("R"), exr.get("G").expect("G"), exr.get("B").expect("B"));
-    let Some((scalar, _, _)) = mitsuba("scalar_rgb", 64) else {
+    let Some(scalar) = mitsuba("scalar_rgb", 64) else {
         println!("mitsuba: not installed (pip install mitsuba) - no comparison");
         return;
     };
-    println!("mitsuba scalar_rgb: {:.2} M samples/s; ours / scalar_rgb = {:.2}", scalar / 1e6, ours / scalar);
-    let Some((llvm, llvm_s, llvm_exr)) = mitsuba("llvm_ad_rgb", 64) else { return };
-    println!("mitsuba llvm_ad_rgb: {:.2} M samples/s; ours / llvm_ad_rgb = {:.2}", llvm / 1e6, ours / llvm);
+    let ratios = |m: &MitsubaRun| {
+        let cpu =
+            ours_cpu.zip(m.samples_per_cpu_s).map_or(String::new(), |(o, m)| format!(", per CPU-second {:.2}", o / m));
+        format!("{:.2}{cpu}", ours / m.samples_per_s)
+    };
+    println!(
+        "mitsuba scalar_rgb: {:.2} M samples/s; {}; ours / scalar_rgb = {}",
+        scalar.samples_per_s / 1e6,
+        per_cpu_second(scalar.samples_per_cpu_s),
+        ratios(&scalar)
+    );
+    let Some(llvm) = mitsuba("llvm_ad_rgb", 64) else { return };
+    println!(
+        "mitsuba llvm_ad_rgb: {:.2} M samples/s; {}; ours / llvm_ad_rgb = {}",
+        llvm.samples_per_s / 1e6,
+        per_cpu_second(llvm.samples_per_cpu_s),
+        ratios(&llvm)
+    );
+    let (llvm_s, llvm_exr) = (llvm.seconds, llvm.exr);
     // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
     let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
     let (t_eq, img) = time_render(&scene, &settings(spp, path));

@@ -21,6 +21,15 @@ pub struct Hit {
     pub b2: f32,
 }
 
+/// One ray of a batched query: `o + t d` for `0 < t < t_max` at shutter time `time`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayQuery {
+    pub o: Vec3A,
+    pub d: Vec3A,
+    pub t_max: f32,
+    pub time: f32,
+}
+
 /// The BVH and its triangles, stored in BVH leaf order for locality.
 pub struct Accel {
     bvh: Option<CwBvh>,
@@ -272,6 +281,46 @@ impl Accel {
         });
         // Only t < tmax is accepted, so the last recorded barycentrics are the winner's.
         hit.map(|slot| Hit { t: ray.tmax, prim: self.prim_ids[slot as usize], b1: best.0, b2: best.1 })
+    }
+
+    /// The closest hits of a batch of rays, in order (a wavefront's intersection stage): each
+    /// exactly [`Accel::intersect_at`] of its ray, with one SIMD dispatch for the batch.
+    pub fn intersect_many(&self, rays: &[RayQuery], hits: &mut Vec<Option<Hit>>) {
+        hits.clear();
+        // Plain loops, not iterator adapters: their code stays inside the function compiled for
+        // AVX2 (an adapter's `fold` is a function of its own, compiled for the baseline, which
+        // cannot inline the AVX2 node test).
+        match self.avx2 {
+            Some(avx2) => avx2.run(|| {
+                for r in rays {
+                    hits.push(self.intersect_dispatch(avx2, r.o, r.d, r.t_max, r.time));
+                }
+            }),
+            None => {
+                for r in rays {
+                    hits.push(self.intersect_dispatch(Baseline, r.o, r.d, r.t_max, r.time));
+                }
+            }
+        }
+    }
+
+    /// Whether each ray of a batch is blocked, in order (a wavefront's shadow-ray stage): each
+    /// exactly [`Accel::occluded_at`] of its ray, with one SIMD dispatch for the batch.
+    pub fn occluded_many(&self, rays: &[RayQuery], blocked: &mut Vec<bool>) {
+        blocked.clear();
+        // Plain loops: see `intersect_many`.
+        match self.avx2 {
+            Some(avx2) => avx2.run(|| {
+                for r in rays {
+                    blocked.push(self.occluded_dispatch(avx2, r.o, r.d, r.t_max, r.time));
+                }
+            }),
+            None => {
+                for r in rays {
+                    blocked.push(self.occluded_dispatch(Baseline, r.o, r.d, r.t_max, r.time));
+                }
+            }
+        }
     }
 
     /// Whether anything blocks `o + t d` for `0 < t < t_max` (at shutter open).

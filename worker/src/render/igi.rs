@@ -23,10 +23,11 @@
 //! focused by specular surfaces onto the point the camera sees) are beyond VPLs; the VPLs that
 //! such light paths leave do light other surfaces.
 
+use super::accel::RayQuery;
 use super::bdpt::{Subpaths, VertexKind, light_subpath};
 use super::bsdf::Bsdf;
 use super::camera::Camera;
-use super::geometry::{Ray, offset_ray_origin};
+use super::geometry::{Ray, offset_ray_origin, shadow_segment};
 use super::integrator::{PathParams, sample_ld, sample_scatter};
 use super::material::{Shading, shade};
 use super::sampler::{AnySampler, Sampler, hash_u64};
@@ -195,6 +196,23 @@ pub fn trace_vpls(
     VplSets { sets }
 }
 
+/// Buffers of the VPL loop, reused from sample to sample (one per thread): each VPL's
+/// contribution and shadow ray, for one batched occlusion query.
+#[derive(Default)]
+pub struct IgiScratch {
+    contributions: Vec<Vec3A>,
+    rays: Vec<RayQuery>,
+    blocked: Vec<bool>,
+}
+
+impl IgiScratch {
+    fn clear(&mut self) {
+        self.contributions.clear();
+        self.rays.clear();
+        self.blocked.clear();
+    }
+}
+
 /// Traces one IGI camera sample through `pixel` (the sampler positioned at dimension 0) with
 /// the VPL sets of its sample index.
 pub fn li_igi(
@@ -204,6 +222,7 @@ pub fn li_igi(
     sampler: &mut impl Sampler,
     params: &IgiParams,
     vpls: &VplSets,
+    scratch: &mut IgiScratch,
 ) -> SampleValue {
     let mut out = SampleValue::default();
     let empty = Vec::new();
@@ -240,7 +259,7 @@ pub fn li_igi(
         }
         let Some(bsdf) = &sh.bsdf else { break };
         if !bsdf.is_delta() {
-            l += beta * reflected(scene, si.p, &sh, wo, segments, sampler, params, set, 0);
+            l += beta * reflected(scene, si.p, &sh, wo, segments, sampler, params, set, 0, scratch);
             break;
         }
         let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, sampler) else { break };
@@ -267,6 +286,7 @@ fn reflected(
     params: &IgiParams,
     set: &[Vpl],
     recursion: u32,
+    scratch: &mut IgiScratch,
 ) -> Vec3A {
     let Some(bsdf) = &sh.bsdf else { return Vec3A::ZERO };
     let within = |n: u32| params.max_depth == 0 || n <= params.max_depth;
@@ -300,12 +320,22 @@ fn reflected(
         }
         let g = w.dot(bsdf.frame.z).abs() * w.dot(vpl.ns).abs() / d2;
         let c = f * g.min(params.g_limit);
-        if c != Vec3A::ZERO && scene.visible(p, sh.ng, vpl.p, Some(vpl.ng)) {
-            l += c;
+        if c != Vec3A::ZERO {
+            let (o, d, t_max) = shadow_segment(p, sh.ng, vpl.p, Some(vpl.ng));
+            scratch.contributions.push(c);
+            scratch.rays.push(RayQuery { o, d, t_max, time: 0.0 });
         }
     }
+    // The VPLs' shadow rays in one batch; the visible ones add up in the VPLs' order.
+    scene.occluded_many(&scratch.rays, &mut scratch.blocked);
+    for (c, &blocked) in scratch.contributions.iter().zip(&scratch.blocked) {
+        if !blocked {
+            l += *c;
+        }
+    }
+    scratch.clear();
     if params.bias_compensation && within(segments + 2) {
-        l += compensation(scene, p, sh, bsdf, wo, segments, sampler, params, set, recursion);
+        l += compensation(scene, p, sh, bsdf, wo, segments, sampler, params, set, recursion, scratch);
     }
     l
 }
@@ -325,6 +355,7 @@ fn compensation(
     params: &IgiParams,
     set: &[Vpl],
     recursion: u32,
+    scratch: &mut IgiScratch,
 ) -> Vec3A {
     let uc = sampler.get_1d();
     let u = sampler.get_2d();
@@ -360,5 +391,5 @@ fn compensation(
     if !beta.is_finite() {
         return Vec3A::ZERO;
     }
-    beta * reflected(scene, y.p, &sh_y, wo_y, segments + 1, sampler, params, set, recursion + 1)
+    beta * reflected(scene, y.p, &sh_y, wo_y, segments + 1, sampler, params, set, recursion + 1, scratch)
 }

@@ -5,12 +5,12 @@
 use super::bsdf::{Bsdf, BsdfSample};
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
-use super::light::LightSampleContext;
+use super::light::{LightLiSample, LightSampleContext};
 use super::material::{Shading, shade};
 use super::sampler::Sampler;
 use super::sampling::{balance_heuristic, power_heuristic};
 use super::scene::RenderScene;
-use glam::{UVec2, Vec3A};
+use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::film::SampleValue;
 use pathfarm_common::job::{LightSampling, MisHeuristic};
 
@@ -27,14 +27,34 @@ pub struct PathParams {
 }
 
 /// Survival probability cap of Russian roulette (Mitsuba's 0.95): even bright paths end.
-const RR_MAX_SURVIVAL: f32 = 0.95;
+pub(crate) const RR_MAX_SURVIVAL: f32 = 0.95;
 
 #[inline]
-fn mis_weight(mis: MisHeuristic, pdf_this: f32, pdf_other: f32) -> f32 {
+pub(crate) fn mis_weight(mis: MisHeuristic, pdf_this: f32, pdf_other: f32) -> f32 {
     match mis {
         MisHeuristic::Power => power_heuristic(1.0, pdf_this, 1.0, pdf_other),
         MisHeuristic::Balance => balance_heuristic(1.0, pdf_this, 1.0, pdf_other),
         MisHeuristic::Light | MisHeuristic::Bsdf => 1.0,
+    }
+}
+
+/// The weight of emission found by BSDF sampling (after a bounce of density `prev_bsdf_pdf`),
+/// given the light's density for it; emission after a specular bounce (or seen by a camera
+/// ray) counts in full.
+#[inline]
+pub(crate) fn emission_weight(
+    specular_bounce: bool,
+    mis: MisHeuristic,
+    prev_bsdf_pdf: f32,
+    light_pdf: impl FnOnce() -> f32,
+) -> f32 {
+    if specular_bounce {
+        return 1.0;
+    }
+    match mis {
+        MisHeuristic::Bsdf => 1.0,
+        MisHeuristic::Light => 0.0,
+        mis => mis_weight(mis, prev_bsdf_pdf, light_pdf()),
     }
 }
 
@@ -52,34 +72,76 @@ pub fn sample_ld(
 ) -> Vec3A {
     let u_select = sampler.get_1d();
     let u = sampler.get_2d();
-    let Some(bsdf) = &sh.bsdf else { return Vec3A::ZERO };
-    let ctx = LightSampleContext { p, n: sh.ng };
-    let Some((index, ls, pmf)) = scene.sample_light_at(&ctx, u_select, u, params.light_sampling, time) else {
+    let Some(nee) = nee_sample(scene, p, sh, wo, u_select, u, params, time) else { return Vec3A::ZERO };
+    if !scene.unoccluded_at(p, sh.ng, &nee.ls, time) {
         return Vec3A::ZERO;
-    };
+    }
+    nee.contribution(sh, wo, params)
+}
+
+/// A light sample of next-event estimation that can contribute (BSDF value nonzero), before
+/// its shadow ray.
+#[derive(Clone, Copy, Debug)]
+pub struct NeeSample {
+    pub ls: LightLiSample,
+    /// `f |cos|` toward the light.
+    pub f: Vec3A,
+    /// Probability of the light's selection.
+    pub pmf: f32,
+    pub delta: bool,
+}
+
+impl NeeSample {
+    /// The contribution (without the path throughput) if the shadow ray is unoccluded. `sh`
+    /// and `wo` are those [`nee_sample`] was given (whose BSDF exists).
+    #[inline]
+    pub fn contribution(&self, sh: &Shading, wo: Vec3A, params: &PathParams) -> Vec3A {
+        let (f, ls, pmf) = (self.f, &self.ls, self.pmf);
+        let light_pdf = pmf * ls.pdf;
+        if self.delta {
+            return f * ls.l / pmf;
+        }
+        let bsdf_pdf = sh.bsdf.as_ref().map_or(0.0, |b| b.pdf(wo, ls.wi));
+        let w = mis_weight(params.mis, light_pdf, bsdf_pdf);
+        f * ls.l * (w / light_pdf)
+    }
+}
+
+/// The light sample of [`sample_ld`] from its random numbers (`u_select` picks the light, `u`
+/// the point on it): `None` where it contributes nothing whatever the shadow ray finds.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub fn nee_sample(
+    scene: &RenderScene,
+    p: Vec3A,
+    sh: &Shading,
+    wo: Vec3A,
+    u_select: f32,
+    u: Vec2,
+    params: &PathParams,
+    time: f32,
+) -> Option<NeeSample> {
+    let bsdf = sh.bsdf.as_ref()?;
+    let ctx = LightSampleContext { p, n: sh.ng };
+    let (index, ls, pmf) = scene.sample_light_at(&ctx, u_select, u, params.light_sampling, time)?;
     let light = &scene.lights[index];
     let delta = light.is_delta();
     // BSDF-only: area lights are found by BSDF sampling instead; delta lights can only be
     // reached by light sampling, so they stay.
     if params.mis == MisHeuristic::Bsdf && !delta {
-        return Vec3A::ZERO;
+        return None;
     }
     // Reflection stays on the viewer's side of the geometric surface (no leaks through shading
     // normals); a transmitting BSDF also takes light from the other side.
     let same_side = ls.wi.dot(sh.ng) * wo.dot(sh.ng) > 0.0;
     if ls.l == Vec3A::ZERO || !(same_side || bsdf.bxdf.has_transmission() && ls.wi.dot(sh.ng) != 0.0) {
-        return Vec3A::ZERO;
+        return None;
     }
     let f = bsdf.f(wo, ls.wi) * ls.wi.dot(bsdf.frame.z).abs();
-    if f == Vec3A::ZERO || !scene.unoccluded_at(p, sh.ng, &ls, time) {
-        return Vec3A::ZERO;
+    if f == Vec3A::ZERO {
+        return None;
     }
-    let light_pdf = pmf * ls.pdf;
-    if delta {
-        return f * ls.l / pmf;
-    }
-    let w = mis_weight(params.mis, light_pdf, bsdf.pdf(wo, ls.wi));
-    f * ls.l * (w / light_pdf)
+    Some(NeeSample { ls, f, pmf, delta })
 }
 
 /// Samples the BSDF for the next path segment (one 1D and one 2D sample, in that order) and
@@ -122,23 +184,16 @@ pub fn li_path(
     let mut prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
     let mut depth = 0u32;
     loop {
-        // The weight of emission found by BSDF sampling, given the light's density for it.
-        let emission_weight = |light_pdf: &dyn Fn() -> f32| {
-            if specular_bounce {
-                return 1.0;
-            }
-            match params.mis {
-                MisHeuristic::Bsdf => 1.0,
-                MisHeuristic::Light => 0.0,
-                mis => mis_weight(mis, prev_bsdf_pdf, light_pdf()),
-            }
-        };
         let Some(si) = scene.intersect_at(ray.o, ray.d, f32::INFINITY, time) else {
             // The ray left the scene: the environment is its emitter.
             if let Some((i, env)) = scene.environment() {
                 let le = env.le(ray.d);
                 if le != Vec3A::ZERO {
-                    l += beta * le * emission_weight(&|| scene.light_pmf(i) * env.pdf_wi(ray.d));
+                    l += beta
+                        * le
+                        * emission_weight(specular_bounce, params.mis, prev_bsdf_pdf, || {
+                            scene.light_pmf(i) * env.pdf_wi(ray.d)
+                        });
                 }
             }
             break;
@@ -150,7 +205,7 @@ pub fn li_path(
         beta *= scene.transmittance(&si, ray.d);
         let le = scene.emitted_at(&si, wo, time);
         if le != Vec3A::ZERO {
-            let w = emission_weight(&|| {
+            let w = emission_weight(specular_bounce, params.mis, prev_bsdf_pdf, || {
                 scene.light_of_prim(si.prim).map_or(0.0, |i| {
                     scene.light_pmf(i) * scene.light_at(i, time).pdf_li(&prev_ctx, si.p, params.light_sampling)
                 })

@@ -186,10 +186,15 @@ pub struct LightLiSample {
 /// Whether a triangle of this solid angle is sampled by solid angle: Arvo's method loses
 /// precision on tiny and on huge spherical triangles, which are sampled by area instead (pbrt-v4's
 /// cut-offs). `sample_li` and `pdf_li` decide alike, so their densities always match.
-fn use_solid_angle(mode: LightSampling, solid_angle: f32) -> bool {
-    mode == LightSampling::SolidAngle
-        && solid_angle.is_finite()
-        && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&solid_angle)
+/// Returns the solid angle where it is used (computed only in solid-angle mode: area sampling
+/// never needs it).
+fn use_solid_angle(mode: LightSampling, v: &[Vec3A; 3], p: Vec3A) -> Option<f32> {
+    if mode != LightSampling::SolidAngle {
+        return None;
+    }
+    let solid_angle = triangle_solid_angle(*v, p);
+    (solid_angle.is_finite() && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&solid_angle))
+        .then_some(solid_angle)
 }
 
 impl Light {
@@ -248,8 +253,7 @@ impl Light {
                 infinite: true,
             }),
             Light::Triangle { v, n, area, le, two_sided, .. } => {
-                let solid_angle = triangle_solid_angle(v, ctx.p);
-                let (b, pdf_sa) = if use_solid_angle(mode, solid_angle) {
+                let (b, pdf_sa) = if use_solid_angle(mode, &v, ctx.p).is_some() {
                     let (b, pdf) = sample_spherical_triangle(v, ctx.p, u)?;
                     (b, Some(pdf))
                 } else {
@@ -312,8 +316,7 @@ impl Light {
         if !two_sided && cos_l <= 0.0 {
             return 0.0;
         }
-        let solid_angle = triangle_solid_angle(v, ctx.p);
-        if use_solid_angle(mode, solid_angle) {
+        if let Some(solid_angle) = use_solid_angle(mode, &v, ctx.p) {
             1.0 / solid_angle
         } else if cos_l == 0.0 {
             0.0

@@ -16,12 +16,13 @@ pub mod microfacet;
 pub mod sampler;
 pub mod sampling;
 pub mod scene;
+pub mod wavefront;
 pub mod wide;
 
 use bdpt::{BdptParams, Subpaths, li_bdpt};
 use camera::Camera;
 use glam::{UVec2, Vec2, Vec3A};
-use igi::{IgiParams, VplCache, li_igi};
+use igi::{IgiParams, IgiScratch, VplCache, li_igi};
 use integrator::{PathParams, li_path};
 use pathfarm_common::adaptive::BlockMask;
 use pathfarm_common::assembly::FilmAssembly;
@@ -31,6 +32,7 @@ use pathfarm_common::scene::{self as scene_model, EnvironmentImage, Scene};
 use rayon::prelude::*;
 use sampler::{AnySampler, Sampler};
 use scene::{EnvironmentSpec, RenderScene};
+use wavefront::{PathKernel, Wavefront};
 
 /// Errors preparing a scene for rendering.
 #[derive(Debug, thiserror::Error)]
@@ -70,6 +72,8 @@ pub struct Renderer {
     integrator: Integrator,
     /// IGI: the virtual point lights of each sample index, built on first use.
     vpls: VplCache,
+    /// How `path` and `direct` units are traced (bit-identical either way).
+    path_kernel: PathKernel,
 }
 
 /// The sample dimension of a bdpt sample's shutter time (beyond its camera and light subpaths'
@@ -217,6 +221,7 @@ impl Renderer {
             shutter_cameras,
             integrator,
             vpls: VplCache::default(),
+            path_kernel: PathKernel::default(),
         })
     }
 
@@ -244,6 +249,16 @@ impl Renderer {
     /// either way; for tests and measurements. Returns the level in use.
     pub fn set_simd_level(&mut self, level: wide::SimdLevel) -> wide::SimdLevel {
         self.scene.set_simd_level(level)
+    }
+
+    /// Traces `path` and `direct` units with `kernel` (the wavefront by default): images are
+    /// bit-identical either way; for tests and measurements.
+    pub fn set_path_kernel(&mut self, kernel: PathKernel) {
+        self.path_kernel = kernel;
+    }
+
+    pub fn path_kernel(&self) -> PathKernel {
+        self.path_kernel
     }
 
     pub fn scene(&self) -> &RenderScene {
@@ -319,10 +334,14 @@ impl Renderer {
         let rows: Vec<(Vec<film::PixelSums>, Vec<Splat>)> = (tile.y0..tile.y1)
             .into_par_iter()
             .map(|y| {
+                if let (Integrator::Path(params), PathKernel::Wavefront) = (&self.integrator, self.path_kernel) {
+                    return (self.path_row_wavefront(tile, pass, mask, y, params, &new_sampler), Vec::new());
+                }
                 let mut sampler = new_sampler();
                 let mut row = Vec::with_capacity(tile.width() as usize);
                 let mut splats = Vec::new();
                 let mut paths = Subpaths::default();
+                let mut igi_scratch = IgiScratch::default();
                 for x in tile.x0..tile.x1 {
                     if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
                         // A converged block: no samples, nothing added by the merge.
@@ -373,7 +392,15 @@ impl Renderer {
                             Integrator::Igi(params) => {
                                 sampler.start_pixel_sample(pixel, s, 0);
                                 match vpls.as_ref().and_then(|v| v.get((s - pass.s0) as usize)) {
-                                    Some(vpls) => li_igi(&self.scene, &self.camera, pixel, &mut sampler, params, vpls),
+                                    Some(vpls) => li_igi(
+                                        &self.scene,
+                                        &self.camera,
+                                        pixel,
+                                        &mut sampler,
+                                        params,
+                                        vpls,
+                                        &mut igi_scratch,
+                                    ),
                                     None => film::SampleValue::default(),
                                 }
                             }
@@ -392,6 +419,55 @@ impl Renderer {
             splats.extend(sp);
         }
         (accum, splats)
+    }
+}
+
+impl Renderer {
+    /// Row `y` of `tile` for the `path` integrator with the wavefront kernel: the row's samples
+    /// (pixel by pixel, each pixel's in sample order) in batches, each pixel's values folded in
+    /// sample order as the scalar loop folds them.
+    fn path_row_wavefront<S: Sampler>(
+        &self,
+        tile: TileRect,
+        pass: Pass,
+        mask: Option<&BlockMask>,
+        y: u32,
+        params: &PathParams,
+        new_sampler: &(impl Fn() -> S + Sync),
+    ) -> Vec<film::PixelSums> {
+        let camera_at = |time: f32| self.camera_at(time);
+        let shutter: Option<&dyn Fn(f32) -> Camera> = self.shutter_cameras.as_ref().map(|_| &camera_at as _);
+        let start =
+            |pixel: UVec2, index: u32| wavefront::camera_sample(new_sampler(), pixel, index, &self.camera, shutter);
+        let mut wf = Wavefront::<S>::default();
+        let mut accs = vec![film::PixelAccum::default(); tile.width() as usize];
+        let mut batch: Vec<(UVec2, u32)> = Vec::with_capacity(wavefront::BATCH);
+        let mut values = Vec::with_capacity(wavefront::BATCH);
+        let mut flush = |batch: &mut Vec<(UVec2, u32)>, accs: &mut [film::PixelAccum]| {
+            values.clear();
+            wf.trace(&self.scene, params, batch, &start, &mut values);
+            for ((pixel, _), v) in batch.iter().zip(&values) {
+                accs[(pixel.x - tile.x0) as usize].add(v);
+            }
+            batch.clear();
+        };
+        let converged = |x: u32| mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0));
+        for x in (tile.x0..tile.x1).filter(|&x| !converged(x)) {
+            for s in pass.samples() {
+                batch.push((UVec2::new(x, y), s));
+                if batch.len() == wavefront::BATCH {
+                    flush(&mut batch, &mut accs);
+                }
+            }
+        }
+        if !batch.is_empty() {
+            flush(&mut batch, &mut accs);
+        }
+        // A converged block: no samples, nothing added by the merge (its sums stay zero).
+        (tile.x0..tile.x1)
+            .zip(&accs)
+            .map(|(x, a)| if converged(x) { film::PixelSums::default() } else { a.finish() })
+            .collect()
     }
 }
 

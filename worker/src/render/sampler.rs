@@ -99,7 +99,7 @@ pub fn sobol_dim0(index: u32) -> u32 {
 /// `SOBOL_DIM1_MATRIX` folded per index byte: entry `[k][b]` is the XOR of the matrix columns
 /// selected by the bits of byte `b` at byte position `k`. Four lookups replace a 32-step loop
 /// whose branches a scrambled (random) index makes unpredictable.
-const SOBOL_DIM1_BYTES: [[u32; 256]; 4] = {
+pub(crate) const SOBOL_DIM1_BYTES: [[u32; 256]; 4] = {
     let mut t = [[0u32; 256]; 4];
     let mut k = 0;
     while k < 4 {
@@ -145,6 +145,103 @@ pub trait Sampler {
     /// The 2D sample at dimension `dim` of the current pixel sample, leaving the stream where it
     /// is: a dedicated dimension (the lens) that does not shift every later one.
     fn get_2d_at(&mut self, dim: u32) -> Vec2;
+    /// The current dimension.
+    fn dimension(&self) -> u32;
+    /// Moves the stream to dimension `dim` of the current pixel sample.
+    fn set_dimension(&mut self, dim: u32);
+    /// The numbers a path-tracing bounce may draw from the current dimension on (see
+    /// [`BounceDraws`]), without moving the stream.
+    fn bounce_draws(&self) -> BounceDraws;
+    /// [`Sampler::bounce_draws`] of many samplers at once, appended to `out` in order; `level`
+    /// picks the SIMD kernels where the sampler has some (the values are the same).
+    fn bounce_draws_many<'a>(
+        lanes: impl Iterator<Item = &'a Self>,
+        level: super::wide::SimdLevel,
+        out: &mut Vec<BounceDraws>,
+    ) where
+        Self: Sized + 'a,
+    {
+        let _ = level;
+        out.extend(lanes.map(|s| s.bounce_draws()));
+    }
+}
+
+/// Offsets from a bounce's first dimension of the 1D numbers a path-tracing bounce may draw.
+/// With next-event estimation: lobe choice 0, light selection 1, light point 2-3 (2D), BSDF
+/// lobe 4, direction 5-6 (2D), roulette 7. At a delta BSDF (no light sample): lobe choice 0,
+/// BSDF lobe 1, direction 2-3 (2D), roulette 4. Both layouts read these addresses.
+pub const BOUNCE_1D: [u32; 4] = [0, 1, 4, 7];
+/// Offsets of the 2D numbers of a bounce (see [`BOUNCE_1D`]).
+pub const BOUNCE_2D: [u32; 2] = [2, 5];
+
+/// The numbers of one bounce, drawn ahead for a batch of paths ([`Sampler::bounce_draws_many`])
+/// and served by [`Replay`]: the 1D numbers at `base + BOUNCE_1D[k]`, the 2D ones at
+/// `base + BOUNCE_2D[k]`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BounceDraws {
+    pub base: u32,
+    pub d1: [f32; 4],
+    pub d2: [Vec2; 2],
+}
+
+/// A sampler that serves the numbers drawn ahead in `draws` where a request's address is one of
+/// theirs, and asks `inner` otherwise; its stream moves as `inner`'s would. Every number is
+/// what `inner` returns at that address (the samplers are pure functions of it).
+pub struct Replay<'a, S> {
+    pub inner: &'a mut S,
+    pub draws: &'a BounceDraws,
+}
+
+impl<S: Sampler> Sampler for Replay<'_, S> {
+    fn start_pixel_sample(&mut self, pixel: UVec2, index: u32, dim: u32) {
+        self.inner.start_pixel_sample(pixel, index, dim);
+    }
+
+    #[inline]
+    fn get_1d(&mut self) -> f32 {
+        let dim = self.inner.dimension();
+        let offset = dim.wrapping_sub(self.draws.base);
+        match BOUNCE_1D.iter().position(|&o| o == offset) {
+            Some(k) => {
+                self.inner.set_dimension(dim.wrapping_add(1));
+                self.draws.d1[k]
+            }
+            None => self.inner.get_1d(),
+        }
+    }
+
+    #[inline]
+    fn get_2d(&mut self) -> Vec2 {
+        let dim = self.inner.dimension();
+        let offset = dim.wrapping_sub(self.draws.base);
+        match BOUNCE_2D.iter().position(|&o| o == offset) {
+            Some(k) => {
+                self.inner.set_dimension(dim.wrapping_add(2));
+                self.draws.d2[k]
+            }
+            None => self.inner.get_2d(),
+        }
+    }
+
+    fn get_pixel_2d(&mut self) -> Vec2 {
+        self.inner.get_pixel_2d()
+    }
+
+    fn get_2d_at(&mut self, dim: u32) -> Vec2 {
+        self.inner.get_2d_at(dim)
+    }
+
+    fn dimension(&self) -> u32 {
+        self.inner.dimension()
+    }
+
+    fn set_dimension(&mut self, dim: u32) {
+        self.inner.set_dimension(dim);
+    }
+
+    fn bounce_draws(&self) -> BounceDraws {
+        self.inner.bounce_draws()
+    }
 }
 
 /// Independent uniform numbers from a counter-based hash of (seed, pixel, index, dimension).
@@ -203,6 +300,19 @@ impl Sampler for IndependentSampler {
         self.dim = saved;
         v
     }
+
+    fn dimension(&self) -> u32 {
+        self.dim
+    }
+
+    fn set_dimension(&mut self, dim: u32) {
+        self.dim = dim;
+    }
+
+    fn bounce_draws(&self) -> BounceDraws {
+        let at = |o: u32| self.value(self.dim.wrapping_add(o));
+        BounceDraws { base: self.dim, d1: BOUNCE_1D.map(at), d2: BOUNCE_2D.map(|o| Vec2::new(at(o), at(o + 1))) }
+    }
 }
 
 /// Owen-scrambled Sobol points, padded per dimension (Burley 2020; pbrt-v4's
@@ -234,9 +344,15 @@ impl SobolSampler {
     /// The seeds of the request at the current dimension; `tag` separates 1D from 2D requests.
     #[inline]
     fn dim_hash(&self, tag: u64) -> u64 {
+        self.hash_at(self.dim, tag)
+    }
+
+    /// The seeds of a request at dimension `dim`.
+    #[inline]
+    fn hash_at(&self, dim: u32, tag: u64) -> u64 {
         // `pixel_hash` is already well mixed; one more bijective mix per request keeps 2D
         // requests (odd tags) and 1D requests apart at every dimension.
-        mix_bits(self.pixel_hash ^ (u64::from(self.dim) << 1 | tag).wrapping_mul(GOLDEN))
+        mix_bits(self.pixel_hash ^ (u64::from(dim) << 1 | tag).wrapping_mul(GOLDEN))
     }
 }
 
@@ -278,6 +394,68 @@ impl Sampler for SobolSampler {
         let v = self.get_2d();
         self.dim = saved;
         v
+    }
+
+    fn dimension(&self) -> u32 {
+        self.dim
+    }
+
+    fn set_dimension(&mut self, dim: u32) {
+        self.dim = dim;
+    }
+
+    fn bounce_draws(&self) -> BounceDraws {
+        let at = |o: u32| Self { dim: self.dim.wrapping_add(o), ..self.clone() };
+        BounceDraws { base: self.dim, d1: BOUNCE_1D.map(|o| at(o).get_1d()), d2: BOUNCE_2D.map(|o| at(o).get_2d()) }
+    }
+
+    fn bounce_draws_many<'a>(
+        lanes: impl Iterator<Item = &'a Self>,
+        level: super::wide::SimdLevel,
+        out: &mut Vec<BounceDraws>,
+    ) where
+        Self: 'a,
+    {
+        let Some(avx2) = (level == super::wide::SimdLevel::Avx2).then(super::wide::Avx2::new).flatten() else {
+            out.extend(lanes.map(|s| s.bounce_draws()));
+            return;
+        };
+        // Eight samplers at a time: the 64-bit seeds here, the scrambles in 8-wide kernels.
+        let mut chunk: Vec<&Self> = Vec::with_capacity(8);
+        let mut lanes = lanes.peekable();
+        while lanes.peek().is_some() {
+            chunk.clear();
+            chunk.extend(lanes.by_ref().take(8));
+            let mut rev_index = [0u32; 8];
+            let mut seeds1 = [[[0u32; 8]; 2]; 4];
+            let mut seeds2 = [[[0u32; 8]; 3]; 2];
+            for (lane, s) in chunk.iter().enumerate() {
+                rev_index[lane] = s.index.reverse_bits();
+                for (k, &o) in BOUNCE_1D.iter().enumerate() {
+                    let h = s.hash_at(s.dim.wrapping_add(o), 0);
+                    seeds1[k][0][lane] = h as u32;
+                    seeds1[k][1][lane] = (h >> 32) as u32;
+                }
+                for (k, &o) in BOUNCE_2D.iter().enumerate() {
+                    let h = s.hash_at(s.dim.wrapping_add(o), 1);
+                    seeds2[k][0][lane] = h as u32;
+                    seeds2[k][1][lane] = (h >> 32) as u32;
+                    seeds2[k][2][lane] = mix_bits(h.wrapping_add(GOLDEN)) as u32;
+                }
+            }
+            let (x1, (x2, y2)) = avx2.run(|| {
+                let x1 = seeds1.map(|[a, b]| avx2.sobol_x(&rev_index, &a, &b));
+                let xy2 = seeds2.map(|[a, b, c]| avx2.sobol_xy(&rev_index, &a, &b, &c));
+                (x1, (xy2.map(|v| v.0), xy2.map(|v| v.1)))
+            });
+            for (lane, s) in chunk.iter().enumerate() {
+                out.push(BounceDraws {
+                    base: s.dim,
+                    d1: x1.map(|x| u32_to_unit_float(x[lane])),
+                    d2: [0, 1].map(|k| Vec2::new(u32_to_unit_float(x2[k][lane]), u32_to_unit_float(y2[k][lane]))),
+                });
+            }
+        }
     }
 }
 
@@ -338,6 +516,27 @@ impl Sampler for AnySampler {
             Self::Sobol(s) => s.get_2d_at(dim),
         }
     }
+
+    fn dimension(&self) -> u32 {
+        match self {
+            Self::Independent(s) => s.dimension(),
+            Self::Sobol(s) => s.dimension(),
+        }
+    }
+
+    fn set_dimension(&mut self, dim: u32) {
+        match self {
+            Self::Independent(s) => s.set_dimension(dim),
+            Self::Sobol(s) => s.set_dimension(dim),
+        }
+    }
+
+    fn bounce_draws(&self) -> BounceDraws {
+        match self {
+            Self::Independent(s) => s.bounce_draws(),
+            Self::Sobol(s) => s.bounce_draws(),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -376,6 +575,61 @@ mod tests {
         assert_eq!(u32_to_unit_float(0), 0.0);
         assert!(u32_to_unit_float(u32::MAX) < 1.0);
         assert_eq!(u32_to_unit_float(u32::MAX), crate::render::sampling::ONE_MINUS_EPSILON);
+    }
+
+    /// The numbers of a bounce drawn ahead, one sampler or a batch at every SIMD level, are the
+    /// stream's own numbers at those dimensions; `Replay` serves them and moves the stream as
+    /// the sampler would.
+    #[test]
+    fn bounce_draws_are_the_streams_numbers() {
+        use crate::render::wide::SimdLevel;
+        for kind in [SamplerKind::Sobol, SamplerKind::Independent] {
+            let lanes: Vec<AnySampler> = (0..21u32)
+                .map(|i| {
+                    let mut s = AnySampler::new(kind, 7);
+                    s.start_pixel_sample(UVec2::new(i * 37, i % 5), i * 1001 + i / 3, (i * 13) % 40);
+                    s
+                })
+                .collect();
+            let sobol: Vec<SobolSampler> = lanes
+                .iter()
+                .filter_map(|s| match s {
+                    AnySampler::Sobol(s) => Some(s.clone()),
+                    AnySampler::Independent(_) => None,
+                })
+                .collect();
+            for level in [SimdLevel::Baseline, SimdLevel::Avx2] {
+                let mut many = Vec::new();
+                AnySampler::bounce_draws_many(lanes.iter(), level, &mut many);
+                let mut many_sobol = Vec::new();
+                SobolSampler::bounce_draws_many(sobol.iter(), level, &mut many_sobol);
+                assert_eq!(many.len(), lanes.len());
+                if kind == SamplerKind::Sobol {
+                    assert_eq!(many_sobol, many, "{level:?}");
+                }
+                for (s, draws) in lanes.iter().zip(&many) {
+                    assert_eq!(*draws, s.bounce_draws());
+                    for (k, &o) in BOUNCE_1D.iter().enumerate() {
+                        let mut t = s.clone();
+                        t.set_dimension(s.dimension() + o);
+                        assert_eq!(t.get_1d().to_bits(), draws.d1[k].to_bits(), "{kind:?} {level:?} 1D at +{o}");
+                    }
+                    for (k, &o) in BOUNCE_2D.iter().enumerate() {
+                        let mut t = s.clone();
+                        t.set_dimension(s.dimension() + o);
+                        assert_eq!(t.get_2d(), draws.d2[k], "{kind:?} {level:?} 2D at +{o}");
+                    }
+                    // Replay: a delta bounce's layout (1D, 2D, 1D from base + 1), then numbers
+                    // it has not drawn ahead.
+                    let (mut a, mut b) = (s.clone(), s.clone());
+                    let mut r = Replay { inner: &mut a, draws };
+                    let got = (r.get_1d(), r.get_1d(), r.get_2d(), r.get_1d(), r.get_1d(), r.get_2d(), r.get_1d());
+                    let want = (b.get_1d(), b.get_1d(), b.get_2d(), b.get_1d(), b.get_1d(), b.get_2d(), b.get_1d());
+                    assert_eq!(got, want);
+                    assert_eq!(a.dimension(), b.dimension());
+                }
+            }
+        }
     }
 
     #[test]

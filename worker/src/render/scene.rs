@@ -1,7 +1,7 @@
 //! The scene as the renderer sees it: world-space triangles in a BVH, the surface data to shade
 //! a hit, the lights and the light-selection distribution.
 
-use super::accel::{Accel, lerp_triangle};
+use super::accel::{Accel, Hit, RayQuery, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
 use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
 use super::sampler::hash_u64;
@@ -324,8 +324,36 @@ impl RenderScene {
         Some(si)
     }
 
+    /// The closest hits of a batch of rays, in order: each exactly
+    /// [`RenderScene::intersect_at`] of its ray (alpha included).
+    pub fn intersect_many(
+        &self,
+        rays: &[RayQuery],
+        hits: &mut Vec<Option<Hit>>,
+        out: &mut Vec<Option<SurfaceInteraction>>,
+    ) {
+        out.clear();
+        if self.has_alpha {
+            out.extend(rays.iter().map(|r| self.intersect_at(r.o, r.d, r.t_max, r.time)));
+            return;
+        }
+        self.accel.intersect_many(rays, hits);
+        out.extend(hits.iter().zip(rays).map(|(h, r)| h.as_ref().map(|h| self.surface(h, r.time))));
+    }
+
+    /// Whether each ray of a batch is blocked by something present (alpha considered), in order:
+    /// each exactly [`RenderScene::occluded_at`] of its ray.
+    pub fn occluded_many(&self, rays: &[RayQuery], blocked: &mut Vec<bool>) {
+        if self.has_alpha {
+            blocked.clear();
+            blocked.extend(rays.iter().map(|r| self.occluded_at(r.o, r.d, r.t_max, r.time)));
+            return;
+        }
+        self.accel.occluded_many(rays, blocked);
+    }
+
     /// Whether anything present (alpha considered) lies on the ray before `t_max` at `time`.
-    fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
+    pub fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
         if !self.has_alpha {
             return self.accel.occluded_at(o, d, t_max, time);
         }
@@ -367,7 +395,7 @@ impl RenderScene {
     }
 
     /// The surface data of a BVH hit at shutter time `time`.
-    fn surface(&self, hit: &super::accel::Hit, time: f32) -> SurfaceInteraction {
+    fn surface(&self, hit: &Hit, time: f32) -> SurfaceInteraction {
         let tr = self.tris[hit.prim as usize];
         let mesh = &self.meshes[tr.mesh as usize];
         let close = self.motion.as_ref().and_then(|m| m.close.get(tr.mesh as usize));
@@ -454,12 +482,19 @@ impl RenderScene {
 
     /// [`Self::unoccluded`] at shutter time `time`.
     pub fn unoccluded_at(&self, p0: Vec3A, n0: Vec3A, s: &LightLiSample, time: f32) -> bool {
-        if s.infinite {
-            let o = offset_ray_origin(p0, n0, s.wi);
-            return !self.occluded_at(o, s.wi, f32::INFINITY, time);
-        }
-        let (o, d, t_max) = shadow_segment(p0, n0, s.p_light, s.n_light);
+        let (o, d, t_max) = Self::shadow_ray(p0, n0, s);
         !self.occluded_at(o, d, t_max, time)
+    }
+
+    /// The shadow ray (origin, direction, max t) of a light sample `s` seen from `p0` (normal
+    /// `n0`): unbounded toward a light at infinity, else the offset segment to the light.
+    #[inline]
+    pub fn shadow_ray(p0: Vec3A, n0: Vec3A, s: &LightLiSample) -> (Vec3A, Vec3A, f32) {
+        if s.infinite {
+            (offset_ray_origin(p0, n0, s.wi), s.wi, f32::INFINITY)
+        } else {
+            shadow_segment(p0, n0, s.p_light, s.n_light)
+        }
     }
 
     /// Whether `p1` (normal `n1`) is visible from `p0` (normal `n0`).

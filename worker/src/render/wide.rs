@@ -4,7 +4,9 @@
 //!
 //! The release binary targets baseline x86-64 (SSE2), so it runs on any worker; where the CPU
 //! has AVX2 (with BMI1/2, LZCNT, POPCNT and FMA: the x86-64-v3 level), [`Avx2`] runs the BVH
-//! traversal compiled for it, with an 8-wide node test over the CWBVH's 8 children.
+//! traversal compiled for it, with an 8-wide node test over the CWBVH's 8 children, and the
+//! Sobol sampler's Owen scrambles for 8 requests at once (the wavefront integrator draws a
+//! bounce's numbers for a batch of paths with them).
 //!
 //! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
 //! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
@@ -115,6 +117,114 @@ impl NodeTest for Avx2 {
     }
 }
 
+impl Avx2 {
+    /// The first coordinate of 8 Owen-scrambled Sobol requests ([`super::sampler::SobolSampler`]'s
+    /// `x` of `get_1d` and `get_2d`) from each lane's reversed sample index and its two request
+    /// seeds: `nested_uniform_scramble(sobol_dim0(nested_uniform_scramble(index, s1)), s2)`, as
+    /// 32-bit fixed point. Integer operations only: the same bits as the scalar code.
+    #[inline(always)]
+    pub fn sobol_x(self, rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8]) -> [u32; 8] {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            sobol_x8(rev_index, s1, s2, None).0
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        std::array::from_fn(|i| sobol_scalar(rev_index[i], s1[i], s2[i], None).0)
+    }
+
+    /// Both coordinates of 8 Sobol 2D requests: [`Avx2::sobol_x`], and the second coordinate
+    /// `nested_uniform_scramble(sobol_dim1(shuffled), s3)` of the same shuffled index.
+    #[inline(always)]
+    pub fn sobol_xy(self, rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: &[u32; 8]) -> ([u32; 8], [u32; 8]) {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            sobol_x8(rev_index, s1, s2, Some(s3))
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let v: [(u32, u32); 8] = std::array::from_fn(|i| sobol_scalar(rev_index[i], s1[i], s2[i], Some(s3[i])));
+            (v.map(|p| p.0), v.map(|p| p.1))
+        }
+    }
+}
+
+/// The scalar form of the Sobol kernels (the sampler's own functions).
+#[cfg(any(test, not(target_arch = "x86_64")))]
+fn sobol_scalar(rev_index: u32, s1: u32, s2: u32, s3: Option<u32>) -> (u32, u32) {
+    use super::sampler::{nested_uniform_scramble, sobol_dim0, sobol_dim1};
+    let shuffled = nested_uniform_scramble(rev_index.reverse_bits(), s1);
+    let x = nested_uniform_scramble(sobol_dim0(shuffled), s2);
+    (x, s3.map_or(0, |s3| nested_uniform_scramble(sobol_dim1(shuffled), s3)))
+}
+
+/// Reverses the bits of each 32-bit lane: each byte's bits through a nibble table, then the
+/// bytes.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn reverse_bits_x8(x: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    let nibbles = _mm256_setr_epi8(
+        0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15, 0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15,
+    );
+    let low4 = _mm256_set1_epi8(0x0f);
+    let lo = _mm256_and_si256(x, low4);
+    let hi = _mm256_and_si256(_mm256_srli_epi16::<4>(x), low4);
+    // Each byte holds a value below 16, so the 16-bit shift moves nothing across bytes.
+    let bytes =
+        _mm256_or_si256(_mm256_slli_epi16::<4>(_mm256_shuffle_epi8(nibbles, lo)), _mm256_shuffle_epi8(nibbles, hi));
+    let swap = _mm256_setr_epi8(
+        3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12, 3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12,
+    );
+    _mm256_shuffle_epi8(bytes, swap)
+}
+
+/// `laine_karras_permutation` on 8 lanes (wrapping 32-bit products, as the scalar code).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn laine_karras_x8(x: std::arch::x86_64::__m256i, seed: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    let c = |v: u32| _mm256_set1_epi32(v as i32);
+    let mut x = _mm256_xor_si256(x, _mm256_mullo_epi32(x, c(0x3d20_adea)));
+    x = _mm256_add_epi32(x, seed);
+    x = _mm256_mullo_epi32(x, _mm256_or_si256(_mm256_srli_epi32::<16>(seed), c(1)));
+    x = _mm256_xor_si256(x, _mm256_mullo_epi32(x, c(0x0552_6c56)));
+    _mm256_xor_si256(x, _mm256_mullo_epi32(x, c(0x53a2_2864)))
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn sobol_x8(rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([u32; 8], [u32; 8]) {
+    use super::sampler::SOBOL_DIM1_BYTES;
+    use std::arch::x86_64::*;
+    // SAFETY (loads and stores): unaligned accesses to 8 u32 of arrays of 8 u32.
+    let load = |v: &[u32; 8]| unsafe { _mm256_loadu_si256(v.as_ptr().cast()) };
+    let store = |v: __m256i| {
+        let mut out = [0u32; 8];
+        unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), v) };
+        out
+    };
+    // nested_uniform_scramble(v, s) = reverse(LK(reverse(v), s)); sobol_dim0 = reverse.
+    let shuffled = reverse_bits_x8(laine_karras_x8(load(rev_index), load(s1)));
+    let x = reverse_bits_x8(laine_karras_x8(shuffled, load(s2)));
+    let Some(s3) = s3 else { return (store(x), [0; 8]) };
+    // sobol_dim1: the XOR of one table entry per index byte.
+    let byte = _mm256_set1_epi32(0xff);
+    let mut dim1 = _mm256_setzero_si256();
+    for (k, table) in SOBOL_DIM1_BYTES.iter().enumerate() {
+        let idx = _mm256_and_si256(_mm256_srlv_epi32(shuffled, _mm256_set1_epi32(8 * k as i32)), byte);
+        // SAFETY: every index is below 256, the table's length.
+        let t = unsafe { _mm256_i32gather_epi32::<4>(table.as_ptr().cast(), idx) };
+        dim1 = _mm256_xor_si256(dim1, t);
+    }
+    let y = reverse_bits_x8(laine_karras_x8(reverse_bits_x8(dim1), load(s3)));
+    (store(x), store(y))
+}
+
 /// obvhs' node-test epsilon (`cwbvh::node::EPSILON`, crate-private there): the smallest entry
 /// distance of a child box.
 const NODE_EPSILON: f32 = 0.0001;
@@ -207,6 +317,37 @@ mod tests {
     use obvhs::aabb::Aabb;
     use obvhs::cwbvh::builder::build_cwbvh;
     use std::time::Duration;
+
+    /// The 8-wide Sobol kernels give the scalar sampler's bits for many indices and seeds.
+    #[test]
+    fn avx2_sobol_kernels_match_the_scalar_sampler() {
+        let Some(avx2) = Avx2::new() else { return };
+        for round in 0..2000u64 {
+            let word = |k: u64| (hash(round * 64 + k) >> 7) as u32;
+            let index: [u32; 8] =
+                std::array::from_fn(|i| if round % 3 == 0 { i as u32 + round as u32 } else { word(i as u64) });
+            let rev = index.map(u32::reverse_bits);
+            let (s1, s2, s3): ([u32; 8], [u32; 8], [u32; 8]) = (
+                std::array::from_fn(|i| word(8 + i as u64)),
+                std::array::from_fn(|i| word(16 + i as u64)),
+                std::array::from_fn(|i| word(24 + i as u64)),
+            );
+            let x = avx2.run(|| avx2.sobol_x(&rev, &s1, &s2));
+            let (x2, y2) = avx2.run(|| avx2.sobol_xy(&rev, &s1, &s2, &s3));
+            for i in 0..8 {
+                let (want_x, want_y) = sobol_scalar(rev[i], s1[i], s2[i], Some(s3[i]));
+                assert_eq!(
+                    (x[i], x2[i], y2[i]),
+                    (want_x, want_x, want_y),
+                    "index {} seeds {} {} {}",
+                    index[i],
+                    s1[i],
+                    s2[i],
+                    s3[i]
+                );
+            }
+        }
+    }
 
     /// The AVX2 node test gives obvhs' hit mask, bit for bit, for every node of a BVH and many
     /// rays (where the CPU has AVX2; elsewhere there is nothing to compare).

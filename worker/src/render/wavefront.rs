@@ -1,0 +1,355 @@
+//! The wavefront path integrator: the `path` (and `direct`) integrator run on batches of camera
+//! samples, stage by stage, instead of one path at a time.
+//!
+//! A batch holds up to [`BATCH`] paths. After the camera stage, each bounce runs these stages
+//! over the paths still alive: closest hits for all their rays (one batched BVH query); arrival
+//! (emission found, the environment, the depth limit); the bounce's random numbers for every
+//! path that goes on, drawn at once ([`Sampler::bounce_draws_many`]: 8-wide Owen scrambles
+//! where the CPU has AVX2); shading, light sampling and BSDF sampling with Russian roulette
+//! (which queue a shadow ray and the next ray); one batched any-hit query for the queued shadow
+//! rays. Dead paths leave the list of live ones (compaction), so later stages touch only live
+//! paths.
+//!
+//! Measured on the Cornell box (area light sampling, max depth 8): 11.5k instructions per
+//! sample against 12.2k one path at a time (callgrind, the bench's `tiny`), and about 1.2x the
+//! samples per CPU-second: the stages run long loops over warm code and data.
+//!
+//! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
+//! of the scalar integrator in the same order, with the same shared functions
+//! ([`nee_sample`], [`sample_scatter`], `emission_weight`, [`shade`]); its sampler draws the
+//! same dimensions (the samplers are addressed by (seed, pixel, sample index, dimension), so a
+//! path's numbers never depend on its neighbours); its radiance sums its terms in the scalar
+//! order (a shadow ray's contribution is added in the shadow stage, before the next bounce adds
+//! anything). Nothing crosses lanes: a sample's value is the same whatever batch it is in, so
+//! images stay deterministic and split-invariant. The tests render whole tiles both ways and
+//! compare bits.
+
+use super::accel::{Hit, RayQuery};
+use super::camera::Camera;
+use super::geometry::{Ray, offset_ray_origin};
+use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter};
+use super::light::LightSampleContext;
+use super::material::shade;
+use super::sampler::{BounceDraws, Replay, Sampler};
+use super::scene::{RenderScene, SurfaceInteraction};
+use glam::{UVec2, Vec3A};
+use pathfarm_common::film::SampleValue;
+
+/// Paths per batch: enough that a stage's loop runs long over warm code and data, few enough
+/// that the batch's state (about 200 bytes a path) stays in the L2 cache.
+pub const BATCH: usize = 256;
+
+/// Which implementation renders `path` and `direct` units (their images are bit-identical).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum PathKernel {
+    /// One path at a time ([`super::integrator::li_path`]).
+    Scalar,
+    /// Batches of paths, stage by stage ([`Wavefront`]).
+    #[default]
+    Wavefront,
+}
+
+/// One path of a batch: the loop state of the scalar integrator.
+struct PathState<S> {
+    sampler: S,
+    ray: Ray,
+    /// Shutter time of the path's camera sample (0 without motion blur).
+    time: f32,
+    l: Vec3A,
+    beta: Vec3A,
+    eta_scale: f32,
+    specular_bounce: bool,
+    prev_bsdf_pdf: f32,
+    prev_ctx: LightSampleContext,
+    depth: u32,
+    out: SampleValue,
+}
+
+/// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
+/// if the ray is unoccluded, `beta * 0` if it is not (as the scalar integrator adds).
+struct PendingShadow {
+    path: u32,
+    beta: Vec3A,
+    contribution: Vec3A,
+}
+
+/// The buffers of the wavefront integrator, reused from batch to batch (one per thread).
+pub struct Wavefront<S> {
+    paths: Vec<PathState<S>>,
+    live: Vec<u32>,
+    next_live: Vec<u32>,
+    /// Positions in `live` of the paths that shade this bounce, and their numbers.
+    shading: Vec<u32>,
+    draws: Vec<BounceDraws>,
+    rays: Vec<RayQuery>,
+    hits: Vec<Option<Hit>>,
+    surfaces: Vec<Option<SurfaceInteraction>>,
+    shadows: Vec<PendingShadow>,
+    shadow_rays: Vec<RayQuery>,
+    blocked: Vec<bool>,
+}
+
+impl<S: Sampler> Default for Wavefront<S> {
+    fn default() -> Self {
+        Self {
+            paths: Vec::with_capacity(BATCH),
+            live: Vec::with_capacity(BATCH),
+            next_live: Vec::with_capacity(BATCH),
+            shading: Vec::with_capacity(BATCH),
+            draws: Vec::with_capacity(BATCH),
+            rays: Vec::with_capacity(BATCH),
+            hits: Vec::with_capacity(BATCH),
+            surfaces: Vec::with_capacity(BATCH),
+            shadows: Vec::with_capacity(BATCH),
+            shadow_rays: Vec::with_capacity(BATCH),
+            blocked: Vec::with_capacity(BATCH),
+        }
+    }
+}
+
+impl<S: Sampler> Wavefront<S> {
+    /// Traces one camera sample per entry of `samples` (pixel, sample index) and appends each
+    /// one's value to `out`, in order. `start` is the camera stage: it positions a fresh
+    /// sampler at the sample (`start_pixel_sample(pixel, index, 0)`), draws what the camera
+    /// needs and returns the camera ray and the shutter time, as the scalar renderer does before
+    /// calling `li_path`.
+    pub fn trace(
+        &mut self,
+        scene: &RenderScene,
+        params: &PathParams,
+        samples: &[(UVec2, u32)],
+        start: &impl Fn(UVec2, u32) -> (S, Ray, f32),
+        out: &mut Vec<SampleValue>,
+    ) {
+        for chunk in samples.chunks(BATCH) {
+            self.trace_batch(scene, params, chunk, start);
+            out.extend(self.paths.drain(..).map(|p| p.out));
+        }
+    }
+
+    fn trace_batch(
+        &mut self,
+        scene: &RenderScene,
+        params: &PathParams,
+        samples: &[(UVec2, u32)],
+        start: &impl Fn(UVec2, u32) -> (S, Ray, f32),
+    ) {
+        // Camera stage.
+        self.paths.clear();
+        self.paths.extend(samples.iter().map(|&(pixel, index)| {
+            let (sampler, ray, time) = start(pixel, index);
+            PathState {
+                sampler,
+                ray,
+                time,
+                l: Vec3A::ZERO,
+                beta: Vec3A::ONE,
+                eta_scale: 1.0,
+                specular_bounce: true,
+                prev_bsdf_pdf: 0.0,
+                prev_ctx: LightSampleContext { p: ray.o, n: Vec3A::ZERO },
+                depth: 0,
+                out: SampleValue::default(),
+            }
+        }));
+        self.live.clear();
+        self.live.extend(0..self.paths.len() as u32);
+        while !self.live.is_empty() {
+            // Intersection stage.
+            self.rays.clear();
+            self.rays.extend(self.live.iter().map(|&i| {
+                let p = &self.paths[i as usize];
+                RayQuery { o: p.ray.o, d: p.ray.d, t_max: f32::INFINITY, time: p.time }
+            }));
+            scene.intersect_many(&self.rays, &mut self.hits, &mut self.surfaces);
+            // Arrival stage: emission, environment, depth limit.
+            self.shading.clear();
+            for (k, &i) in self.live.iter().enumerate() {
+                if arrive(scene, params, &mut self.paths[i as usize], self.surfaces[k].as_ref()) {
+                    self.shading.push(k as u32);
+                }
+            }
+            // The random numbers of the bounce, for every shading path at once.
+            self.draws.clear();
+            let (paths, live) = (&self.paths, &self.live);
+            S::bounce_draws_many(
+                self.shading.iter().map(|&k| &paths[live[k as usize] as usize].sampler),
+                scene.simd_level(),
+                &mut self.draws,
+            );
+            // Shading stage: BSDF, light sample, scattering, roulette.
+            self.shadows.clear();
+            self.shadow_rays.clear();
+            self.next_live.clear();
+            for (&k, draws) in self.shading.iter().zip(&self.draws) {
+                let i = self.live[k as usize];
+                let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
+                let path = &mut self.paths[i as usize];
+                let pending = scatter(scene, params, path, si, draws);
+                if let Some((ray, shadow)) = pending.shadow {
+                    self.shadow_rays.push(ray);
+                    self.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
+                }
+                if pending.alive {
+                    self.next_live.push(i);
+                }
+            }
+            // Shadow stage.
+            if !self.shadows.is_empty() {
+                scene.occluded_many(&self.shadow_rays, &mut self.blocked);
+                for (s, &blocked) in self.shadows.iter().zip(&self.blocked) {
+                    let c = if blocked { Vec3A::ZERO } else { s.contribution };
+                    self.paths[s.path as usize].l += s.beta * c;
+                }
+            }
+            std::mem::swap(&mut self.live, &mut self.next_live);
+        }
+        for p in &mut self.paths {
+            p.out.radiance = p.l.to_array();
+        }
+    }
+}
+
+/// What one bounce of a path left to do: a shadow ray with (throughput, contribution), and
+/// whether the path goes on with its new ray.
+struct Bounce {
+    shadow: Option<(RayQuery, (Vec3A, Vec3A))>,
+    alive: bool,
+}
+
+/// The first part of one iteration of `li_path`'s loop after its closest-hit query found `si`,
+/// line for line: emission found, the environment, the depth limit. Whether the path goes on to
+/// [`scatter`].
+#[inline]
+fn arrive<S: Sampler>(
+    scene: &RenderScene,
+    params: &PathParams,
+    path: &mut PathState<S>,
+    si: Option<&SurfaceInteraction>,
+) -> bool {
+    let ray = path.ray;
+    let time = path.time;
+    let Some(si) = si else {
+        // The ray left the scene: the environment is its emitter.
+        if let Some((i, env)) = scene.environment() {
+            let le = env.le(ray.d);
+            if le != Vec3A::ZERO {
+                path.l += path.beta
+                    * le
+                    * emission_weight(path.specular_bounce, params.mis, path.prev_bsdf_pdf, || {
+                        scene.light_pmf(i) * env.pdf_wi(ray.d)
+                    });
+            }
+        }
+        return false;
+    };
+    let wo = -ray.d;
+    if path.depth == 0 {
+        path.out.depth = Some(si.t);
+    }
+    path.beta *= scene.transmittance(si, ray.d);
+    let le = scene.emitted_at(si, wo, time);
+    if le != Vec3A::ZERO {
+        let prev_ctx = path.prev_ctx;
+        let w = emission_weight(path.specular_bounce, params.mis, path.prev_bsdf_pdf, || {
+            scene.light_of_prim(si.prim).map_or(0.0, |i| {
+                scene.light_pmf(i) * scene.light_at(i, time).pdf_li(&prev_ctx, si.p, params.light_sampling)
+            })
+        });
+        path.l += path.beta * le * w;
+    }
+    // The next segment would exceed the depth limit.
+    if params.max_depth != 0 && path.depth + 1 >= params.max_depth {
+        if path.depth == 0 {
+            let sh = shade(scene, si, wo, 0.5);
+            path.out.albedo = sh.albedo.to_array();
+            path.out.normal = sh.ns.to_array();
+        }
+        return false;
+    }
+    true
+}
+
+/// The rest of the iteration after [`arrive`], line for line: shading, the light sample (its
+/// shadow ray queued), BSDF sampling and roulette, with the bounce's numbers drawn ahead.
+#[inline]
+fn scatter<S: Sampler>(
+    scene: &RenderScene,
+    params: &PathParams,
+    path: &mut PathState<S>,
+    si: &SurfaceInteraction,
+    draws: &BounceDraws,
+) -> Bounce {
+    let done = Bounce { shadow: None, alive: false };
+    let time = path.time;
+    let wo = -path.ray.d;
+    let mut sampler = Replay { inner: &mut path.sampler, draws };
+    let sh = shade(scene, si, wo, sampler.get_1d());
+    if path.depth == 0 {
+        path.out.albedo = sh.albedo.to_array();
+        path.out.normal = sh.ns.to_array();
+    }
+    let Some(bsdf) = &sh.bsdf else { return done };
+    let mut shadow = None;
+    if !bsdf.is_delta() {
+        let u_select = sampler.get_1d();
+        let u = sampler.get_2d();
+        match nee_sample(scene, si.p, &sh, wo, u_select, u, params, time) {
+            Some(nee) => {
+                let (o, d, t_max) = RenderScene::shadow_ray(si.p, sh.ng, &nee.ls);
+                let c = nee.contribution(&sh, wo, params);
+                shadow = Some((RayQuery { o, d, t_max, time }, (path.beta, c)));
+            }
+            None => path.l += path.beta * Vec3A::ZERO,
+        }
+    }
+    let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, &mut sampler) else {
+        return Bounce { shadow, alive: false };
+    };
+    path.beta *= weight;
+    path.specular_bounce = bs.is_specular();
+    path.prev_bsdf_pdf = bs.pdf;
+    path.prev_ctx = LightSampleContext { p: si.p, n: sh.ng };
+    if bs.is_transmission() {
+        path.eta_scale *= bs.eta * bs.eta;
+    }
+    path.depth += 1;
+    if !(path.beta.max_element() > 0.0) || !path.beta.is_finite() {
+        return Bounce { shadow, alive: false };
+    }
+    if path.depth >= params.rr_depth {
+        let u_rr = sampler.get_1d();
+        let q = (path.beta.max_element() * path.eta_scale).min(RR_MAX_SURVIVAL);
+        if u_rr >= q {
+            return Bounce { shadow, alive: false };
+        }
+        path.beta /= q;
+    }
+    path.ray = Ray::new(offset_ray_origin(si.p, sh.ng, bs.wi), bs.wi);
+    Bounce { shadow, alive: true }
+}
+
+/// The camera stage of the renderer for a path: a sampler positioned at (pixel, index), and the
+/// camera ray and shutter time drawn from it.
+#[inline]
+pub fn camera_sample<S: Sampler>(
+    mut sampler: S,
+    pixel: UVec2,
+    index: u32,
+    camera: &Camera,
+    camera_at: Option<&dyn Fn(f32) -> Camera>,
+) -> (S, Ray, f32) {
+    sampler.start_pixel_sample(pixel, index, 0);
+    match camera_at {
+        // The time is the sample's first dimension, so stills keep their layout.
+        Some(camera_at) => {
+            let time = sampler.get_1d();
+            let ray = camera_at(time).sample_ray(pixel, &mut sampler);
+            (sampler, ray, time)
+        }
+        None => {
+            let ray = camera.sample_ray(pixel, &mut sampler);
+            (sampler, ray, 0.0)
+        }
+    }
+}
