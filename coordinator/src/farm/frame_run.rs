@@ -1,13 +1,15 @@
-//! One frame in progress: its merge state (units derived from the plan, never stored per
-//! unit), film and adaptive decisions.
+//! One frame in progress: its scheduling state (units derived from the plan, never stored per
+//! unit) and its [`FilmAssembly`], the one merge of units into a film (`common/src/assembly.rs`,
+//! shared with `render_local`).
 
-use pathfarm_common::adaptive::{self, AdaptiveSettings, BlockMask};
-use pathfarm_common::assembly::skipped_samples;
-use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
+use pathfarm_common::adaptive::{self, BlockMask};
+use pathfarm_common::assembly::FilmAssembly;
+use pathfarm_common::film::TileAccum;
 use pathfarm_common::job::Plan;
 use pathfarm_common::protocol::LeaseId;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
+/// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
 /// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
 /// With adaptive sampling, pixels in the converged blocks of `mask` must hold no sample.
 pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&BlockMask>) -> Option<String> {
@@ -27,14 +29,17 @@ pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&B
     })
 }
 
-/// One frame whose film exists: its merge state and film. Frames not started have none of
-/// this; finished ones are written and dropped.
+/// One frame in progress: its scheduling state and its [`FilmAssembly`] (the film, each
+/// tile's next pass, the results waiting, the adaptive masks: the same merge as
+/// `render_local`'s). Frames not started have none of this; finished ones are written and
+/// dropped.
 ///
 /// Units are not stored: a unit is an index `pass * tiles + tile` (canonical, pass-major order)
-/// and its state follows from the tile's `next_pass` (passes before it are merged) and the
-/// units in flight (`leased`, `waiting`). Pending units are found by a cursor that moves
-/// forward over the index space, plus `requeued` (units before the cursor that came back).
-/// Memory: O(tiles + units in flight), whatever the pass count.
+/// and its state follows from the tile's next pass in the assembly (passes before it are
+/// merged) and the units in flight (`leased`, and the assembly's waiting results). Pending
+/// units are found by a cursor that moves forward over the index space, plus `requeued` (units
+/// before the cursor that came back). Memory: O(tiles + units in flight), whatever the pass
+/// count.
 #[derive(Debug)]
 pub struct FrameRun {
     tiles: usize,
@@ -47,22 +52,16 @@ pub struct FrameRun {
     pub(super) requeued: BTreeSet<usize>,
     /// Units leased and not yet received.
     leased: HashMap<usize, LeaseId>,
-    /// Per tile: the next pass to fold (all passes before it are merged).
-    pub(super) next_pass: Vec<u32>,
-    /// Tiles per value of `next_pass` (the least key is the passes every tile merged).
+    /// Tiles per value of their next pass (the least key is the passes every tile merged),
+    /// kept in step with the assembly by [`FrameRun::advance`].
     at_pass: BTreeMap<u32, u32>,
-    /// Results received before their tile's earlier passes merged.
-    pub(super) waiting: HashMap<usize, (TileAccum, Option<SplatBuffer>)>,
-    /// Adaptive sampling: per tile, the converged blocks after its last merged pass (`None`
-    /// before the first, and for jobs without `adaptive`). A pure function of the film, so
-    /// checkpoints do not hold it: restore computes it again.
-    pub(super) masks: Vec<Option<BlockMask>>,
-    /// The merged sums; `None` while the film is on disk (its checkpoint): results then wait
-    /// in `waiting` and nothing is leased until it is loaded ([`super::Farm::attach_film`]).
-    pub film: Option<Film>,
+    /// The merge. Its film is `None` while on disk (its checkpoint): results then wait in it
+    /// and nothing is leased until it is loaded ([`super::Farm::attach_film`]).
+    pub(super) asm: FilmAssembly,
     /// The film is being written to disk: it must not be loaded until that is done.
     pub(super) spilling: bool,
-    /// Restored without its film (adaptive jobs: masks and samples are computed when loaded).
+    /// Restored without its film (adaptive jobs: the samples the film holds are counted when
+    /// it is loaded; the assembly judges the masks then).
     pub(super) restored: bool,
     /// When the frame was last leased from or merged into (the least recently used film is
     /// written to disk first), and when its film was last loaded.
@@ -75,28 +74,30 @@ pub struct FrameRun {
 }
 
 impl FrameRun {
-    /// A frame with nothing merged. `adaptive`: only the first pass is pending; each tile's
-    /// later passes wait for its previous one.
-    pub(super) fn new(plan: &Plan, film: Option<Film>, adaptive: bool) -> Self {
-        let tiles = plan.tiles.len();
+    /// A frame merging into `asm` (a new film, or a checkpoint's passes). `adaptive`: each
+    /// tile's later passes wait for its previous one.
+    pub(super) fn new(plan: &Plan, asm: FilmAssembly, adaptive: bool) -> Self {
+        let passes = plan.passes.len();
+        let mut at_pass = BTreeMap::new();
+        for &p in asm.next_passes() {
+            *at_pass.entry(p).or_insert(0) += 1;
+        }
+        let units_merged = asm.next_passes().iter().map(|&p| u64::from(p)).sum();
         FrameRun {
-            tiles,
-            passes: plan.passes.len(),
+            tiles: plan.tiles.len(),
+            passes,
             adaptive,
             cursor: 0,
             requeued: BTreeSet::new(),
             leased: HashMap::new(),
-            next_pass: vec![0; tiles],
-            at_pass: BTreeMap::from([(0, tiles as u32)]),
-            waiting: HashMap::new(),
-            masks: if adaptive { vec![None; tiles] } else { Vec::new() },
-            film,
+            passes_done: at_pass.keys().next().copied().unwrap_or(passes as u32),
+            at_pass,
+            asm,
             spilling: false,
             restored: false,
             last_used: 0,
             loaded_ms: 0,
-            passes_done: 0,
-            units_merged: 0,
+            units_merged,
             checkpoint_dirty: true,
         }
     }
@@ -112,23 +113,24 @@ impl FrameRun {
     }
 
     fn in_flight(&self, index: usize) -> bool {
-        self.leased.contains_key(&index) || self.waiting.contains_key(&index)
+        let (pass, tile) = self.split(index);
+        self.leased.contains_key(&index) || self.asm.is_waiting(tile as u32, pass as u32)
     }
 
     /// Whether unit `index` may be leased now (not merged, not in flight, and for adaptive
     /// jobs the next pass of its tile).
     fn is_pending(&self, index: usize) -> bool {
         let (pass, tile) = self.split(index);
-        let next = self.next_pass[tile] as usize;
+        let next = self.asm.next_pass(tile) as usize;
         pass < self.passes && pass >= next && (!self.adaptive || pass == next) && !self.in_flight(index)
     }
 
     /// Units that may be leased now (none while the film is on disk).
     pub(super) fn pending(&self) -> u64 {
-        if self.film.is_none() {
+        if !self.asm.has_film() {
             return 0;
         }
-        let in_flight = (self.leased.len() + self.waiting.len()) as u64;
+        let in_flight = (self.leased.len() + self.asm.waiting()) as u64;
         if self.adaptive {
             // One unit per tile that has passes left: its next pass.
             let finished = self.at_pass.get(&(self.passes as u32)).copied().unwrap_or(0);
@@ -185,37 +187,20 @@ impl FrameRun {
         }
     }
 
-    /// The unit's result arrived: it waits in `waiting` until it is folded in tile order.
-    pub(super) fn receive(&mut self, index: usize, accum: TileAccum, splats: Option<SplatBuffer>) {
+    /// The unit's result arrived: no longer leased (its result is the assembly's to fold).
+    pub(super) fn receive(&mut self, index: usize) {
         self.leased.remove(&index);
-        self.waiting.insert(index, (accum, splats));
     }
 
-    /// Tiles with results waiting, in order.
-    pub(super) fn waiting_tiles(&self) -> Vec<usize> {
-        let tiles: BTreeSet<usize> = self.waiting.keys().map(|&i| self.split(i).1).collect();
-        tiles.into_iter().collect()
-    }
-
-    /// The next unit `tile` folds, if its result is here: taken out of `waiting`.
-    pub(super) fn take_next_result(&mut self, tile: usize) -> Option<(usize, TileAccum, Option<SplatBuffer>)> {
-        let next = self.next_pass[tile] as usize;
-        if next >= self.passes {
-            return None;
-        }
-        let index = next * self.tiles + tile;
-        self.waiting.remove(&index).map(|(a, s)| (index, a, s))
-    }
-
-    /// Sets `tile`'s next pass (only forward) and keeps `at_pass` and `passes_done` in step;
-    /// for adaptive jobs the tile's new next pass becomes pending (before the cursor: requeued).
-    pub(super) fn advance(&mut self, tile: usize, to: u32) {
-        let from = self.next_pass[tile];
+    /// Records that the assembly moved `tile`'s next pass from `from` to `to` (a fold, or
+    /// passes skipped because the tile converged): keeps `at_pass`, `units_merged` and
+    /// `passes_done` in step; for adaptive jobs the tile's new next pass becomes pending
+    /// (before the cursor: requeued).
+    pub(super) fn advance(&mut self, tile: usize, from: u32, to: u32) {
         if to <= from {
             return;
         }
         self.units_merged += u64::from(to - from);
-        self.next_pass[tile] = to;
         if let Some(n) = self.at_pass.get_mut(&from) {
             *n -= 1;
             if *n == 0 {
@@ -223,11 +208,10 @@ impl FrameRun {
             }
         }
         *self.at_pass.entry(to).or_insert(0) += 1;
-        // Units of the tile's skipped passes are no longer pending (adaptive: converged).
-        for p in from + 1..to {
+        // Units of the tile's merged or skipped passes are no longer pending.
+        for p in from..to {
             self.requeued.remove(&(p as usize * self.tiles + tile));
         }
-        self.requeued.remove(&(from as usize * self.tiles + tile));
         let index = to as usize * self.tiles + tile;
         if self.adaptive && (to as usize) < self.passes && index < self.cursor && self.is_pending(index) {
             self.requeued.insert(index);
@@ -243,47 +227,8 @@ impl FrameRun {
     /// grow with the pass count).
     pub fn state_bytes(&self) -> usize {
         use std::mem::size_of;
-        self.next_pass.capacity() * size_of::<u32>()
+        self.asm.state_bytes()
             + self.at_pass.len() * 2 * size_of::<u32>()
-            + self.masks.capacity() * size_of::<Option<BlockMask>>()
-            + (self.requeued.len() + self.leased.len() + self.waiting.len()) * 4 * size_of::<usize>()
+            + (self.requeued.len() + self.leased.len()) * 4 * size_of::<usize>()
     }
-
-    /// Adaptive sampling, once `tile` has merged its passes before `next_pass[tile]`: its
-    /// converged blocks from the film's merged sums (exactly as `render_local` decides), then
-    /// either its next pass becomes pending with the mask, or, when every block has converged,
-    /// its remaining passes count as merged with nothing (the tile leaves the schedule).
-    pub(super) fn decide(&mut self, plan: &Plan, a: &AdaptiveSettings, spp: u32, tile: usize) -> Decision {
-        let passes = plan.passes.len();
-        let np = self.next_pass[tile] as usize;
-        let mut out = Decision::default();
-        if np == 0 {
-            return out;
-        }
-        let rect = plan.tiles[tile];
-        let Some(film) = &self.film else { return out };
-        let sums = film.tile(rect).sums;
-        let mask = adaptive::converged_blocks(&sums, rect, a, plan.passes[np - 1].s1);
-        let before = skipped_samples(self.masks[tile].as_ref(), &sums, rect, spp);
-        out.samples_skipped = skipped_samples(Some(&mask), &sums, rect, spp).saturating_sub(before);
-        let all = mask.all_converged();
-        self.masks[tile] = Some(mask);
-        if np >= passes {
-            return out;
-        }
-        if all {
-            out.units_skipped = (passes - np) as u64;
-            self.advance(tile, passes as u32);
-        }
-        out
-    }
-}
-
-/// What an adaptive decision for a tile changed.
-#[derive(Clone, Copy, Debug, Default)]
-pub(super) struct Decision {
-    /// Units (the tile's remaining passes) counted as merged because every block converged.
-    pub(super) units_skipped: u64,
-    /// Samples that newly converged pixels will not get (taken off the job's total).
-    pub(super) samples_skipped: u64,
 }

@@ -1,6 +1,7 @@
 //! A job: its frames, the frames in progress, progress figures and what the store keeps.
 
 use super::frame_run::FrameRun;
+use pathfarm_common::assembly::{FilmAssembly, Folded, Judged, PutFilm};
 use pathfarm_common::film::Film;
 use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::{Plan, RenderSettings, UnitKey};
@@ -131,7 +132,7 @@ impl Job {
 
     /// Films this job holds in memory: those of `films_held` that are not on disk.
     pub fn films_resident(&self) -> u64 {
-        (self.open.values().filter(|f| f.film.is_some()).count() + self.finishing.len()) as u64
+        (self.open.values().filter(|f| f.asm.has_film()).count() + self.finishing.len()) as u64
     }
 
     /// Memory of the films this job holds now.
@@ -140,12 +141,13 @@ impl Job {
     }
 
     pub(super) fn open_frame(&mut self, index: usize) {
-        self.open_frame_with(index, Some(Film::new(self.settings.width, self.settings.height)));
+        let (w, h) = (self.settings.width, self.settings.height);
+        self.open_frame_with(index, FilmAssembly::new(&self.plan, w, h));
     }
 
-    /// Starts frame `index` with `film` (restore: a checkpoint's).
-    pub(super) fn open_frame_with(&mut self, index: usize, film: Option<Film>) {
-        let run = FrameRun::new(&self.plan, film, self.settings.adaptive.is_some());
+    /// Starts frame `index` merging into `asm` (restore: a checkpoint's passes).
+    pub(super) fn open_frame_with(&mut self, index: usize, asm: FilmAssembly) {
+        let run = FrameRun::new(&self.plan, asm, self.settings.adaptive.is_some());
         self.open.insert(index, run);
         self.status[index].state = FrameState::Rendering;
         self.unstarted -= 1;
@@ -181,7 +183,7 @@ impl Job {
         self.frames_merged += 1;
         self.status[index].passes_done = self.plan.passes.len() as u32;
         if self.sequence {
-            if let Some(film) = self.open.remove(&index).and_then(|run| run.film) {
+            if let Some(film) = self.open.remove(&index).and_then(|run| run.asm.into_film()) {
                 self.finishing.insert(index, Arc::new(film));
             }
             self.status[index].state = FrameState::Writing;
@@ -190,6 +192,48 @@ impl Job {
             self.status[index].state = FrameState::Done;
             self.frames_done += 1;
         }
+    }
+
+    /// Records a unit that frame `index`'s assembly folded: the frame's scheduling state and the
+    /// job's figures (and, adaptive sampling, what judging its tile then skipped).
+    pub(super) fn record_folded(&mut self, index: usize, f: &Folded) {
+        let Some(run) = self.open.get_mut(&index) else { return };
+        run.advance(f.tile as usize, f.pass, f.pass + 1);
+        run.checkpoint_dirty = true;
+        self.units_merged += 1;
+        self.samples_done += f.samples;
+        if let Some(j) = &f.judged {
+            self.record_judged(index, f.tile, j);
+        }
+    }
+
+    /// Records a judged tile of frame `index`: a tile whose every block converged skips its
+    /// remaining passes (they count as merged), and its converged pixels' missing samples are
+    /// taken off the job's total.
+    fn record_judged(&mut self, index: usize, tile: u32, j: &Judged) {
+        if let Some(run) = self.open.get_mut(&index) {
+            let passes = self.plan.passes.len() as u32;
+            run.advance(tile as usize, passes - j.passes_skipped, passes);
+        }
+        self.units_merged += u64::from(j.passes_skipped);
+        self.samples_total = self.samples_total.saturating_sub(j.samples_skipped);
+    }
+
+    /// Puts frame `index`'s film back into its assembly (read from disk, restored, or a write
+    /// that failed). A frame restored from a checkpoint counts the samples its film holds
+    /// (adaptive: converged pixels hold fewer than the passes) and records the tiles the
+    /// assembly judged. Returns the waiting units it folded, for [`super::Farm::settle`].
+    pub(super) fn put_film(&mut self, index: usize, film: Film) -> Vec<Folded> {
+        let adaptive = self.settings.adaptive.as_ref().map(|a| (a, self.settings.spp));
+        let Some(run) = self.open.get_mut(&index) else { return Vec::new() };
+        if std::mem::replace(&mut run.restored, false) && adaptive.is_some() {
+            self.samples_done += film.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+        }
+        let PutFilm { judged, folded } = run.asm.put_film(&self.plan, adaptive, film);
+        for (tile, j) in &judged {
+            self.record_judged(index, *tile, j);
+        }
+        folded
     }
 
     /// A cancelled or failed sequence gives up its frames in progress (their films).
@@ -273,19 +317,19 @@ impl Job {
     /// The film shown as "the job's image": a single-frame job's film; for a sequence, `None`
     /// (each frame has its own: [`Job::frame_film`]).
     pub fn film(&self) -> Option<&Film> {
-        if self.sequence { None } else { self.open.values().next().and_then(|f| f.film.as_ref()) }
+        if self.sequence { None } else { self.open.values().next().and_then(|f| f.asm.film()) }
     }
 
     /// Mutable access to a single-frame job's film (tests).
     #[cfg(test)]
     pub fn film_mut(&mut self) -> Option<&mut Film> {
-        if self.sequence { None } else { self.open.values_mut().next().and_then(|f| f.film.as_mut()) }
+        if self.sequence { None } else { self.open.values_mut().next().and_then(|f| f.asm.film_mut()) }
     }
 
     /// The film of frame number `frame` while it is held (rendering or being written).
     pub fn frame_film(&self, frame: i32) -> Option<FrameFilm<'_>> {
         let index = self.frame_index(frame)?;
-        if let Some(film) = self.open.get(&index).and_then(|run| run.film.as_ref()) {
+        if let Some(film) = self.open.get(&index).and_then(|run| run.asm.film()) {
             return Some(FrameFilm::Open(film));
         }
         self.finishing.get(&index).map(|f| FrameFilm::Finishing(f.clone()))
@@ -316,7 +360,7 @@ impl Job {
     /// (every pass when the job has none in progress and is completed).
     pub fn tile_passes(&self) -> Vec<u32> {
         match self.open.values().next() {
-            Some(f) => f.next_pass.clone(),
+            Some(f) => f.asm.next_passes().to_vec(),
             None if self.state == JobState::Completed => vec![self.plan.passes.len() as u32; self.plan.tiles.len()],
             None => vec![0; self.plan.tiles.len()],
         }
@@ -494,12 +538,12 @@ impl Job {
         let (id, frames) = (self.id, self.frames.frames());
         self.open
             .iter_mut()
-            .filter(|(_, f)| (all || f.checkpoint_dirty) && f.film.is_some())
+            .filter(|(_, f)| (all || f.checkpoint_dirty) && f.asm.has_film())
             .take(limit)
             .filter_map(|(&i, f)| {
                 f.checkpoint_dirty = false;
-                let film = f.film.clone()?;
-                Some(Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film })
+                let film = f.asm.film()?.clone();
+                Some(Checkpoint { job_id: id, frame: frames[i], next_pass: f.asm.next_passes().to_vec(), film })
             })
             .collect()
     }

@@ -2,7 +2,8 @@
 
 use super::frame_run::sample_count_mismatch;
 use super::{Farm, FarmError, Job, MergeOutcome};
-use pathfarm_common::film::{Film, TileAccum};
+use pathfarm_common::assembly::Folded;
+use pathfarm_common::film::Film;
 use pathfarm_common::protocol::{
     FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
 };
@@ -48,7 +49,7 @@ impl Farm {
                 && (j.order == FrameOrder::SequencePreview || j.films_held() < max_open)
                 && (j.order == FrameOrder::Frame || j.films_held() == 0)
                 // A frame whose film is on disk is loaded before the next one starts.
-                && j.open.values().all(|r| r.film.is_some())
+                && j.open.values().all(|r| r.asm.has_film())
                 && {
                     let (films, used) = *held.get_or_insert_with(|| farm.films_in_memory());
                     let n = j.films_to_start();
@@ -94,7 +95,7 @@ impl Farm {
         let mask = job
             .open
             .get(&frame)
-            .and_then(|run| run.masks.get(key.tile as usize).cloned().flatten())
+            .and_then(|run| run.asm.mask(key.tile as usize).cloned())
             .filter(|m| !m.none());
         let grant = LeaseGrant {
             kind: Default::default(),
@@ -280,7 +281,7 @@ impl Farm {
         {
             Some("splat buffer size differs from the image".into())
         } else {
-            let mask = job.open.get(&l.frame).and_then(|run| run.masks.get(key.tile as usize)).and_then(Option::as_ref);
+            let mask = job.open.get(&l.frame).and_then(|run| run.asm.mask(key.tile as usize));
             sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
         };
         if let Some(reason) = mismatch {
@@ -305,49 +306,34 @@ impl Farm {
             w.last_seen_ms = now_ms;
         }
         let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
+        let adaptive = job.settings.adaptive.as_ref().map(|a| (a, job.settings.spp));
         let Some(run) = job.open.get_mut(&l.frame) else { return Err(FarmError::LeaseLost(lease_id)) };
-        run.receive(l.unit, frame.accum, frame.splats);
-        Ok(self.settle(l.job, l.frame, &[key.tile as usize], now_ms))
+        run.receive(l.unit);
+        // The one merge (`FilmAssembly`, as `render_local`'s): it folds what is in order.
+        let folded = run.asm.offer(&job.plan, adaptive, key, frame.accum, frame.splats);
+        Ok(self.settle(l.job, l.frame, &folded, now_ms))
     }
 
-    /// Folds the results of `tiles` of frame `index` that are next in their tile's pass order
-    /// (none while the frame's film is on disk: they wait until it is loaded), then completes
-    /// passes, the frame and the job as they become complete.
-    pub(super) fn settle(&mut self, job_id: JobId, index: usize, tiles: &[usize], now_ms: u64) -> MergeOutcome {
-        // Samples the unit holds (converged pixels of an adaptive tile hold none).
-        let unit_samples = |accum: &TileAccum| accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+    /// Records the units frame `index`'s assembly folded (`folded`, in the order folded: none
+    /// while the frame's film is on disk, they wait until it is loaded), then completes passes,
+    /// the frame and the job as they become complete.
+    pub(super) fn settle(&mut self, job_id: JobId, index: usize, folded: &[Folded], now_ms: u64) -> MergeOutcome {
         let mut out = MergeOutcome::default();
         let Some(job) = self.jobs.get_mut(&job_id) else { return out };
         let Some(run) = job.open.get_mut(&index) else { return out };
         let passes_before = run.passes_done;
         run.last_used = now_ms;
-        for &tile in tiles {
-            while run.film.is_some()
-                && let Some((unit, accum, splats)) = run.take_next_result(tile)
-            {
-                let Some(film) = run.film.as_mut() else { break };
-                film.add_tile(&accum);
-                if let Some(s) = splats {
-                    film.add_splats(&s);
-                }
-                run.checkpoint_dirty = true;
-                let pass = (unit / job.plan.tiles.len()) as u32;
-                run.advance(tile, pass + 1);
-                job.units_merged += 1;
-                let samples = unit_samples(&accum);
-                job.samples_done += samples;
-                self.counters.units_merged += 1;
-                self.counters.samples_merged += samples;
-                out.folded += 1;
-                if let Some(a) = &job.settings.adaptive {
-                    // The tile's next pass may now be pending.
-                    self.changes.work_ready = true;
-                    let d = run.decide(&job.plan, a, job.settings.spp, tile);
-                    job.units_merged += d.units_skipped;
-                    job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
-                }
+        for f in folded {
+            job.record_folded(index, f);
+            self.counters.units_merged += 1;
+            self.counters.samples_merged += f.samples;
+            out.folded += 1;
+            if f.judged.is_some() {
+                // Adaptive: the tile's next pass may now be pending.
+                self.changes.work_ready = true;
             }
         }
+        let Some(run) = job.open.get(&index) else { return out };
         // Passes complete in order, because every tile folds its passes in order.
         out.passes_completed = (passes_before..run.passes_done).collect();
         if !out.passes_completed.is_empty() {
