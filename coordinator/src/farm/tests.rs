@@ -1,6 +1,7 @@
 //! The state machine's unit tests.
 
 use super::*;
+use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::adaptive::{self, AdaptiveSettings, BlockMask};
 use pathfarm_common::film::SampleValue;
 use pathfarm_common::film::TileAccum;
@@ -751,6 +752,95 @@ fn adaptive_converged_tiles_leave_the_schedule_and_survive_a_restore() {
     assert_eq!(job.state, JobState::Completed);
     assert_eq!(job.film(), Some(&reference));
     assert_eq!(job.info(0).progress, 1.0);
+}
+
+/// The farm folds through `FilmAssembly`, the fold of `render_local`: with and without
+/// adaptive sampling, results delivered in a scrambled order, the film written to disk halfway
+/// through every round (the rest of the round's results wait) and read back, give the film of
+/// `render_local`'s loop over the same fake renderer, bit for bit, and of an assembly fed the
+/// units in the farm's arrival order; each accept folds what that assembly folds.
+#[test]
+fn the_farm_and_render_local_share_the_fold_in_any_order_and_across_a_spill() {
+    for adaptive_on in [true, false] {
+        let mut s = adaptive_settings();
+        s.tile_size = 8;
+        s.passes = PassSchedule::Fixed { spp: 1 }; // 7 passes of 1 sample
+        if !adaptive_on {
+            s.adaptive = None;
+        }
+        let plan = s.plan();
+        let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+        // `render_local`'s loop (worker/src/render/mod.rs) over the fake renderer.
+        let mut local = FilmAssembly::new(&plan, s.width, s.height);
+        for key in plan.units() {
+            let t = key.tile as usize;
+            if local.next_pass(t) == key.pass {
+                let accum = adaptive_result(plan.tiles[t], plan.passes[key.pass as usize], local.mask(t));
+                local.offer(&plan, adaptive, key, accum, None);
+            }
+        }
+        let local = local.into_film().expect("film");
+        if adaptive_on {
+            assert_eq!(local, adaptive_local(&s), "the assembly is the local render's adaptive loop");
+        }
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let f = FrameRef { job: id, index: 0, frame: s.frame, sequence: false };
+        let w = farm.register("w".into(), 1, 0);
+        let mut fed = FilmAssembly::new(&plan, s.width, s.height);
+        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut rounds = 0;
+        loop {
+            let mut grants = Vec::new();
+            while let Some(g) = farm.lease(w, 0).expect("lease") {
+                grants.push(g);
+            }
+            if grants.is_empty() {
+                break;
+            }
+            rounds += 1;
+            // Fisher-Yates with xorshift64 (fixed seed): a scrambled arrival order.
+            for i in (1..grants.len()).rev() {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                grants.swap(i, (x % (i as u64 + 1)) as usize);
+            }
+            let half = grants.len() / 2;
+            let mut away = None;
+            let mut folded_away = 0;
+            for (n, g) in grants.iter().enumerate() {
+                if n == half {
+                    away = Some(farm.take_film(f).expect("the film is in memory"));
+                    farm.film_spilled(f);
+                }
+                let r = adaptive_grant_result(g);
+                let want = fed.offer(&plan, adaptive, g.unit, r.accum.clone(), None).len() as u32;
+                let out = farm.accept(g.lease_id, r, 0).expect("accept");
+                if away.is_some() {
+                    assert_eq!(out.folded, 0, "nothing folds while the film is on disk");
+                    folded_away += want;
+                } else {
+                    assert_eq!(out.folded, want, "the farm folds what the assembly folds");
+                }
+            }
+            if let Some(cp) = away {
+                assert_eq!(farm.job(id).expect("job").film(), None);
+                assert_eq!(farm.lease(w, 0).expect("lease"), None, "nothing is leased while the film is on disk");
+                let out = farm.attach_film(f, Ok(cp), 0).expect("read back");
+                assert_eq!(out.folded, folded_away, "the results that waited fold when it is back");
+            }
+        }
+        assert!(rounds > 1 || !adaptive_on, "adaptive passes go out one at a time per tile");
+        let job = farm.job(id).expect("job");
+        assert_eq!(job.state, JobState::Completed);
+        assert!(job.film() == Some(&local), "adaptive {adaptive_on}: the farm's film differs from render_local's");
+        assert!(fed.film() == Some(&local));
+        let info = job.info(0);
+        assert_eq!((info.units_merged, info.progress), (info.units_total, 1.0));
+        let held: u64 = local.sums.iter().map(|p| u64::from(p.weight)).sum();
+        assert_eq!((info.samples_done, info.samples_total), (held, held));
+    }
 }
 
 /// Units are derived from the plan, never stored per (pass, tile): the job of issue 17
