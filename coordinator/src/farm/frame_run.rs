@@ -4,10 +4,12 @@
 
 use pathfarm_common::adaptive::{self, BlockMask};
 use pathfarm_common::assembly::FilmAssembly;
-use pathfarm_common::film::TileAccum;
+use pathfarm_common::film::{Film, TileAccum};
 use pathfarm_common::job::Plan;
 use pathfarm_common::protocol::LeaseId;
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use parking_lot::{MappedMutexGuard, Mutex, MutexGuard};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::sync::Arc;
 
 /// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
 /// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
@@ -31,12 +33,18 @@ pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&B
 
 /// One frame in progress: its scheduling state and its [`FilmAssembly`] (the film, each
 /// tile's next pass, the results waiting, the adaptive masks: the same merge as
-/// `render_local`'s). Frames not started have none of this; finished ones are written and
-/// dropped.
+/// `render_local`'s), behind the frame's own lock. Frames not started have none of this;
+/// finished ones are written and dropped.
+///
+/// Locking: the farm's state (this struct) changes under the farm lock; the assembly changes
+/// under its frame lock. A result is folded under the frame lock alone (the farm lock is free
+/// meanwhile: leases and other frames' merges go on), then recorded here under the farm lock
+/// ([`FrameRun::advance`], monotone, so two records of one tile in either order give the same
+/// state). The lock order is farm, then frame: nothing takes the farm lock holding a frame lock.
 ///
 /// Units are not stored: a unit is an index `pass * tiles + tile` (canonical, pass-major order)
-/// and its state follows from the tile's next pass in the assembly (passes before it are
-/// merged) and the units in flight (`leased`, and the assembly's waiting results). Pending
+/// and its state follows from the tile's recorded next pass (passes before it are merged) and
+/// the units in flight (`leased`, `received`). Pending
 /// units are found by a cursor that moves forward over the index space, plus `requeued` (units
 /// before the cursor that came back). Memory: O(tiles + units in flight), whatever the pass
 /// count.
@@ -52,12 +60,21 @@ pub struct FrameRun {
     pub(super) requeued: BTreeSet<usize>,
     /// Units leased and not yet received.
     leased: HashMap<usize, LeaseId>,
-    /// Tiles per value of their next pass (the least key is the passes every tile merged),
-    /// kept in step with the assembly by [`FrameRun::advance`].
+    /// Units whose result was taken: being folded, or waiting in the assembly for an earlier
+    /// pass of their tile (or for the film). They leave when recorded as merged.
+    received: HashSet<usize>,
+    /// Per tile: the next pass as recorded (the assembly's is ahead by the folds not yet
+    /// recorded).
+    next_pass: Vec<u32>,
+    /// Tiles per value of their next pass (the least key is the passes every tile merged).
     at_pass: BTreeMap<u32, u32>,
-    /// The merge. Its film is `None` while on disk (its checkpoint): results then wait in it
-    /// and nothing is leased until it is loaded ([`super::Farm::attach_film`]).
-    pub(super) asm: FilmAssembly,
+    /// The merge, behind the frame lock. Its film is `None` while on disk (its checkpoint):
+    /// results then wait in it and nothing is leased until it is loaded
+    /// ([`super::Farm::attach_film`]).
+    pub(super) asm: Arc<Mutex<FilmAssembly>>,
+    /// The assembly holds its film (changed with it, under the farm lock, so that scheduling
+    /// never waits for the frame lock).
+    pub(super) resident: bool,
     /// The film is being written to disk: it must not be loaded until that is done.
     pub(super) spilling: bool,
     /// Restored without its film (adaptive jobs: the samples the film holds are counted when
@@ -83,6 +100,7 @@ impl FrameRun {
             *at_pass.entry(p).or_insert(0) += 1;
         }
         let units_merged = asm.next_passes().iter().map(|&p| u64::from(p)).sum();
+        let next_pass = asm.next_passes().to_vec();
         FrameRun {
             tiles: plan.tiles.len(),
             passes,
@@ -90,9 +108,12 @@ impl FrameRun {
             cursor: 0,
             requeued: BTreeSet::new(),
             leased: HashMap::new(),
+            received: HashSet::new(),
+            next_pass,
             passes_done: at_pass.keys().next().copied().unwrap_or(passes as u32),
             at_pass,
-            asm,
+            resident: asm.has_film(),
+            asm: Arc::new(Mutex::new(asm)),
             spilling: false,
             restored: false,
             last_used: 0,
@@ -113,24 +134,23 @@ impl FrameRun {
     }
 
     fn in_flight(&self, index: usize) -> bool {
-        let (pass, tile) = self.split(index);
-        self.leased.contains_key(&index) || self.asm.is_waiting(tile as u32, pass as u32)
+        self.leased.contains_key(&index) || self.received.contains(&index)
     }
 
     /// Whether unit `index` may be leased now (not merged, not in flight, and for adaptive
     /// jobs the next pass of its tile).
     fn is_pending(&self, index: usize) -> bool {
         let (pass, tile) = self.split(index);
-        let next = self.asm.next_pass(tile) as usize;
+        let next = self.next_pass[tile] as usize;
         pass < self.passes && pass >= next && (!self.adaptive || pass == next) && !self.in_flight(index)
     }
 
     /// Units that may be leased now (none while the film is on disk).
     pub(super) fn pending(&self) -> u64 {
-        if !self.asm.has_film() {
+        if !self.resident {
             return 0;
         }
-        let in_flight = (self.leased.len() + self.asm.waiting()) as u64;
+        let in_flight = (self.leased.len() + self.received.len()) as u64;
         if self.adaptive {
             // One unit per tile that has passes left: its next pass.
             let finished = self.at_pass.get(&(self.passes as u32)).copied().unwrap_or(0);
@@ -187,19 +207,39 @@ impl FrameRun {
         }
     }
 
-    /// The unit's result arrived: no longer leased (its result is the assembly's to fold).
+    /// The unit's result was taken: no longer leased, in flight until recorded as merged.
     pub(super) fn receive(&mut self, index: usize) {
         self.leased.remove(&index);
+        self.received.insert(index);
     }
 
-    /// Records that the assembly moved `tile`'s next pass from `from` to `to` (a fold, or
-    /// passes skipped because the tile converged): keeps `at_pass`, `units_merged` and
+    /// The job ended: the results waiting will not be folded.
+    pub(super) fn drop_received(&mut self) {
+        self.received = HashSet::new();
+        self.asm.lock().drop_waiting();
+    }
+
+    /// The film under the frame lock (held while the guard lives), unless it is on disk.
+    pub(super) fn film(&self) -> Option<MappedMutexGuard<'_, Film>> {
+        MutexGuard::try_map(self.asm.lock(), FilmAssembly::film_mut).ok()
+    }
+
+    /// Per tile, the next pass as recorded.
+    pub(super) fn next_passes(&self) -> &[u32] {
+        &self.next_pass
+    }
+
+    /// Records that the assembly moved `tile`'s next pass to `to` (a fold, or passes skipped
+    /// because the tile converged). Monotone: a record behind the tile's is ignored, so records
+    /// of one tile give the same state in any order. Keeps `at_pass`, `units_merged` and
     /// `passes_done` in step; for adaptive jobs the tile's new next pass becomes pending
     /// (before the cursor: requeued).
-    pub(super) fn advance(&mut self, tile: usize, from: u32, to: u32) {
+    pub(super) fn advance(&mut self, tile: usize, to: u32) {
+        let from = self.next_pass[tile];
         if to <= from {
             return;
         }
+        self.next_pass[tile] = to;
         self.units_merged += u64::from(to - from);
         if let Some(n) = self.at_pass.get_mut(&from) {
             *n -= 1;
@@ -210,7 +250,9 @@ impl FrameRun {
         *self.at_pass.entry(to).or_insert(0) += 1;
         // Units of the tile's merged or skipped passes are no longer pending.
         for p in from..to {
-            self.requeued.remove(&(p as usize * self.tiles + tile));
+            let index = p as usize * self.tiles + tile;
+            self.requeued.remove(&index);
+            self.received.remove(&index);
         }
         let index = to as usize * self.tiles + tile;
         if self.adaptive && (to as usize) < self.passes && index < self.cursor && self.is_pending(index) {
@@ -227,8 +269,9 @@ impl FrameRun {
     /// grow with the pass count).
     pub fn state_bytes(&self) -> usize {
         use std::mem::size_of;
-        self.asm.state_bytes()
+        self.asm.lock().state_bytes()
+            + self.next_pass.capacity() * size_of::<u32>()
             + self.at_pass.len() * 2 * size_of::<u32>()
-            + (self.requeued.len() + self.leased.len()) * 4 * size_of::<usize>()
+            + (self.requeued.len() + self.leased.len() + self.received.len()) * 4 * size_of::<usize>()
     }
 }

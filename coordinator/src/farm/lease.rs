@@ -2,7 +2,12 @@
 
 use super::frame_run::sample_count_mismatch;
 use super::{Farm, FarmError, Job, MergeOutcome};
-use pathfarm_common::assembly::Folded;
+use pathfarm_common::adaptive::AdaptiveSettings;
+use pathfarm_common::assembly::{FilmAssembly, Folded};
+use pathfarm_common::film::{SplatBuffer, TileAccum};
+use pathfarm_common::job::{Plan, UnitKey};
+use parking_lot::Mutex;
+use std::sync::Arc;
 use pathfarm_common::film::Film;
 use pathfarm_common::protocol::{
     FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
@@ -18,6 +23,40 @@ pub(super) struct Lease {
     pub(super) deadline_ms: u64,
     /// A denoise step of frame `frame` (`unit` unused), not a unit (`farm/denoise.rs`).
     pub(super) denoise: Option<super::denoise::Step>,
+}
+
+/// A result taken from its lease ([`Farm::begin_accept`]), to be folded into its frame's
+/// film outside the farm lock.
+pub struct Fold {
+    job: JobId,
+    index: usize,
+    key: UnitKey,
+    asm: Arc<Mutex<FilmAssembly>>,
+    plan: Arc<Plan>,
+    adaptive: Option<(AdaptiveSettings, u32)>,
+    accum: TileAccum,
+    splats: Option<SplatBuffer>,
+}
+
+/// What a [`Fold`] folded, for [`Farm::finish_accept`] to record.
+#[derive(Debug)]
+pub struct Folding {
+    job: JobId,
+    index: usize,
+    /// The assembly folded into: recorded only while the frame still has it.
+    asm: Arc<Mutex<FilmAssembly>>,
+    folded: Vec<Folded>,
+}
+
+impl Fold {
+    /// Folds the result under its frame's lock alone: the one merge (`FilmAssembly`, as
+    /// `render_local`'s) folds every unit of the tile now in order (none while the film is on
+    /// disk: the result waits in the assembly).
+    pub fn fold(self) -> Folding {
+        let adaptive = self.adaptive.as_ref().map(|(a, spp)| (a, *spp));
+        let folded = self.asm.lock().offer(&self.plan, adaptive, self.key, self.accum, self.splats);
+        Folding { job: self.job, index: self.index, asm: self.asm, folded }
+    }
 }
 
 impl Farm {
@@ -49,7 +88,7 @@ impl Farm {
                 && (j.order == FrameOrder::SequencePreview || j.films_held() < max_open)
                 && (j.order == FrameOrder::Frame || j.films_held() == 0)
                 // A frame whose film is on disk is loaded before the next one starts.
-                && j.open.values().all(|r| r.asm.has_film())
+                && j.open.values().all(|r| r.resident)
                 && {
                     let (films, used) = *held.get_or_insert_with(|| farm.films_in_memory());
                     let n = j.films_to_start();
@@ -95,7 +134,8 @@ impl Farm {
         let mask = job
             .open
             .get(&frame)
-            .and_then(|run| run.asm.mask(key.tile as usize).cloned())
+            .filter(|_| job.settings.adaptive.is_some())
+            .and_then(|run| run.asm.lock().mask(key.tile as usize).cloned())
             .filter(|m| !m.none());
         let grant = LeaseGrant {
             kind: Default::default(),
@@ -245,13 +285,28 @@ impl Farm {
         Ok(())
     }
 
-    /// Accepts a unit's result from the worker holding its lease and merges it.
+    /// Accepts a unit's result from the worker holding its lease and merges it: the three
+    /// steps of [`Farm::begin_accept`], [`Fold::fold`] and [`Farm::finish_accept`] at once.
     pub fn accept(
         &mut self,
         lease_id: LeaseId,
         frame: UnitResultFrame,
         now_ms: u64,
     ) -> Result<MergeOutcome, FarmError> {
+        let fold = self.begin_accept(lease_id, frame, now_ms)?;
+        Ok(self.finish_accept(fold.fold(), now_ms))
+    }
+
+    /// Takes a unit's result from the worker holding its lease: checks it, ends the lease and
+    /// marks the unit received (in flight: neither pending nor merged). The returned [`Fold`]
+    /// folds it under its frame's lock alone, with the farm lock released meanwhile; then
+    /// [`Farm::finish_accept`] records what it folded.
+    pub fn begin_accept(
+        &mut self,
+        lease_id: LeaseId,
+        frame: UnitResultFrame,
+        now_ms: u64,
+    ) -> Result<Fold, FarmError> {
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
         if l.denoise.is_some() {
             return Err(FarmError::ResultMismatch {
@@ -281,7 +336,12 @@ impl Farm {
         {
             Some("splat buffer size differs from the image".into())
         } else {
-            let mask = job.open.get(&l.frame).and_then(|run| run.asm.mask(key.tile as usize));
+            // Adaptive jobs only: the mask is read under the frame lock (a fold of the frame in
+            // progress finishes first). It is the tile's mask its pass was leased with: the
+            // tile's next fold is this unit's.
+            let run = job.open.get(&l.frame);
+            let asm = run.filter(|_| job.settings.adaptive.is_some()).map(|r| r.asm.lock());
+            let mask = asm.as_ref().and_then(|a| a.mask(key.tile as usize));
             sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
         };
         if let Some(reason) = mismatch {
@@ -306,12 +366,29 @@ impl Farm {
             w.last_seen_ms = now_ms;
         }
         let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
-        let adaptive = job.settings.adaptive.as_ref().map(|a| (a, job.settings.spp));
+        let adaptive = job.settings.adaptive.map(|a| (a, job.settings.spp));
         let Some(run) = job.open.get_mut(&l.frame) else { return Err(FarmError::LeaseLost(lease_id)) };
         run.receive(l.unit);
-        // The one merge (`FilmAssembly`, as `render_local`'s): it folds what is in order.
-        let folded = run.asm.offer(&job.plan, adaptive, key, frame.accum, frame.splats);
-        Ok(self.settle(l.job, l.frame, &folded, now_ms))
+        Ok(Fold {
+            job: l.job,
+            index: l.frame,
+            key,
+            asm: run.asm.clone(),
+            plan: job.plan.clone(),
+            adaptive,
+            accum: frame.accum,
+            splats: frame.splats,
+        })
+    }
+
+    /// Records what a [`Fold`] folded (in any order with the other folds of its frame), then
+    /// completes passes, the frame and the job as they become complete.
+    pub fn finish_accept(&mut self, folding: Folding, now_ms: u64) -> MergeOutcome {
+        let run = self.jobs.get(&folding.job).and_then(|j| j.open.get(&folding.index));
+        if !run.is_some_and(|r| Arc::ptr_eq(&r.asm, &folding.asm)) {
+            return MergeOutcome::default(); // the frame ended meanwhile (its job did)
+        }
+        self.settle(folding.job, folding.index, &folding.folded, now_ms)
     }
 
     /// Records the units frame `index`'s assembly folded (`folded`, in the order folded: none

@@ -31,7 +31,8 @@ pub use changes::Changes;
 pub use denoise::{DENOISE_TAG, DenoiseOutcome, DenoisedLayer};
 pub use frame_run::FrameRun;
 use job::FrameStatus;
-pub use job::{Checkpoint, CheckpointHead, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
+pub use job::{Checkpoint, CheckpointHead, CheckpointSource, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
+pub use lease::{Fold, Folding};
 use lease::Lease;
 pub use residency::{FrameRef, ResidencyPlan};
 use workers::Worker;
@@ -517,7 +518,7 @@ impl Farm {
             // A single-frame job cancelled before it started has no film and no image.
             job.output_dirty = job.sequence || !job.open.is_empty();
             for run in job.open.values_mut() {
-                run.asm.drop_waiting();
+                run.drop_received();
             }
             if job.sequence && state != JobState::Completed {
                 job.drop_open_frames();

@@ -60,7 +60,7 @@ impl Farm {
         let film_of = |j: &Job| Film::bytes_for(j.settings.width, j.settings.height);
         // A paused job's films go to disk.
         for job in self.jobs.values().filter(|j| j.state == JobState::Paused) {
-            for &i in job.open.iter().filter(|(_, r)| r.asm.has_film() && !r.spilling).map(|(i, _)| i) {
+            for &i in job.open.iter().filter(|(_, r)| r.resident && !r.spilling).map(|(i, _)| i) {
                 plan.spill.push(frame_ref(job, i));
                 chosen.insert((job.id, i));
                 films -= 1;
@@ -81,12 +81,12 @@ impl Farm {
                 served.insert(job.id);
                 continue;
             }
-            let spilled = job.open.iter().find(|(_, r)| !r.asm.has_film() && !r.spilling).map(|(&i, _)| i);
+            let spilled = job.open.iter().find(|(_, r)| !r.resident && !r.spilling).map(|(&i, _)| i);
             let (load, n) = match spilled {
                 Some(i) => (Some(i), 1),
                 None if job.accepts_work()
                     && job.unstarted > 0
-                    && job.open.values().all(|r| r.asm.has_film())
+                    && job.open.values().all(|r| r.resident)
                     && (job.order == FrameOrder::SequencePreview
                         || job.films_held() < self.cfg.max_open_frames.max(1) as u64) =>
                 {
@@ -107,7 +107,7 @@ impl Farm {
                     .filter(|v| v.id != job.id && !served.contains(&v.id) && v.priority <= job.priority)
                     .flat_map(|v| v.open.iter().map(move |(&i, r)| (v, i, r)))
                     .filter(|(v, i, r)| {
-                        r.asm.has_film()
+                        r.resident
                             && !r.spilling
                             && !chosen.contains(&(v.id, *i))
                             && now_ms.saturating_sub(r.loaded_ms) >= self.cfg.min_resident_ms
@@ -143,10 +143,17 @@ impl Farm {
         if run.spilling {
             return None;
         }
-        let film = run.asm.take_film()?;
+        // Under the frame lock (a fold in progress finishes first): the film and the passes it
+        // holds together.
+        let (film, next_pass) = {
+            let mut asm = run.asm.lock();
+            let film = asm.take_film()?;
+            (film, asm.next_passes().to_vec())
+        };
+        run.resident = false;
         run.spilling = true;
         run.checkpoint_dirty = false;
-        Some(Checkpoint { job_id: f.job, frame: f.frame, next_pass: run.asm.next_passes().to_vec(), film })
+        Some(Checkpoint { job_id: f.job, frame: f.frame, next_pass, film })
     }
 
     /// The film taken by [`Farm::take_film`] is on disk.
@@ -161,7 +168,7 @@ impl Farm {
         let Some(job) = self.jobs.get_mut(&f.job) else { return MergeOutcome::default() };
         let Some(run) = job.open.get_mut(&f.index) else { return MergeOutcome::default() };
         run.spilling = false;
-        if run.asm.has_film() {
+        if run.resident {
             return MergeOutcome::default();
         }
         run.checkpoint_dirty = true;
@@ -181,13 +188,14 @@ impl Farm {
     ) -> Result<MergeOutcome, FarmError> {
         let job = self.jobs.get_mut(&f.job).ok_or(FarmError::NoJob(f.job))?;
         let Some(run) = job.open.get_mut(&f.index) else { return Ok(MergeOutcome::default()) };
-        if run.asm.has_film() || run.spilling {
+        if run.resident || run.spilling {
             return Ok(MergeOutcome::default());
         }
         let (w, h) = (job.settings.width, job.settings.height);
+        let held = run.asm.lock().next_passes().to_vec();
         let film = cp.and_then(|cp| {
-            if cp.job_id != f.job || cp.frame != f.frame || cp.next_pass != run.asm.next_passes() {
-                Err(format!("its checkpoint holds passes {:?}, the farm {:?}", cp.next_pass, run.asm.next_passes()))
+            if cp.job_id != f.job || cp.frame != f.frame || cp.next_pass != held {
+                Err(format!("its checkpoint holds passes {:?}, the farm {held:?}", cp.next_pass))
             } else if (cp.film.width, cp.film.height) != (w, h) {
                 Err(format!("its checkpoint is {}x{}, the job {w}x{h}", cp.film.width, cp.film.height))
             } else {
