@@ -405,7 +405,8 @@ mod tests {
                 asm.offer(&plan, adaptive, key, accum, None);
             }
         }
-        let mut resumed = FilmAssembly::resume(&plan, asm.film().expect("film").clone(), asm.next_passes().to_vec(), adaptive);
+        let mut resumed =
+            FilmAssembly::resume(&plan, asm.film().expect("film").clone(), asm.next_passes().to_vec(), adaptive);
         for t in 0..plan.tiles.len() {
             assert_eq!(resumed.mask(t), asm.mask(t), "tile {t}");
             assert_eq!(resumed.next_pass(t), asm.next_pass(t), "tile {t}");
@@ -458,7 +459,8 @@ mod tests {
                 assert!(put.judged.is_empty(), "masks are kept while the film is away");
                 let mut got: Vec<(u32, u32)> = put.folded.iter().map(|f| (f.tile, f.pass)).collect();
                 let mut want: Vec<(u32, u32)> = keys.iter().map(|k| (k.tile, k.pass)).collect();
-                (got.sort(), want.sort());
+                got.sort();
+                want.sort();
                 assert_eq!(got, want);
             } else {
                 assert_eq!(folded, keys.len());

@@ -2,12 +2,12 @@
 //! unit) and its [`FilmAssembly`], the one merge of units into a film (`common/src/assembly.rs`,
 //! shared with `render_local`).
 
+use parking_lot::{MappedMutexGuard, Mutex, MutexGuard};
 use pathfarm_common::adaptive::{self, BlockMask};
 use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::film::{Film, TileAccum};
 use pathfarm_common::job::Plan;
 use pathfarm_common::protocol::LeaseId;
-use parking_lot::{MappedMutexGuard, Mutex, MutexGuard};
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::sync::Arc;
 
@@ -39,7 +39,7 @@ pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&B
 /// Locking: the farm's state (this struct) changes under the farm lock; the assembly changes
 /// under its frame lock. A result is folded under the frame lock alone (the farm lock is free
 /// meanwhile: leases and other frames' merges go on), then recorded here under the farm lock
-/// ([`FrameRun::advance`], monotone, so two records of one tile in either order give the same
+/// (`FrameRun::advance`, monotone, so two records of one tile in either order give the same
 /// state). The lock order is farm, then frame: nothing takes the farm lock holding a frame lock.
 ///
 /// Units are not stored: a unit is an index `pass * tiles + tile` (canonical, pass-major order)

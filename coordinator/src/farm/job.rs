@@ -1,6 +1,7 @@
 //! A job: its frames, the frames in progress, progress figures and what the store keeps.
 
 use super::frame_run::FrameRun;
+use parking_lot::{MappedMutexGuard, Mutex};
 use pathfarm_common::assembly::{FilmAssembly, Folded, Judged, PutFilm};
 use pathfarm_common::film::Film;
 use pathfarm_common::frames::FrameSet;
@@ -9,7 +10,6 @@ use pathfarm_common::protocol::{
     FrameInfo, FrameOrder, FrameState, FramesSummary, JobId, JobInfo, JobState, Notify, WorkerId,
 };
 use std::collections::{BTreeMap, BTreeSet, HashMap};
-use parking_lot::{MappedMutexGuard, Mutex};
 use std::sync::Arc;
 
 /// Per frame of the job, what is kept for every frame (8 bytes), started or not.

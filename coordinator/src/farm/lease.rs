@@ -1,17 +1,23 @@
 //! Leases: scheduling, expiry, release and the merge of results.
+//!
+//! A result is merged in three steps, so that the fold (a tile's sums added to the film) runs
+//! without the farm lock: [`Farm::begin_accept`] (farm lock: check the result, end its lease,
+//! the unit is received: in flight, not pending), [`Fold::fold`] (its frame's lock only: the
+//! frame's `FilmAssembly` folds what is in order), [`Farm::finish_accept`] (farm lock: record
+//! the units folded, complete passes, the frame, the job).
 
 use super::frame_run::sample_count_mismatch;
 use super::{Farm, FarmError, Job, MergeOutcome};
+use parking_lot::Mutex;
 use pathfarm_common::adaptive::AdaptiveSettings;
 use pathfarm_common::assembly::{FilmAssembly, Folded};
+use pathfarm_common::film::Film;
 use pathfarm_common::film::{SplatBuffer, TileAccum};
 use pathfarm_common::job::{Plan, UnitKey};
-use parking_lot::Mutex;
-use std::sync::Arc;
-use pathfarm_common::film::Film;
 use pathfarm_common::protocol::{
     FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
 };
+use std::sync::Arc;
 
 #[derive(Clone, Debug)]
 pub(super) struct Lease {
@@ -134,6 +140,8 @@ impl Farm {
         let mask = job
             .open
             .get(&frame)
+            // Adaptive jobs only: under the frame lock (lock order farm, then frame), which waits
+            // for a fold of this frame in progress.
             .filter(|_| job.settings.adaptive.is_some())
             .and_then(|run| run.asm.lock().mask(key.tile as usize).cloned())
             .filter(|m| !m.none());
@@ -301,12 +309,7 @@ impl Farm {
     /// marks the unit received (in flight: neither pending nor merged). The returned [`Fold`]
     /// folds it under its frame's lock alone, with the farm lock released meanwhile; then
     /// [`Farm::finish_accept`] records what it folded.
-    pub fn begin_accept(
-        &mut self,
-        lease_id: LeaseId,
-        frame: UnitResultFrame,
-        now_ms: u64,
-    ) -> Result<Fold, FarmError> {
+    pub fn begin_accept(&mut self, lease_id: LeaseId, frame: UnitResultFrame, now_ms: u64) -> Result<Fold, FarmError> {
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
         if l.denoise.is_some() {
             return Err(FarmError::ResultMismatch {

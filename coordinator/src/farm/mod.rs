@@ -1,7 +1,10 @@
 //! The farm's state machine: jobs, units, workers and leases, in one place.
 //!
 //! Pure and synchronous: every operation takes the current time in milliseconds, so tests drive a
-//! manual clock. The HTTP layer holds a [`Farm`] behind a mutex and calls these methods.
+//! manual clock. The HTTP layer holds a [`Farm`] behind a mutex and calls these methods. Each
+//! frame in progress keeps its film in a `FilmAssembly` behind its own lock, so that a result
+//! folds without the farm's ([`Farm::begin_accept`], [`Fold::fold`], [`Farm::finish_accept`]);
+//! the lock order is the farm's, then a frame's.
 //!
 //! Job: queued -> running -> paused <-> running -> completed | failed | cancelled.
 //! Unit: pending -> leased(lease) -> received -> merged; an expired or released lease sends the
@@ -9,8 +12,8 @@
 //! unit is merged exactly once.
 //!
 //! Merge: each frame in progress folds its results through a `FilmAssembly`
-//! (`common/src/assembly.rs`), the same merge as `render_local`'s; the farm records what it
-//! folded ([`FrameRun`] scheduling, the job's figures). A tile folds pass p before pass p+1
+//! (`common/src/assembly.rs`), the same merge as `render_local`'s and restore's; the farm
+//! records what it folded ([`FrameRun`] scheduling, the job's figures). A tile folds pass p before pass p+1
 //! (results that arrive early wait in the assembly), and a unit's BDPT splats fold into the
 //! film's radiance sums with the unit. The
 //! film's radiance sums are exact integers, for which this order is not needed; its AOV means
@@ -32,8 +35,8 @@ pub use denoise::{DENOISE_TAG, DenoiseOutcome, DenoisedLayer};
 pub use frame_run::FrameRun;
 use job::FrameStatus;
 pub use job::{Checkpoint, CheckpointHead, CheckpointSource, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
-pub use lease::{Fold, Folding};
 use lease::Lease;
+pub use lease::{Fold, Folding};
 pub use residency::{FrameRef, ResidencyPlan};
 use workers::Worker;
 

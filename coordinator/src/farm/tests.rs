@@ -1,8 +1,8 @@
 //! The state machine's unit tests.
 
 use super::*;
-use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::adaptive::{self, AdaptiveSettings, BlockMask};
+use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::film::SampleValue;
 use pathfarm_common::film::TileAccum;
 use pathfarm_common::job::PassSchedule;
@@ -841,8 +841,11 @@ fn the_farm_and_render_local_share_the_fold_in_any_order_and_across_a_spill() {
         assert!(rounds > 1 || !adaptive_on, "adaptive passes go out one at a time per tile");
         let job = farm.job(id).expect("job");
         assert_eq!(job.state, JobState::Completed);
-        assert!(job.film().as_deref() == Some(&local), "adaptive {adaptive_on}: the farm's film differs from render_local's");
-        assert!(fed.film().as_deref() == Some(&local));
+        assert!(
+            job.film().as_deref() == Some(&local),
+            "adaptive {adaptive_on}: the farm's film differs from render_local's"
+        );
+        assert!(fed.film() == Some(&local));
         let info = job.info(0);
         assert_eq!((info.units_merged, info.progress), (info.units_total, 1.0));
         let held: u64 = local.sums.iter().map(|p| u64::from(p.weight)).sum();

@@ -430,21 +430,23 @@ pub(crate) fn decode_and_accept(
     // Under the farm lock: check the result and take it from its lease. Then fold it under its
     // frame's lock alone (leases and other frames' merges go on), and record the fold under the
     // farm lock again (`farm/frame_run.rs`).
-    let fold = {
+    let begun = {
         let mut farm = state.farm.lock();
-        let r = farm.begin_accept(lease_id, frame, now_ms());
-        if r.is_err() {
-            farm.counters.results_rejected += 1;
+        match farm.begin_accept(lease_id, frame, now_ms()) {
+            Ok(fold) => Ok(fold),
+            Err(e) => {
+                farm.counters.results_rejected += 1;
+                Err((e, farm.take_changes()))
+            }
         }
-        r
     };
-    let (r, changes) = match fold {
+    let (r, changes) = match begun {
         Ok(fold) => {
             let folding = fold.fold();
             let (out, changes) = state.locked(|farm| farm.finish_accept(folding, now_ms()));
             (Ok(out), changes)
         }
-        Err(e) => (Err(e), state.farm.lock().take_changes()),
+        Err((e, changes)) => (Err(e), changes),
     };
     // A merged result is in effect whether or not a record could be saved (the checkpoint loop
     // saves it again); the worker is told it was merged.
