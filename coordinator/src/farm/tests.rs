@@ -879,6 +879,26 @@ fn concurrent_folds_of_two_jobs_give_the_sequential_films() {
         let fold = f.begin_accept(g.lease_id, adaptive_grant_result(&g), 0).expect("begin");
         let folding = std::thread::scope(|s| s.spawn(|| fold.fold()).join().expect("fold"));
         f.finish_accept(folding, 0);
+        // Two folds of one tile recorded in reverse: the plain job's tile 0, passes 0 and 1.
+        let mut grants = Vec::new();
+        while grants.len() < 2 {
+            let g = f.lease(w, 0).expect("lease").expect("work");
+            if g.job_id == ids[1] && g.unit.tile == 0 {
+                grants.push(g);
+            } else {
+                let fold = f.begin_accept(g.lease_id, adaptive_grant_result(&g), 0).expect("begin");
+                f.finish_accept(fold.fold(), 0);
+            }
+        }
+        let mut folds: Vec<Folding> = grants
+            .iter()
+            .map(|g| f.begin_accept(g.lease_id, adaptive_grant_result(g), 0).expect("begin").fold())
+            .collect();
+        let first = folds.remove(0);
+        f.finish_accept(folds.remove(0), 0);
+        assert_eq!(f.job(ids[1]).expect("job").open[&0].next_passes()[0], 2, "the later record moves the tile");
+        f.finish_accept(first, 0);
+        assert_eq!(f.job(ids[1]).expect("job").open[&0].next_passes()[0], 2, "the earlier record is behind it");
     }
     let done = |farm: &Farm| ids.iter().all(|&id| farm.job(id).expect("job").state == JobState::Completed);
     std::thread::scope(|scope| {
@@ -894,7 +914,8 @@ fn concurrent_folds_of_two_jobs_give_the_sequential_films() {
                     x ^= x << 17;
                     x
                 };
-                loop {
+                // Bounded: a farm that lost track of its units fails the asserts, never hangs.
+                for _ in 0..100_000 {
                     let mut grants = Vec::new();
                     {
                         let mut f = farm.lock().expect("farm");
