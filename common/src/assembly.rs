@@ -14,19 +14,28 @@
 use crate::adaptive::{self, AdaptiveSettings, BlockMask};
 use crate::film::{Film, PixelSums, SplatBuffer, TileAccum};
 use crate::job::{Plan, TileRect, UnitKey};
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 
 /// A frame's film being assembled from units.
+///
+/// The film may be elsewhere for a while (the farm writes films beyond its memory limits to
+/// disk, [`FilmAssembly::take_film`]): units offered meanwhile wait, and
+/// [`FilmAssembly::put_film`] folds those that are then in order. The assembly's own state is
+/// O(tiles + units waiting), whatever the pass count.
 #[derive(Clone, Debug)]
 pub struct FilmAssembly {
-    film: Film,
+    /// `None` while the film is elsewhere: nothing folds, offers only wait.
+    film: Option<Film>,
     /// Per tile: the next pass to fold (the passes before it are in the film).
     next_pass: Vec<u32>,
-    /// Units that arrived before their tile's earlier passes, by (tile, pass).
+    /// Units that arrived before their tile's earlier passes (or while the film was away), by
+    /// (tile, pass).
     waiting: HashMap<(u32, u32), (TileAccum, Option<SplatBuffer>)>,
     /// Adaptive sampling: per tile, the converged blocks after its last folded pass (`None`
     /// before the first, and without adaptive sampling).
     masks: Vec<Option<BlockMask>>,
+    /// Resumed from a checkpoint before its film was here: the masks are judged when it comes.
+    judge_on_put: bool,
 }
 
 /// A unit folded into the film by [`FilmAssembly::offer`].
@@ -38,6 +47,13 @@ pub struct Folded {
     pub samples: u64,
     /// Adaptive sampling: what judging the tile after this pass changed.
     pub judged: Option<Judged>,
+}
+
+impl Folded {
+    /// The tile's next pass after this fold: the passes it skipped (converged) count as folded.
+    pub fn next_pass(&self) -> u32 {
+        self.pass + 1 + self.judged.map_or(0, |j| j.passes_skipped)
+    }
 }
 
 /// What judging a tile's blocks after a pass changed.
@@ -52,15 +68,32 @@ pub struct Judged {
     pub samples_skipped: u64,
 }
 
+/// What [`FilmAssembly::put_film`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct PutFilm {
+    /// Resumed from a checkpoint with adaptive sampling: each tile judged from the film's sums,
+    /// in tile order (its next pass moved to the end when it had converged).
+    pub judged: Vec<(u32, Judged)>,
+    /// The waiting units that were in order, folded.
+    pub folded: Vec<Folded>,
+}
+
 impl FilmAssembly {
     /// An empty film of `width` x `height` for `plan`.
     pub fn new(plan: &Plan, width: u32, height: u32) -> Self {
-        Self::with_film(plan, Film::new(width, height))
+        let mut asm = Self::without_film(plan, vec![0; plan.tiles.len()]);
+        asm.film = Some(Film::new(width, height));
+        asm.judge_on_put = false;
+        asm
     }
 
-    fn with_film(plan: &Plan, film: Film) -> Self {
+    /// Resumes from a checkpoint whose film is not here yet: the film will hold, per tile,
+    /// exactly the passes before `next_pass[tile]`. Offers wait until [`FilmAssembly::put_film`]
+    /// brings the film, which judges the adaptive masks. The caller checked `next_pass.len()` =
+    /// tiles, each at most the pass count.
+    pub fn without_film(plan: &Plan, next_pass: Vec<u32>) -> Self {
         let tiles = plan.tiles.len();
-        FilmAssembly { film, next_pass: vec![0; tiles], waiting: HashMap::new(), masks: vec![None; tiles] }
+        FilmAssembly { film: None, next_pass, waiting: HashMap::new(), masks: vec![None; tiles], judge_on_put: true }
     }
 
     /// Resumes from a film holding, per tile, exactly the passes before `next_pass[tile]` (a
@@ -68,22 +101,61 @@ impl FilmAssembly {
     /// is done again. The caller checked the shapes (`next_pass.len()` = tiles, each at most the
     /// pass count, the film the job's size).
     pub fn resume(plan: &Plan, film: Film, next_pass: Vec<u32>, adaptive: Option<(&AdaptiveSettings, u32)>) -> Self {
-        let mut asm = Self::with_film(plan, film);
-        asm.next_pass = next_pass;
-        if let Some((a, spp)) = adaptive {
-            for tile in 0..plan.tiles.len() {
-                asm.judge(plan, a, spp, tile);
-            }
-        }
+        let mut asm = Self::without_film(plan, next_pass);
+        asm.put_film(plan, adaptive, film);
         asm
     }
 
-    pub fn film(&self) -> &Film {
-        &self.film
+    /// The film, unless it is elsewhere ([`FilmAssembly::take_film`]).
+    pub fn film(&self) -> Option<&Film> {
+        self.film.as_ref()
     }
 
-    pub fn into_film(self) -> Film {
+    /// The film to write into directly (tests and tools that fabricate sums); folding adds to
+    /// what it then holds.
+    pub fn film_mut(&mut self) -> Option<&mut Film> {
+        self.film.as_mut()
+    }
+
+    pub fn has_film(&self) -> bool {
+        self.film.is_some()
+    }
+
+    pub fn into_film(self) -> Option<Film> {
         self.film
+    }
+
+    /// Moves the film out (to be written to disk): until [`FilmAssembly::put_film`], offered
+    /// units only wait. `None` when it is already out.
+    pub fn take_film(&mut self) -> Option<Film> {
+        self.film.take()
+    }
+
+    /// Brings the film back: it must hold exactly the passes before [`FilmAssembly::next_passes`]
+    /// (the caller checked it, and its size). Resumed from a checkpoint, each tile is judged
+    /// first (adaptive sampling); then every waiting unit now in order folds, tile by tile. A
+    /// film already here stays, and the one given is dropped.
+    pub fn put_film(&mut self, plan: &Plan, adaptive: Option<(&AdaptiveSettings, u32)>, film: Film) -> PutFilm {
+        let mut out = PutFilm::default();
+        if self.film.is_some() {
+            return out;
+        }
+        self.film = Some(film);
+        if std::mem::replace(&mut self.judge_on_put, false)
+            && let Some((a, spp)) = adaptive
+        {
+            for tile in 0..plan.tiles.len() {
+                let judged = self.judge(plan, a, spp, tile);
+                out.judged.push((tile as u32, judged));
+            }
+            let next_pass = &self.next_pass;
+            self.waiting.retain(|&(t, p), _| p >= next_pass[t as usize]);
+        }
+        let tiles: BTreeSet<u32> = self.waiting.keys().map(|&(t, _)| t).collect();
+        for tile in tiles {
+            self.fold_in_order(plan, adaptive, tile, &mut out.folded);
+        }
+        out
     }
 
     /// Per tile, the next pass to fold.
@@ -100,9 +172,19 @@ impl FilmAssembly {
         self.masks[tile].as_ref()
     }
 
-    /// Units waiting for an earlier pass of their tile.
+    /// Units waiting for an earlier pass of their tile (or for the film).
     pub fn waiting(&self) -> usize {
         self.waiting.len()
+    }
+
+    /// Whether unit (tile, pass) waits.
+    pub fn is_waiting(&self, tile: u32, pass: u32) -> bool {
+        self.waiting.contains_key(&(tile, pass))
+    }
+
+    /// Drops every waiting unit (its job ended: nothing more folds).
+    pub fn drop_waiting(&mut self) {
+        self.waiting = HashMap::new();
     }
 
     /// True once every tile folded (or skipped) every pass.
@@ -111,11 +193,19 @@ impl FilmAssembly {
         self.next_pass.iter().all(|&p| p >= passes)
     }
 
+    /// Bytes of the assembly's state besides its film and the units waiting (O(tiles)).
+    pub fn state_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.next_pass.capacity() * size_of::<u32>()
+            + self.masks.capacity() * size_of::<Option<BlockMask>>()
+            + self.waiting.len() * 2 * size_of::<u32>()
+    }
+
     /// Takes a unit's sums (and its BDPT splats, which fold into the film's radiance with it) and
     /// folds every unit of its tile that is now in order, returning them in the order folded.
-    /// A unit at or before a pass its tile already folded is ignored (the caller refuses
-    /// duplicates before; this keeps the film exact whatever it does). `adaptive`: the job's
-    /// settings and spp.
+    /// While the film is away the unit only waits. A unit at or before a pass its tile already
+    /// folded is ignored (the caller refuses duplicates before; this keeps the film exact
+    /// whatever it does). `adaptive`: the job's settings and spp.
     pub fn offer(
         &mut self,
         plan: &Plan,
@@ -124,43 +214,58 @@ impl FilmAssembly {
         accum: TileAccum,
         splats: Option<SplatBuffer>,
     ) -> Vec<Folded> {
-        let tile = key.tile as usize;
         let mut out = Vec::new();
-        if key.pass < self.next_pass[tile] {
+        if key.pass < self.next_pass[key.tile as usize] {
             return out;
         }
         self.waiting.insert((key.tile, key.pass), (accum, splats));
-        let passes = plan.passes.len() as u32;
-        while self.next_pass[tile] < passes {
-            let pass = self.next_pass[tile];
-            let Some((accum, splats)) = self.waiting.remove(&(key.tile, pass)) else { break };
-            self.film.add_tile(&accum);
-            if let Some(s) = &splats {
-                self.film.add_splats(s);
-            }
-            self.next_pass[tile] += 1;
-            let samples = accum.sums.iter().map(|p| u64::from(p.weight)).sum();
-            let judged = adaptive.map(|(a, spp)| self.judge(plan, a, spp, tile));
-            out.push(Folded { tile: key.tile, pass, samples, judged });
-            if judged.is_some_and(|j| j.tile_done) {
-                // Later passes of a done tile can only be stale; drop any that waited.
-                self.waiting.retain(|&(t, _), _| t != key.tile);
-                break;
-            }
-        }
+        self.fold_in_order(plan, adaptive, key.tile, &mut out);
         out
     }
 
+    /// Folds `tile`'s waiting units while the next is here (and the film is), judging the tile
+    /// after each (adaptive sampling).
+    fn fold_in_order(
+        &mut self,
+        plan: &Plan,
+        adaptive: Option<(&AdaptiveSettings, u32)>,
+        tile: u32,
+        out: &mut Vec<Folded>,
+    ) {
+        let passes = plan.passes.len() as u32;
+        let t = tile as usize;
+        while self.next_pass[t] < passes {
+            let Some(film) = self.film.as_mut() else { return };
+            let pass = self.next_pass[t];
+            let Some((accum, splats)) = self.waiting.remove(&(tile, pass)) else { return };
+            film.add_tile(&accum);
+            if let Some(s) = &splats {
+                film.add_splats(s);
+            }
+            self.next_pass[t] += 1;
+            let samples = accum.sums.iter().map(|p| u64::from(p.weight)).sum();
+            let judged = adaptive.map(|(a, spp)| self.judge(plan, a, spp, t));
+            out.push(Folded { tile, pass, samples, judged });
+            if judged.is_some_and(|j| j.tile_done) {
+                // Later passes of a done tile can only be stale; drop any that waited.
+                self.waiting.retain(|&(w, _), _| w != tile);
+                return;
+            }
+        }
+    }
+
     /// Judges `tile` after its passes before `next_pass[tile]` folded: its mask from the film's
-    /// sums; when every block converged, its remaining passes count as folded.
+    /// sums; when every block converged, its remaining passes count as folded. Nothing changes
+    /// while the film is away.
     fn judge(&mut self, plan: &Plan, a: &AdaptiveSettings, spp: u32, tile: usize) -> Judged {
         let np = self.next_pass[tile] as usize;
         let mut out = Judged { tile_done: false, passes_skipped: 0, samples_skipped: 0 };
+        let Some(film) = &self.film else { return out };
         if np == 0 {
             return out;
         }
         let rect = plan.tiles[tile];
-        let sums = self.film.tile(rect).sums;
+        let sums = film.tile(rect).sums;
         let mask = adaptive::converged_blocks(&sums, rect, a, plan.passes[np - 1].s1);
         let before = skipped_samples(self.masks[tile].as_ref(), &sums, rect, spp);
         out.samples_skipped = skipped_samples(Some(&mask), &sums, rect, spp).saturating_sub(before);
@@ -246,7 +351,7 @@ mod tests {
     fn any_arrival_order_assembles_the_same_bits() {
         let s = settings();
         let plan = s.plan();
-        let reference = in_order(&s).into_film();
+        let reference = in_order(&s).into_film().expect("film");
         let mut keys: Vec<UnitKey> = plan.units().collect();
         keys.reverse();
         let mut asm = FilmAssembly::new(&plan, s.width, s.height);
@@ -259,7 +364,7 @@ mod tests {
         }
         assert_eq!(folded, plan.unit_count());
         assert!(asm.is_complete(&plan) && asm.waiting() == 0);
-        assert!(asm.into_film() == reference, "the reverse arrival order changed the film");
+        assert!(asm.into_film() == Some(reference), "the reverse arrival order changed the film");
     }
 
     #[test]
@@ -269,9 +374,9 @@ mod tests {
         let mut asm = FilmAssembly::new(&plan, s.width, s.height);
         let key = UnitKey { frame: 0, pass: 0, tile: 1 };
         assert_eq!(asm.offer(&plan, None, key, unit(&plan, key, None), None).len(), 1);
-        let film = asm.film().clone();
+        let film = asm.film().cloned();
         assert!(asm.offer(&plan, None, key, unit(&plan, key, None), None).is_empty());
-        assert_eq!(asm.film(), &film);
+        assert_eq!(asm.film(), film.as_ref());
     }
 
     #[test]
@@ -300,7 +405,8 @@ mod tests {
                 asm.offer(&plan, adaptive, key, accum, None);
             }
         }
-        let mut resumed = FilmAssembly::resume(&plan, asm.film().clone(), asm.next_passes().to_vec(), adaptive);
+        let mut resumed =
+            FilmAssembly::resume(&plan, asm.film().expect("film").clone(), asm.next_passes().to_vec(), adaptive);
         for t in 0..plan.tiles.len() {
             assert_eq!(resumed.mask(t), asm.mask(t), "tile {t}");
             assert_eq!(resumed.next_pass(t), asm.next_pass(t), "tile {t}");
@@ -312,6 +418,95 @@ mod tests {
             }
         }
         assert!(resumed.next_passes().iter().all(|&p| p == passes));
-        assert!(resumed.into_film() == full.into_film(), "resuming changed the film");
+        assert!(resumed.into_film() == Some(full.into_film().expect("film")), "resuming changed the film");
+    }
+
+    /// The film goes away mid-frame (the farm writes it to disk) while units keep arriving in a
+    /// scrambled order: they wait, and putting the film back folds them to the same bits and
+    /// the same adaptive decisions as an assembly that never let its film go.
+    #[test]
+    fn a_film_taken_away_and_put_back_assembles_the_same_bits() {
+        let mut s = settings();
+        s.spp = 32;
+        s.passes = PassSchedule::Fixed { spp: 4 };
+        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        let plan = s.plan();
+        let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+        let full = in_order(&s);
+        let mut asm = FilmAssembly::new(&plan, s.width, s.height);
+        let tiles = plan.tiles.len() as u32;
+        // Rounds: every tile still in the schedule renders its next pass with its mask; the
+        // results arrive in reverse tile order, the film away during every other round.
+        for round in 0.. {
+            let keys: Vec<UnitKey> = (0..tiles)
+                .rev()
+                .filter(|&t| asm.next_pass(t as usize) < plan.passes.len() as u32)
+                .map(|t| UnitKey { frame: 0, pass: asm.next_pass(t as usize), tile: t })
+                .collect();
+            if keys.is_empty() {
+                break;
+            }
+            let units: Vec<_> = keys.iter().map(|&k| (k, unit(&plan, k, asm.mask(k.tile as usize)))).collect();
+            let away = (round % 2 == 1).then(|| asm.take_film().expect("the film is here"));
+            let mut folded = 0;
+            for (key, accum) in units {
+                folded += asm.offer(&plan, adaptive, key, accum, None).len();
+            }
+            if let Some(film) = away {
+                assert_eq!((folded, asm.waiting()), (0, keys.len()), "nothing folds while the film is away");
+                assert!(asm.take_film().is_none());
+                let put = asm.put_film(&plan, adaptive, film);
+                assert!(put.judged.is_empty(), "masks are kept while the film is away");
+                let mut got: Vec<(u32, u32)> = put.folded.iter().map(|f| (f.tile, f.pass)).collect();
+                let mut want: Vec<(u32, u32)> = keys.iter().map(|k| (k.tile, k.pass)).collect();
+                got.sort();
+                want.sort();
+                assert_eq!(got, want);
+            } else {
+                assert_eq!(folded, keys.len());
+            }
+        }
+        assert_eq!(asm.waiting(), 0);
+        for t in 0..plan.tiles.len() {
+            assert_eq!(asm.mask(t), full.mask(t), "tile {t}");
+        }
+        assert!(asm.into_film() == full.into_film(), "taking the film away changed it");
+    }
+
+    /// A checkpoint resumed before its film is read: units wait, putting the film judges every
+    /// tile (as `resume` does) and then folds them.
+    #[test]
+    fn resuming_without_the_film_judges_when_it_comes() {
+        let mut s = settings();
+        s.spp = 32;
+        s.passes = PassSchedule::Fixed { spp: 4 };
+        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        let plan = s.plan();
+        let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+        let mut asm = FilmAssembly::new(&plan, s.width, s.height);
+        for key in plan.units().filter(|k| k.pass < 1) {
+            let accum = unit(&plan, key, None);
+            asm.offer(&plan, adaptive, key, accum, None);
+        }
+        let film = asm.film().expect("film").clone();
+        let next: Vec<u32> = vec![1; plan.tiles.len()];
+        let resumed = FilmAssembly::resume(&plan, film.clone(), next.clone(), adaptive);
+        let mut later = FilmAssembly::without_film(&plan, next);
+        let open = (0..plan.tiles.len()).find(|&t| resumed.next_pass(t) == 1).expect("a tile goes on") as u32;
+        let key = UnitKey { frame: 0, pass: 1, tile: open };
+        let accum = unit(&plan, key, resumed.mask(open as usize));
+        assert!(later.offer(&plan, adaptive, key, accum.clone(), None).is_empty());
+        let put = later.put_film(&plan, adaptive, film);
+        assert_eq!(put.judged.len(), plan.tiles.len());
+        let done = put.judged.iter().filter(|(_, j)| j.tile_done).count();
+        assert!(done > 0 && done < plan.tiles.len(), "some tiles converged after pass 0, not all");
+        assert_eq!(put.folded.iter().map(|f| (f.tile, f.pass)).collect::<Vec<_>>(), vec![(open, 1)]);
+        let mut resumed = resumed;
+        resumed.offer(&plan, adaptive, key, accum, None);
+        assert_eq!(later.next_passes(), resumed.next_passes());
+        for t in 0..plan.tiles.len() {
+            assert_eq!(later.mask(t), resumed.mask(t), "tile {t}");
+        }
+        assert!(later.into_film() == resumed.into_film());
     }
 }

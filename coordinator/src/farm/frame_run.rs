@@ -1,13 +1,17 @@
-//! One frame in progress: its merge state (units derived from the plan, never stored per
-//! unit), film and adaptive decisions.
+//! One frame in progress: its scheduling state (units derived from the plan, never stored per
+//! unit) and its [`FilmAssembly`], the one merge of units into a film (`common/src/assembly.rs`,
+//! shared with `render_local`).
 
-use pathfarm_common::adaptive::{self, AdaptiveSettings, BlockMask};
-use pathfarm_common::assembly::skipped_samples;
-use pathfarm_common::film::{Film, SplatBuffer, TileAccum};
+use parking_lot::{MappedMutexGuard, Mutex, MutexGuard};
+use pathfarm_common::adaptive::{self, BlockMask};
+use pathfarm_common::assembly::FilmAssembly;
+use pathfarm_common::film::{Film, TileAccum};
 use pathfarm_common::job::Plan;
 use pathfarm_common::protocol::LeaseId;
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::sync::Arc;
 
+/// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
 /// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
 /// With adaptive sampling, pixels in the converged blocks of `mask` must hold no sample.
 pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&BlockMask>) -> Option<String> {
@@ -27,14 +31,23 @@ pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&B
     })
 }
 
-/// One frame whose film exists: its merge state and film. Frames not started have none of
-/// this; finished ones are written and dropped.
+/// One frame in progress: its scheduling state and its [`FilmAssembly`] (the film, each
+/// tile's next pass, the results waiting, the adaptive masks: the same merge as
+/// `render_local`'s), behind the frame's own lock. Frames not started have none of this;
+/// finished ones are written and dropped.
+///
+/// Locking: the farm's state (this struct) changes under the farm lock; the assembly changes
+/// under its frame lock. A result is folded under the frame lock alone (the farm lock is free
+/// meanwhile: leases and other frames' merges go on), then recorded here under the farm lock
+/// (`FrameRun::advance`, monotone, so two records of one tile in either order give the same
+/// state). The lock order is farm, then frame: nothing takes the farm lock holding a frame lock.
 ///
 /// Units are not stored: a unit is an index `pass * tiles + tile` (canonical, pass-major order)
-/// and its state follows from the tile's `next_pass` (passes before it are merged) and the
-/// units in flight (`leased`, `waiting`). Pending units are found by a cursor that moves
-/// forward over the index space, plus `requeued` (units before the cursor that came back).
-/// Memory: O(tiles + units in flight), whatever the pass count.
+/// and its state follows from the tile's recorded next pass (passes before it are merged) and
+/// the units in flight (`leased`, `received`). Pending
+/// units are found by a cursor that moves forward over the index space, plus `requeued` (units
+/// before the cursor that came back). Memory: O(tiles + units in flight), whatever the pass
+/// count.
 #[derive(Debug)]
 pub struct FrameRun {
     tiles: usize,
@@ -47,22 +60,25 @@ pub struct FrameRun {
     pub(super) requeued: BTreeSet<usize>,
     /// Units leased and not yet received.
     leased: HashMap<usize, LeaseId>,
-    /// Per tile: the next pass to fold (all passes before it are merged).
-    pub(super) next_pass: Vec<u32>,
-    /// Tiles per value of `next_pass` (the least key is the passes every tile merged).
+    /// Units whose result was taken: being folded, or waiting in the assembly for an earlier
+    /// pass of their tile (or for the film). They leave when recorded as merged.
+    received: HashSet<usize>,
+    /// Per tile: the next pass as recorded (the assembly's is ahead by the folds not yet
+    /// recorded).
+    next_pass: Vec<u32>,
+    /// Tiles per value of their next pass (the least key is the passes every tile merged).
     at_pass: BTreeMap<u32, u32>,
-    /// Results received before their tile's earlier passes merged.
-    pub(super) waiting: HashMap<usize, (TileAccum, Option<SplatBuffer>)>,
-    /// Adaptive sampling: per tile, the converged blocks after its last merged pass (`None`
-    /// before the first, and for jobs without `adaptive`). A pure function of the film, so
-    /// checkpoints do not hold it: restore computes it again.
-    pub(super) masks: Vec<Option<BlockMask>>,
-    /// The merged sums; `None` while the film is on disk (its checkpoint): results then wait
-    /// in `waiting` and nothing is leased until it is loaded ([`super::Farm::attach_film`]).
-    pub film: Option<Film>,
+    /// The merge, behind the frame lock. Its film is `None` while on disk (its checkpoint):
+    /// results then wait in it and nothing is leased until it is loaded
+    /// ([`super::Farm::attach_film`]).
+    pub(super) asm: Arc<Mutex<FilmAssembly>>,
+    /// The assembly holds its film (changed with it, under the farm lock, so that scheduling
+    /// never waits for the frame lock).
+    pub(super) resident: bool,
     /// The film is being written to disk: it must not be loaded until that is done.
     pub(super) spilling: bool,
-    /// Restored without its film (adaptive jobs: masks and samples are computed when loaded).
+    /// Restored without its film (adaptive jobs: the samples the film holds are counted when
+    /// it is loaded; the assembly judges the masks then).
     pub(super) restored: bool,
     /// When the frame was last leased from or merged into (the least recently used film is
     /// written to disk first), and when its film was last loaded.
@@ -75,28 +91,34 @@ pub struct FrameRun {
 }
 
 impl FrameRun {
-    /// A frame with nothing merged. `adaptive`: only the first pass is pending; each tile's
-    /// later passes wait for its previous one.
-    pub(super) fn new(plan: &Plan, film: Option<Film>, adaptive: bool) -> Self {
-        let tiles = plan.tiles.len();
+    /// A frame merging into `asm` (a new film, or a checkpoint's passes). `adaptive`: each
+    /// tile's later passes wait for its previous one.
+    pub(super) fn new(plan: &Plan, asm: FilmAssembly, adaptive: bool) -> Self {
+        let passes = plan.passes.len();
+        let mut at_pass = BTreeMap::new();
+        for &p in asm.next_passes() {
+            *at_pass.entry(p).or_insert(0) += 1;
+        }
+        let units_merged = asm.next_passes().iter().map(|&p| u64::from(p)).sum();
+        let next_pass = asm.next_passes().to_vec();
         FrameRun {
-            tiles,
-            passes: plan.passes.len(),
+            tiles: plan.tiles.len(),
+            passes,
             adaptive,
             cursor: 0,
             requeued: BTreeSet::new(),
             leased: HashMap::new(),
-            next_pass: vec![0; tiles],
-            at_pass: BTreeMap::from([(0, tiles as u32)]),
-            waiting: HashMap::new(),
-            masks: if adaptive { vec![None; tiles] } else { Vec::new() },
-            film,
+            received: HashSet::new(),
+            next_pass,
+            passes_done: at_pass.keys().next().copied().unwrap_or(passes as u32),
+            at_pass,
+            resident: asm.has_film(),
+            asm: Arc::new(Mutex::new(asm)),
             spilling: false,
             restored: false,
             last_used: 0,
             loaded_ms: 0,
-            passes_done: 0,
-            units_merged: 0,
+            units_merged,
             checkpoint_dirty: true,
         }
     }
@@ -112,7 +134,7 @@ impl FrameRun {
     }
 
     fn in_flight(&self, index: usize) -> bool {
-        self.leased.contains_key(&index) || self.waiting.contains_key(&index)
+        self.leased.contains_key(&index) || self.received.contains(&index)
     }
 
     /// Whether unit `index` may be leased now (not merged, not in flight, and for adaptive
@@ -125,10 +147,10 @@ impl FrameRun {
 
     /// Units that may be leased now (none while the film is on disk).
     pub(super) fn pending(&self) -> u64 {
-        if self.film.is_none() {
+        if !self.resident {
             return 0;
         }
-        let in_flight = (self.leased.len() + self.waiting.len()) as u64;
+        let in_flight = (self.leased.len() + self.received.len()) as u64;
         if self.adaptive {
             // One unit per tile that has passes left: its next pass.
             let finished = self.at_pass.get(&(self.passes as u32)).copied().unwrap_or(0);
@@ -185,37 +207,40 @@ impl FrameRun {
         }
     }
 
-    /// The unit's result arrived: it waits in `waiting` until it is folded in tile order.
-    pub(super) fn receive(&mut self, index: usize, accum: TileAccum, splats: Option<SplatBuffer>) {
+    /// The unit's result was taken: no longer leased, in flight until recorded as merged.
+    pub(super) fn receive(&mut self, index: usize) {
         self.leased.remove(&index);
-        self.waiting.insert(index, (accum, splats));
+        self.received.insert(index);
     }
 
-    /// Tiles with results waiting, in order.
-    pub(super) fn waiting_tiles(&self) -> Vec<usize> {
-        let tiles: BTreeSet<usize> = self.waiting.keys().map(|&i| self.split(i).1).collect();
-        tiles.into_iter().collect()
+    /// The job ended: the results waiting will not be folded.
+    pub(super) fn drop_received(&mut self) {
+        self.received = HashSet::new();
+        self.asm.lock().drop_waiting();
     }
 
-    /// The next unit `tile` folds, if its result is here: taken out of `waiting`.
-    pub(super) fn take_next_result(&mut self, tile: usize) -> Option<(usize, TileAccum, Option<SplatBuffer>)> {
-        let next = self.next_pass[tile] as usize;
-        if next >= self.passes {
-            return None;
-        }
-        let index = next * self.tiles + tile;
-        self.waiting.remove(&index).map(|(a, s)| (index, a, s))
+    /// The film under the frame lock (held while the guard lives), unless it is on disk.
+    pub(super) fn film(&self) -> Option<MappedMutexGuard<'_, Film>> {
+        MutexGuard::try_map(self.asm.lock(), FilmAssembly::film_mut).ok()
     }
 
-    /// Sets `tile`'s next pass (only forward) and keeps `at_pass` and `passes_done` in step;
-    /// for adaptive jobs the tile's new next pass becomes pending (before the cursor: requeued).
+    /// Per tile, the next pass as recorded.
+    pub(super) fn next_passes(&self) -> &[u32] {
+        &self.next_pass
+    }
+
+    /// Records that the assembly moved `tile`'s next pass to `to` (a fold, or passes skipped
+    /// because the tile converged). Monotone: a record behind the tile's is ignored, so records
+    /// of one tile give the same state in any order. Keeps `at_pass`, `units_merged` and
+    /// `passes_done` in step; for adaptive jobs the tile's new next pass becomes pending
+    /// (before the cursor: requeued).
     pub(super) fn advance(&mut self, tile: usize, to: u32) {
         let from = self.next_pass[tile];
         if to <= from {
             return;
         }
-        self.units_merged += u64::from(to - from);
         self.next_pass[tile] = to;
+        self.units_merged += u64::from(to - from);
         if let Some(n) = self.at_pass.get_mut(&from) {
             *n -= 1;
             if *n == 0 {
@@ -223,11 +248,12 @@ impl FrameRun {
             }
         }
         *self.at_pass.entry(to).or_insert(0) += 1;
-        // Units of the tile's skipped passes are no longer pending (adaptive: converged).
-        for p in from + 1..to {
-            self.requeued.remove(&(p as usize * self.tiles + tile));
+        // Units of the tile's merged or skipped passes are no longer pending.
+        for p in from..to {
+            let index = p as usize * self.tiles + tile;
+            self.requeued.remove(&index);
+            self.received.remove(&index);
         }
-        self.requeued.remove(&(from as usize * self.tiles + tile));
         let index = to as usize * self.tiles + tile;
         if self.adaptive && (to as usize) < self.passes && index < self.cursor && self.is_pending(index) {
             self.requeued.insert(index);
@@ -243,47 +269,9 @@ impl FrameRun {
     /// grow with the pass count).
     pub fn state_bytes(&self) -> usize {
         use std::mem::size_of;
-        self.next_pass.capacity() * size_of::<u32>()
+        self.asm.lock().state_bytes()
+            + self.next_pass.capacity() * size_of::<u32>()
             + self.at_pass.len() * 2 * size_of::<u32>()
-            + self.masks.capacity() * size_of::<Option<BlockMask>>()
-            + (self.requeued.len() + self.leased.len() + self.waiting.len()) * 4 * size_of::<usize>()
+            + (self.requeued.len() + self.leased.len() + self.received.len()) * 4 * size_of::<usize>()
     }
-
-    /// Adaptive sampling, once `tile` has merged its passes before `next_pass[tile]`: its
-    /// converged blocks from the film's merged sums (exactly as `render_local` decides), then
-    /// either its next pass becomes pending with the mask, or, when every block has converged,
-    /// its remaining passes count as merged with nothing (the tile leaves the schedule).
-    pub(super) fn decide(&mut self, plan: &Plan, a: &AdaptiveSettings, spp: u32, tile: usize) -> Decision {
-        let passes = plan.passes.len();
-        let np = self.next_pass[tile] as usize;
-        let mut out = Decision::default();
-        if np == 0 {
-            return out;
-        }
-        let rect = plan.tiles[tile];
-        let Some(film) = &self.film else { return out };
-        let sums = film.tile(rect).sums;
-        let mask = adaptive::converged_blocks(&sums, rect, a, plan.passes[np - 1].s1);
-        let before = skipped_samples(self.masks[tile].as_ref(), &sums, rect, spp);
-        out.samples_skipped = skipped_samples(Some(&mask), &sums, rect, spp).saturating_sub(before);
-        let all = mask.all_converged();
-        self.masks[tile] = Some(mask);
-        if np >= passes {
-            return out;
-        }
-        if all {
-            out.units_skipped = (passes - np) as u64;
-            self.advance(tile, passes as u32);
-        }
-        out
-    }
-}
-
-/// What an adaptive decision for a tile changed.
-#[derive(Clone, Copy, Debug, Default)]
-pub(super) struct Decision {
-    /// Units (the tile's remaining passes) counted as merged because every block converged.
-    pub(super) units_skipped: u64,
-    /// Samples that newly converged pixels will not get (taken off the job's total).
-    pub(super) samples_skipped: u64,
 }

@@ -1,6 +1,8 @@
 //! A job: its frames, the frames in progress, progress figures and what the store keeps.
 
 use super::frame_run::FrameRun;
+use parking_lot::{MappedMutexGuard, Mutex};
+use pathfarm_common::assembly::{FilmAssembly, Folded, Judged, PutFilm};
 use pathfarm_common::film::Film;
 use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::{Plan, RenderSettings, UnitKey};
@@ -48,7 +50,8 @@ pub struct Job {
     /// Set while units are pending that no live worker may take (its tags lack some of
     /// `requires`): the reason, shown in the job's info and logged once.
     pub(super) unservable: Option<String>,
-    pub plan: Plan,
+    /// Shared with the folds in progress (they run outside the farm lock).
+    pub plan: Arc<Plan>,
     pub state: JobState,
     pub(super) status: Vec<FrameStatus>,
     /// Frames in progress, by index in `frames`.
@@ -131,7 +134,7 @@ impl Job {
 
     /// Films this job holds in memory: those of `films_held` that are not on disk.
     pub fn films_resident(&self) -> u64 {
-        (self.open.values().filter(|f| f.film.is_some()).count() + self.finishing.len()) as u64
+        (self.open.values().filter(|f| f.resident).count() + self.finishing.len()) as u64
     }
 
     /// Memory of the films this job holds now.
@@ -140,12 +143,13 @@ impl Job {
     }
 
     pub(super) fn open_frame(&mut self, index: usize) {
-        self.open_frame_with(index, Some(Film::new(self.settings.width, self.settings.height)));
+        let (w, h) = (self.settings.width, self.settings.height);
+        self.open_frame_with(index, FilmAssembly::new(&self.plan, w, h));
     }
 
-    /// Starts frame `index` with `film` (restore: a checkpoint's).
-    pub(super) fn open_frame_with(&mut self, index: usize, film: Option<Film>) {
-        let run = FrameRun::new(&self.plan, film, self.settings.adaptive.is_some());
+    /// Starts frame `index` merging into `asm` (restore: a checkpoint's passes).
+    pub(super) fn open_frame_with(&mut self, index: usize, asm: FilmAssembly) {
+        let run = FrameRun::new(&self.plan, asm, self.settings.adaptive.is_some());
         self.open.insert(index, run);
         self.status[index].state = FrameState::Rendering;
         self.unstarted -= 1;
@@ -181,7 +185,7 @@ impl Job {
         self.frames_merged += 1;
         self.status[index].passes_done = self.plan.passes.len() as u32;
         if self.sequence {
-            if let Some(film) = self.open.remove(&index).and_then(|run| run.film) {
+            if let Some(film) = self.open.remove(&index).and_then(|run| run.asm.lock().take_film()) {
                 self.finishing.insert(index, Arc::new(film));
             }
             self.status[index].state = FrameState::Writing;
@@ -190,6 +194,50 @@ impl Job {
             self.status[index].state = FrameState::Done;
             self.frames_done += 1;
         }
+    }
+
+    /// Records a unit that frame `index`'s assembly folded: the frame's scheduling state and the
+    /// job's figures (and, adaptive sampling, what judging its tile then skipped).
+    pub(super) fn record_folded(&mut self, index: usize, f: &Folded) {
+        let Some(run) = self.open.get_mut(&index) else { return };
+        run.advance(f.tile as usize, f.pass + 1);
+        run.checkpoint_dirty = true;
+        self.units_merged += 1;
+        self.samples_done += f.samples;
+        if let Some(j) = &f.judged {
+            self.record_judged(index, f.tile, j);
+        }
+    }
+
+    /// Records a judged tile of frame `index`: a tile whose every block converged skips its
+    /// remaining passes (they count as merged), and its converged pixels' missing samples are
+    /// taken off the job's total.
+    fn record_judged(&mut self, index: usize, tile: u32, j: &Judged) {
+        if let Some(run) = self.open.get_mut(&index)
+            && j.tile_done
+        {
+            run.advance(tile as usize, self.plan.passes.len() as u32);
+        }
+        self.units_merged += u64::from(j.passes_skipped);
+        self.samples_total = self.samples_total.saturating_sub(j.samples_skipped);
+    }
+
+    /// Puts frame `index`'s film back into its assembly (read from disk, restored, or a write
+    /// that failed). A frame restored from a checkpoint counts the samples its film holds
+    /// (adaptive: converged pixels hold fewer than the passes) and records the tiles the
+    /// assembly judged. Returns the waiting units it folded, for [`super::Farm::settle`].
+    pub(super) fn put_film(&mut self, index: usize, film: Film) -> Vec<Folded> {
+        let adaptive = self.settings.adaptive.as_ref().map(|a| (a, self.settings.spp));
+        let Some(run) = self.open.get_mut(&index) else { return Vec::new() };
+        if std::mem::replace(&mut run.restored, false) && adaptive.is_some() {
+            self.samples_done += film.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+        }
+        run.resident = true;
+        let PutFilm { judged, folded } = run.asm.lock().put_film(&self.plan, adaptive, film);
+        for (tile, j) in &judged {
+            self.record_judged(index, *tile, j);
+        }
+        folded
     }
 
     /// A cancelled or failed sequence gives up its frames in progress (their films).
@@ -272,20 +320,23 @@ impl Job {
 
     /// The film shown as "the job's image": a single-frame job's film; for a sequence, `None`
     /// (each frame has its own: [`Job::frame_film`]).
-    pub fn film(&self) -> Option<&Film> {
-        if self.sequence { None } else { self.open.values().next().and_then(|f| f.film.as_ref()) }
+    ///
+    /// The film is read under its frame lock, held while the guard lives (the caller holds the
+    /// farm lock: lock order farm, then frame).
+    pub fn film(&self) -> Option<MappedMutexGuard<'_, Film>> {
+        if self.sequence { None } else { self.open.values().next().and_then(FrameRun::film) }
     }
 
     /// Mutable access to a single-frame job's film (tests).
     #[cfg(test)]
-    pub fn film_mut(&mut self) -> Option<&mut Film> {
-        if self.sequence { None } else { self.open.values_mut().next().and_then(|f| f.film.as_mut()) }
+    pub fn film_mut(&mut self) -> Option<MappedMutexGuard<'_, Film>> {
+        if self.sequence { None } else { self.open.values_mut().next().and_then(|f| f.film()) }
     }
 
     /// The film of frame number `frame` while it is held (rendering or being written).
     pub fn frame_film(&self, frame: i32) -> Option<FrameFilm<'_>> {
         let index = self.frame_index(frame)?;
-        if let Some(film) = self.open.get(&index).and_then(|run| run.film.as_ref()) {
+        if let Some(film) = self.open.get(&index).and_then(FrameRun::film) {
             return Some(FrameFilm::Open(film));
         }
         self.finishing.get(&index).map(|f| FrameFilm::Finishing(f.clone()))
@@ -316,7 +367,7 @@ impl Job {
     /// (every pass when the job has none in progress and is completed).
     pub fn tile_passes(&self) -> Vec<u32> {
         match self.open.values().next() {
-            Some(f) => f.next_pass.clone(),
+            Some(f) => f.next_passes().to_vec(),
             None if self.state == JobState::Completed => vec![self.plan.passes.len() as u32; self.plan.tiles.len()],
             None => vec![0; self.plan.tiles.len()],
         }
@@ -392,9 +443,10 @@ impl Job {
     }
 }
 
-/// A frame's film as the API reads it: borrowed while rendering, shared while being written.
+/// A frame's film as the API reads it: under its frame lock while rendering, shared while being
+/// written.
 pub enum FrameFilm<'a> {
-    Open(&'a Film),
+    Open(MappedMutexGuard<'a, Film>),
     Finishing(Arc<Film>),
 }
 
@@ -437,7 +489,7 @@ impl JobSpec {
 
 impl Job {
     pub(super) fn new(id: JobId, spec: JobSpec, now_ms: u64) -> Self {
-        let plan = spec.settings.plan();
+        let plan = Arc::new(spec.settings.plan());
         let sequence = spec.frames.is_some();
         let frames = spec.frames.unwrap_or_else(|| FrameSet::single(spec.settings.frame));
         let frame_count = frames.len();
@@ -491,15 +543,20 @@ impl Job {
     /// and merged set, for a checkpoint (`all`: every frame in progress). Each is a copy of a
     /// film: the caller takes one at a time to bound the memory.
     pub fn take_checkpoints(&mut self, all: bool, limit: usize) -> Vec<Checkpoint> {
+        self.checkpoint_sources(all, limit).iter().filter_map(CheckpointSource::copy).collect()
+    }
+
+    /// [`Job::take_checkpoints`] without the copies: each frame's assembly, for the caller to
+    /// copy its film and merged set under the frame lock once the farm lock is released.
+    pub fn checkpoint_sources(&mut self, all: bool, limit: usize) -> Vec<CheckpointSource> {
         let (id, frames) = (self.id, self.frames.frames());
         self.open
             .iter_mut()
-            .filter(|(_, f)| (all || f.checkpoint_dirty) && f.film.is_some())
+            .filter(|(_, f)| (all || f.checkpoint_dirty) && f.resident)
             .take(limit)
-            .filter_map(|(&i, f)| {
+            .map(|(&i, f)| {
                 f.checkpoint_dirty = false;
-                let film = f.film.clone()?;
-                Some(Checkpoint { job_id: id, frame: frames[i], next_pass: f.next_pass.clone(), film })
+                CheckpointSource { job_id: id, frame: frames[i], asm: f.asm.clone() }
             })
             .collect()
     }
@@ -585,6 +642,25 @@ impl Checkpoint {
             height: self.film.height,
             next_pass: self.next_pass.clone(),
         }
+    }
+}
+
+/// A frame in progress to checkpoint ([`Job::checkpoint_sources`]).
+pub struct CheckpointSource {
+    pub job_id: JobId,
+    /// The frame number.
+    pub frame: i32,
+    asm: Arc<Mutex<FilmAssembly>>,
+}
+
+impl CheckpointSource {
+    /// The frame's checkpoint: its film and the passes it holds, read together under the frame
+    /// lock (a fold in progress is either all in both or in neither). `None` while the film is
+    /// on disk.
+    pub fn copy(&self) -> Option<Checkpoint> {
+        let asm = self.asm.lock();
+        let film = asm.film()?.clone();
+        Some(Checkpoint { job_id: self.job_id, frame: self.frame, next_pass: asm.next_passes().to_vec(), film })
     }
 }
 

@@ -1,11 +1,23 @@
 //! Leases: scheduling, expiry, release and the merge of results.
+//!
+//! A result is merged in three steps, so that the fold (a tile's sums added to the film) runs
+//! without the farm lock: [`Farm::begin_accept`] (farm lock: check the result, end its lease,
+//! the unit is received: in flight, not pending), [`Fold::fold`] (its frame's lock only: the
+//! frame's `FilmAssembly` folds what is in order), [`Farm::finish_accept`] (farm lock: record
+//! the units folded, complete passes, the frame, the job).
 
 use super::frame_run::sample_count_mismatch;
 use super::{Farm, FarmError, Job, MergeOutcome};
-use pathfarm_common::film::{Film, TileAccum};
+use parking_lot::Mutex;
+use pathfarm_common::adaptive::AdaptiveSettings;
+use pathfarm_common::assembly::{FilmAssembly, Folded};
+use pathfarm_common::film::Film;
+use pathfarm_common::film::{SplatBuffer, TileAccum};
+use pathfarm_common::job::{Plan, UnitKey};
 use pathfarm_common::protocol::{
     FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
 };
+use std::sync::Arc;
 
 #[derive(Clone, Debug)]
 pub(super) struct Lease {
@@ -17,6 +29,40 @@ pub(super) struct Lease {
     pub(super) deadline_ms: u64,
     /// A denoise step of frame `frame` (`unit` unused), not a unit (`farm/denoise.rs`).
     pub(super) denoise: Option<super::denoise::Step>,
+}
+
+/// A result taken from its lease ([`Farm::begin_accept`]), to be folded into its frame's
+/// film outside the farm lock.
+pub struct Fold {
+    job: JobId,
+    index: usize,
+    key: UnitKey,
+    asm: Arc<Mutex<FilmAssembly>>,
+    plan: Arc<Plan>,
+    adaptive: Option<(AdaptiveSettings, u32)>,
+    accum: TileAccum,
+    splats: Option<SplatBuffer>,
+}
+
+/// What a [`Fold`] folded, for [`Farm::finish_accept`] to record.
+#[derive(Debug)]
+pub struct Folding {
+    job: JobId,
+    index: usize,
+    /// The assembly folded into: recorded only while the frame still has it.
+    asm: Arc<Mutex<FilmAssembly>>,
+    folded: Vec<Folded>,
+}
+
+impl Fold {
+    /// Folds the result under its frame's lock alone: the one merge (`FilmAssembly`, as
+    /// `render_local`'s) folds every unit of the tile now in order (none while the film is on
+    /// disk: the result waits in the assembly).
+    pub fn fold(self) -> Folding {
+        let adaptive = self.adaptive.as_ref().map(|(a, spp)| (a, *spp));
+        let folded = self.asm.lock().offer(&self.plan, adaptive, self.key, self.accum, self.splats);
+        Folding { job: self.job, index: self.index, asm: self.asm, folded }
+    }
 }
 
 impl Farm {
@@ -48,7 +94,7 @@ impl Farm {
                 && (j.order == FrameOrder::SequencePreview || j.films_held() < max_open)
                 && (j.order == FrameOrder::Frame || j.films_held() == 0)
                 // A frame whose film is on disk is loaded before the next one starts.
-                && j.open.values().all(|r| r.film.is_some())
+                && j.open.values().all(|r| r.resident)
                 && {
                     let (films, used) = *held.get_or_insert_with(|| farm.films_in_memory());
                     let n = j.films_to_start();
@@ -94,7 +140,10 @@ impl Farm {
         let mask = job
             .open
             .get(&frame)
-            .and_then(|run| run.masks.get(key.tile as usize).cloned().flatten())
+            // Adaptive jobs only: under the frame lock (lock order farm, then frame), which waits
+            // for a fold of this frame in progress.
+            .filter(|_| job.settings.adaptive.is_some())
+            .and_then(|run| run.asm.lock().mask(key.tile as usize).cloned())
             .filter(|m| !m.none());
         let grant = LeaseGrant {
             kind: Default::default(),
@@ -244,13 +293,23 @@ impl Farm {
         Ok(())
     }
 
-    /// Accepts a unit's result from the worker holding its lease and merges it.
+    /// Accepts a unit's result from the worker holding its lease and merges it: the three
+    /// steps of [`Farm::begin_accept`], [`Fold::fold`] and [`Farm::finish_accept`] at once.
     pub fn accept(
         &mut self,
         lease_id: LeaseId,
         frame: UnitResultFrame,
         now_ms: u64,
     ) -> Result<MergeOutcome, FarmError> {
+        let fold = self.begin_accept(lease_id, frame, now_ms)?;
+        Ok(self.finish_accept(fold.fold(), now_ms))
+    }
+
+    /// Takes a unit's result from the worker holding its lease: checks it, ends the lease and
+    /// marks the unit received (in flight: neither pending nor merged). The returned [`Fold`]
+    /// folds it under its frame's lock alone, with the farm lock released meanwhile; then
+    /// [`Farm::finish_accept`] records what it folded.
+    pub fn begin_accept(&mut self, lease_id: LeaseId, frame: UnitResultFrame, now_ms: u64) -> Result<Fold, FarmError> {
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
         if l.denoise.is_some() {
             return Err(FarmError::ResultMismatch {
@@ -280,7 +339,12 @@ impl Farm {
         {
             Some("splat buffer size differs from the image".into())
         } else {
-            let mask = job.open.get(&l.frame).and_then(|run| run.masks.get(key.tile as usize)).and_then(Option::as_ref);
+            // Adaptive jobs only: the mask is read under the frame lock (a fold of the frame in
+            // progress finishes first). It is the tile's mask its pass was leased with: the
+            // tile's next fold is this unit's.
+            let run = job.open.get(&l.frame);
+            let asm = run.filter(|_| job.settings.adaptive.is_some()).map(|r| r.asm.lock());
+            let mask = asm.as_ref().and_then(|a| a.mask(key.tile as usize));
             sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
         };
         if let Some(reason) = mismatch {
@@ -305,49 +369,51 @@ impl Farm {
             w.last_seen_ms = now_ms;
         }
         let Some(job) = self.jobs.get_mut(&l.job) else { return Err(FarmError::LeaseLost(lease_id)) };
+        let adaptive = job.settings.adaptive.map(|a| (a, job.settings.spp));
         let Some(run) = job.open.get_mut(&l.frame) else { return Err(FarmError::LeaseLost(lease_id)) };
-        run.receive(l.unit, frame.accum, frame.splats);
-        Ok(self.settle(l.job, l.frame, &[key.tile as usize], now_ms))
+        run.receive(l.unit);
+        Ok(Fold {
+            job: l.job,
+            index: l.frame,
+            key,
+            asm: run.asm.clone(),
+            plan: job.plan.clone(),
+            adaptive,
+            accum: frame.accum,
+            splats: frame.splats,
+        })
     }
 
-    /// Folds the results of `tiles` of frame `index` that are next in their tile's pass order
-    /// (none while the frame's film is on disk: they wait until it is loaded), then completes
-    /// passes, the frame and the job as they become complete.
-    pub(super) fn settle(&mut self, job_id: JobId, index: usize, tiles: &[usize], now_ms: u64) -> MergeOutcome {
-        // Samples the unit holds (converged pixels of an adaptive tile hold none).
-        let unit_samples = |accum: &TileAccum| accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+    /// Records what a [`Fold`] folded (in any order with the other folds of its frame), then
+    /// completes passes, the frame and the job as they become complete.
+    pub fn finish_accept(&mut self, folding: Folding, now_ms: u64) -> MergeOutcome {
+        let run = self.jobs.get(&folding.job).and_then(|j| j.open.get(&folding.index));
+        if !run.is_some_and(|r| Arc::ptr_eq(&r.asm, &folding.asm)) {
+            return MergeOutcome::default(); // the frame ended meanwhile (its job did)
+        }
+        self.settle(folding.job, folding.index, &folding.folded, now_ms)
+    }
+
+    /// Records the units frame `index`'s assembly folded (`folded`, in the order folded: none
+    /// while the frame's film is on disk, they wait until it is loaded), then completes passes,
+    /// the frame and the job as they become complete.
+    pub(super) fn settle(&mut self, job_id: JobId, index: usize, folded: &[Folded], now_ms: u64) -> MergeOutcome {
         let mut out = MergeOutcome::default();
         let Some(job) = self.jobs.get_mut(&job_id) else { return out };
         let Some(run) = job.open.get_mut(&index) else { return out };
         let passes_before = run.passes_done;
         run.last_used = now_ms;
-        for &tile in tiles {
-            while run.film.is_some()
-                && let Some((unit, accum, splats)) = run.take_next_result(tile)
-            {
-                let Some(film) = run.film.as_mut() else { break };
-                film.add_tile(&accum);
-                if let Some(s) = splats {
-                    film.add_splats(&s);
-                }
-                run.checkpoint_dirty = true;
-                let pass = (unit / job.plan.tiles.len()) as u32;
-                run.advance(tile, pass + 1);
-                job.units_merged += 1;
-                let samples = unit_samples(&accum);
-                job.samples_done += samples;
-                self.counters.units_merged += 1;
-                self.counters.samples_merged += samples;
-                out.folded += 1;
-                if let Some(a) = &job.settings.adaptive {
-                    // The tile's next pass may now be pending.
-                    self.changes.work_ready = true;
-                    let d = run.decide(&job.plan, a, job.settings.spp, tile);
-                    job.units_merged += d.units_skipped;
-                    job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
-                }
+        for f in folded {
+            job.record_folded(index, f);
+            self.counters.units_merged += 1;
+            self.counters.samples_merged += f.samples;
+            out.folded += 1;
+            if f.judged.is_some() {
+                // Adaptive: the tile's next pass may now be pending.
+                self.changes.work_ready = true;
             }
         }
+        let Some(run) = job.open.get(&index) else { return out };
         // Passes complete in order, because every tile folds its passes in order.
         out.passes_completed = (passes_before..run.passes_done).collect();
         if !out.passes_completed.is_empty() {

@@ -1,15 +1,21 @@
 //! The farm's state machine: jobs, units, workers and leases, in one place.
 //!
 //! Pure and synchronous: every operation takes the current time in milliseconds, so tests drive a
-//! manual clock. The HTTP layer holds a [`Farm`] behind a mutex and calls these methods.
+//! manual clock. The HTTP layer holds a [`Farm`] behind a mutex and calls these methods. Each
+//! frame in progress keeps its film in a `FilmAssembly` behind its own lock, so that a result
+//! folds without the farm's ([`Farm::begin_accept`], [`Fold::fold`], [`Farm::finish_accept`]);
+//! the lock order is the farm's, then a frame's.
 //!
 //! Job: queued -> running -> paused <-> running -> completed | failed | cancelled.
 //! Unit: pending -> leased(lease) -> received -> merged; an expired or released lease sends the
 //! unit back to pending. A result is accepted only from the lease that holds the unit, so each
 //! unit is merged exactly once.
 //!
-//! Merge order: a tile folds pass p before pass p+1 (results that arrive early wait in
-//! `waiting`), and a unit's BDPT splats fold into the film's radiance sums with the unit. The
+//! Merge: each frame in progress folds its results through a `FilmAssembly`
+//! (`common/src/assembly.rs`), the same merge as `render_local`'s and restore's; the farm
+//! records what it folded ([`FrameRun`] scheduling, the job's figures). A tile folds pass p before pass p+1
+//! (results that arrive early wait in the assembly), and a unit's BDPT splats fold into the
+//! film's radiance sums with the unit. The
 //! film's radiance sums are exact integers, for which this order is not needed; its AOV means
 //! (albedo, normal, depth) are bit-identical to a local render because of it (film.rs), and it
 //! makes every progressive image a prefix of the final one (each pixel holds samples `[0, s)`).
@@ -28,11 +34,13 @@ pub use changes::Changes;
 pub use denoise::{DENOISE_TAG, DenoiseOutcome, DenoisedLayer};
 pub use frame_run::FrameRun;
 use job::FrameStatus;
-pub use job::{Checkpoint, CheckpointHead, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
+pub use job::{Checkpoint, CheckpointHead, CheckpointSource, FrameCheckpoint, FrameFilm, Job, JobRecord, JobSpec};
 use lease::Lease;
+pub use lease::{Fold, Folding};
 pub use residency::{FrameRef, ResidencyPlan};
 use workers::Worker;
 
+use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::film::Film;
 use pathfarm_common::frames::FrameSet;
 use pathfarm_common::job::{Limits, RenderSettings};
@@ -99,7 +107,6 @@ impl Default for FarmConfig {
     }
 }
 
-/// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
 /// Constant-time comparison; an empty token never matches (not even an empty one configured).
 pub fn token_matches(given: &str, expected: &str) -> bool {
     use subtle::ConstantTimeEq;
@@ -107,22 +114,6 @@ pub fn token_matches(given: &str, expected: &str) -> bool {
 }
 
 pub use pathfarm_common::frames::MAX_FRAMES;
-
-/// A restored adaptive frame, once its film is in memory: the samples its pixels hold and each
-/// tile's mask (its next pass becomes pending, or the tile leaves the schedule).
-fn restore_adaptive(job: &mut Job, index: usize) {
-    let Some(a) = job.settings.adaptive else { return };
-    let Some(run) = job.open.get_mut(&index) else { return };
-    let Some(film) = &run.film else { return };
-    job.samples_done +=
-        job.plan.tiles.iter().map(|t| film.tile(*t).sums.iter().map(|p| u64::from(p.weight)).sum::<u64>()).sum::<u64>();
-    for tile in 0..job.plan.tiles.len() {
-        let d = run.decide(&job.plan, &a, job.settings.spp, tile);
-        job.units_merged += d.units_skipped;
-        job.samples_total = job.samples_total.saturating_sub(d.samples_skipped);
-    }
-    run.restored = false;
-}
 
 /// Errors of farm operations; the API maps each to a status code.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -299,11 +290,10 @@ impl Farm {
                 return Err(format!("checkpoint of job {} frame {} does not match its settings", rec.id, cp.frame));
             }
             let on_disk = film.is_none();
-            job.open_frame_with(index, film);
+            job.open_frame_with(index, FilmAssembly::without_film(&job.plan, cp.next_pass.clone()));
             let Some(run) = job.open.get_mut(&index) else { continue };
-            run.restored = on_disk;
+            run.restored = true;
             for (tile, &np) in cp.next_pass.iter().enumerate() {
-                run.advance(tile, np);
                 job.units_merged += u64::from(np);
                 if job.settings.adaptive.is_none() {
                     job.samples_done += job.plan.tiles[tile].pixel_count() as u64
@@ -312,9 +302,9 @@ impl Farm {
             }
             // Adaptive: converged pixels hold fewer samples than the passes, and the masks are
             // a pure function of the merged sums (not stored): both come from the film, now or
-            // when it is loaded.
-            if !on_disk {
-                restore_adaptive(&mut job, index);
+            // when it is loaded (the assembly judges them when it gets the film).
+            if let Some(film) = film {
+                job.put_film(index, film);
             }
             let Some(run) = job.open.get_mut(&index) else { continue };
             run.checkpoint_dirty = false;
@@ -531,7 +521,7 @@ impl Farm {
             // A single-frame job cancelled before it started has no film and no image.
             job.output_dirty = job.sequence || !job.open.is_empty();
             for run in job.open.values_mut() {
-                run.waiting.clear();
+                run.drop_received();
             }
             if job.sequence && state != JobState::Completed {
                 job.drop_open_frames();

@@ -11,7 +11,8 @@
 //! when the limits are reached.
 
 use super::job::{Checkpoint, Job};
-use super::{Farm, FarmError, MergeOutcome, restore_adaptive};
+use super::{Farm, FarmError, MergeOutcome};
+use pathfarm_common::assembly::Folded;
 use pathfarm_common::film::Film;
 use pathfarm_common::protocol::{FrameOrder, JobId, JobState};
 use std::collections::HashSet;
@@ -59,7 +60,7 @@ impl Farm {
         let film_of = |j: &Job| Film::bytes_for(j.settings.width, j.settings.height);
         // A paused job's films go to disk.
         for job in self.jobs.values().filter(|j| j.state == JobState::Paused) {
-            for &i in job.open.iter().filter(|(_, r)| r.film.is_some() && !r.spilling).map(|(i, _)| i) {
+            for &i in job.open.iter().filter(|(_, r)| r.resident && !r.spilling).map(|(i, _)| i) {
                 plan.spill.push(frame_ref(job, i));
                 chosen.insert((job.id, i));
                 films -= 1;
@@ -80,12 +81,12 @@ impl Farm {
                 served.insert(job.id);
                 continue;
             }
-            let spilled = job.open.iter().find(|(_, r)| r.film.is_none() && !r.spilling).map(|(&i, _)| i);
+            let spilled = job.open.iter().find(|(_, r)| !r.resident && !r.spilling).map(|(&i, _)| i);
             let (load, n) = match spilled {
                 Some(i) => (Some(i), 1),
                 None if job.accepts_work()
                     && job.unstarted > 0
-                    && job.open.values().all(|r| r.film.is_some())
+                    && job.open.values().all(|r| r.resident)
                     && (job.order == FrameOrder::SequencePreview
                         || job.films_held() < self.cfg.max_open_frames.max(1) as u64) =>
                 {
@@ -106,7 +107,7 @@ impl Farm {
                     .filter(|v| v.id != job.id && !served.contains(&v.id) && v.priority <= job.priority)
                     .flat_map(|v| v.open.iter().map(move |(&i, r)| (v, i, r)))
                     .filter(|(v, i, r)| {
-                        r.film.is_some()
+                        r.resident
                             && !r.spilling
                             && !chosen.contains(&(v.id, *i))
                             && now_ms.saturating_sub(r.loaded_ms) >= self.cfg.min_resident_ms
@@ -142,10 +143,17 @@ impl Farm {
         if run.spilling {
             return None;
         }
-        let film = run.film.take()?;
+        // Under the frame lock (a fold in progress finishes first): the film and the passes it
+        // holds together.
+        let (film, next_pass) = {
+            let mut asm = run.asm.lock();
+            let film = asm.take_film()?;
+            (film, asm.next_passes().to_vec())
+        };
+        run.resident = false;
         run.spilling = true;
         run.checkpoint_dirty = false;
-        Some(Checkpoint { job_id: f.job, frame: f.frame, next_pass: run.next_pass.clone(), film })
+        Some(Checkpoint { job_id: f.job, frame: f.frame, next_pass, film })
     }
 
     /// The film taken by [`Farm::take_film`] is on disk.
@@ -157,14 +165,15 @@ impl Farm {
 
     /// Writing the film taken by [`Farm::take_film`] failed: it is in memory again.
     pub fn return_film(&mut self, f: FrameRef, film: Film, now_ms: u64) -> MergeOutcome {
-        if let Some(run) = self.jobs.get_mut(&f.job).and_then(|j| j.open.get_mut(&f.index)) {
-            run.spilling = false;
-            if run.film.is_none() {
-                run.film = Some(film);
-                run.checkpoint_dirty = true;
-            }
+        let Some(job) = self.jobs.get_mut(&f.job) else { return MergeOutcome::default() };
+        let Some(run) = job.open.get_mut(&f.index) else { return MergeOutcome::default() };
+        run.spilling = false;
+        if run.resident {
+            return MergeOutcome::default();
         }
-        self.settle_all(f, now_ms)
+        run.checkpoint_dirty = true;
+        let folded = job.put_film(f.index, film);
+        self.film_back(f, &folded, now_ms)
     }
 
     /// Frame `f`'s film read back from its checkpoint: it must hold exactly the merged set the
@@ -179,13 +188,14 @@ impl Farm {
     ) -> Result<MergeOutcome, FarmError> {
         let job = self.jobs.get_mut(&f.job).ok_or(FarmError::NoJob(f.job))?;
         let Some(run) = job.open.get_mut(&f.index) else { return Ok(MergeOutcome::default()) };
-        if run.film.is_some() || run.spilling {
+        if run.resident || run.spilling {
             return Ok(MergeOutcome::default());
         }
         let (w, h) = (job.settings.width, job.settings.height);
+        let held = run.asm.lock().next_passes().to_vec();
         let film = cp.and_then(|cp| {
-            if cp.job_id != f.job || cp.frame != f.frame || cp.next_pass != run.next_pass {
-                Err(format!("its checkpoint holds passes {:?}, the farm {:?}", cp.next_pass, run.next_pass))
+            if cp.job_id != f.job || cp.frame != f.frame || cp.next_pass != held {
+                Err(format!("its checkpoint holds passes {:?}, the farm {held:?}", cp.next_pass))
             } else if (cp.film.width, cp.film.height) != (w, h) {
                 Err(format!("its checkpoint is {}x{}, the job {w}x{h}", cp.film.width, cp.film.height))
             } else {
@@ -194,17 +204,14 @@ impl Farm {
         });
         match film {
             Ok(film) => {
-                run.film = Some(film);
                 run.loaded_ms = now_ms;
                 run.last_used = now_ms;
-                if run.restored {
-                    restore_adaptive(job, f.index);
-                }
+                let folded = job.put_film(f.index, film);
                 if job.state.is_finished() && !job.sequence {
                     job.output_dirty = true;
                     self.changes.outputs = true;
                 }
-                Ok(self.settle_all(f, now_ms))
+                Ok(self.film_back(f, &folded, now_ms))
             }
             Err(e) => {
                 let msg = format!("frame {} could not be read back from disk: {e}", f.frame);
@@ -222,15 +229,12 @@ impl Farm {
         }
     }
 
-    /// Folds every tile's waiting results of frame `f` (and completes the frame if it is).
-    fn settle_all(&mut self, f: FrameRef, now_ms: u64) -> MergeOutcome {
+    /// Frame `f`'s film is back: records the results that waited and folded (which may
+    /// complete the frame and the job).
+    fn film_back(&mut self, f: FrameRef, folded: &[Folded], now_ms: u64) -> MergeOutcome {
         // The frame's film is back: its units may be leased again.
         self.changes.work_ready = true;
         self.changes.progress(f.job);
-        let tiles: Vec<usize> = match self.jobs.get(&f.job).and_then(|j| j.open.get(&f.index)) {
-            Some(run) => run.waiting_tiles(),
-            None => return MergeOutcome::default(),
-        };
-        self.settle(f.job, f.index, &tiles, now_ms)
+        self.settle(f.job, f.index, folded, now_ms)
     }
 }

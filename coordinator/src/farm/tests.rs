@@ -2,6 +2,7 @@
 
 use super::*;
 use pathfarm_common::adaptive::{self, AdaptiveSettings, BlockMask};
+use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::film::SampleValue;
 use pathfarm_common::film::TileAccum;
 use pathfarm_common::job::PassSchedule;
@@ -283,7 +284,7 @@ fn out_of_order_results_merge_to_the_same_film() {
     assert_eq!(completed, (0..s.plan().passes.len() as u32).collect::<Vec<_>>());
     let job = farm.job(id).expect("job");
     assert_eq!(job.state, JobState::Completed);
-    assert_eq!(job.film(), Some(&reference));
+    assert_eq!(job.film().as_deref(), Some(&reference));
 }
 
 /// A result claiming more samples than its pass (1,000 for 1: R = 1000 was merged) or
@@ -696,7 +697,7 @@ fn adaptive_masks_gate_passes_and_match_the_local_render() {
     out = farm.accept(again.lease_id, adaptive_grant_result(&again), 0).expect("accept");
     assert!(out.job_completed);
     let job = farm.job(id).expect("job");
-    assert_eq!(job.film(), Some(&reference), "farm film differs from the local render");
+    assert_eq!(job.film().as_deref(), Some(&reference), "farm film differs from the local render");
     let info = job.info(0);
     assert_eq!(info.progress, 1.0);
     assert_eq!(info.units_merged, info.units_total);
@@ -749,8 +750,210 @@ fn adaptive_converged_tiles_leave_the_schedule_and_survive_a_restore() {
     }
     let job = again.job(id).expect("job");
     assert_eq!(job.state, JobState::Completed);
-    assert_eq!(job.film(), Some(&reference));
+    assert_eq!(job.film().as_deref(), Some(&reference));
     assert_eq!(job.info(0).progress, 1.0);
+}
+
+/// `render_local`'s loop (worker/src/render/mod.rs) over the fake renderer of
+/// [`adaptive_result`]: the film a local render of the job makes.
+fn local_fold(s: &RenderSettings) -> Film {
+    let plan = s.plan();
+    let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+    let mut local = FilmAssembly::new(&plan, s.width, s.height);
+    for key in plan.units() {
+        let t = key.tile as usize;
+        if local.next_pass(t) == key.pass {
+            let accum = adaptive_result(plan.tiles[t], plan.passes[key.pass as usize], local.mask(t));
+            local.offer(&plan, adaptive, key, accum, None);
+        }
+    }
+    local.into_film().expect("film")
+}
+
+/// The farm folds through `FilmAssembly`, the fold of `render_local`: with and without
+/// adaptive sampling, results delivered in a scrambled order, the film written to disk halfway
+/// through every round (the rest of the round's results wait) and read back, give the film of
+/// `render_local`'s loop over the same fake renderer, bit for bit, and of an assembly fed the
+/// units in the farm's arrival order; each accept folds what that assembly folds.
+#[test]
+fn the_farm_and_render_local_share_the_fold_in_any_order_and_across_a_spill() {
+    for adaptive_on in [true, false] {
+        let mut s = adaptive_settings();
+        s.tile_size = 8;
+        s.passes = PassSchedule::Fixed { spp: 1 }; // 7 passes of 1 sample
+        if !adaptive_on {
+            s.adaptive = None;
+        }
+        let plan = s.plan();
+        let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
+        let local = local_fold(&s);
+        if adaptive_on {
+            assert_eq!(local, adaptive_local(&s), "the assembly is the local render's adaptive loop");
+        }
+        let mut farm = Farm::new(FarmConfig::default());
+        let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+        let f = FrameRef { job: id, index: 0, frame: s.frame, sequence: false };
+        let w = farm.register("w".into(), 1, 0);
+        let mut fed = FilmAssembly::new(&plan, s.width, s.height);
+        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut rounds = 0;
+        loop {
+            let mut grants = Vec::new();
+            while let Some(g) = farm.lease(w, 0).expect("lease") {
+                grants.push(g);
+            }
+            if grants.is_empty() {
+                break;
+            }
+            rounds += 1;
+            // Fisher-Yates with xorshift64 (fixed seed): a scrambled arrival order.
+            for i in (1..grants.len()).rev() {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                grants.swap(i, (x % (i as u64 + 1)) as usize);
+            }
+            let half = grants.len() / 2;
+            let mut away = None;
+            let mut folded_away = 0;
+            for (n, g) in grants.iter().enumerate() {
+                if n == half {
+                    away = Some(farm.take_film(f).expect("the film is in memory"));
+                    farm.film_spilled(f);
+                }
+                let r = adaptive_grant_result(g);
+                let want = fed.offer(&plan, adaptive, g.unit, r.accum.clone(), None).len() as u32;
+                let out = farm.accept(g.lease_id, r, 0).expect("accept");
+                if away.is_some() {
+                    assert_eq!(out.folded, 0, "nothing folds while the film is on disk");
+                    folded_away += want;
+                } else {
+                    assert_eq!(out.folded, want, "the farm folds what the assembly folds");
+                }
+            }
+            if let Some(cp) = away {
+                assert_eq!(farm.job(id).expect("job").film().as_deref(), None);
+                assert_eq!(farm.lease(w, 0).expect("lease"), None, "nothing is leased while the film is on disk");
+                let out = farm.attach_film(f, Ok(cp), 0).expect("read back");
+                assert_eq!(out.folded, folded_away, "the results that waited fold when it is back");
+            }
+        }
+        assert!(rounds > 1 || !adaptive_on, "adaptive passes go out one at a time per tile");
+        let job = farm.job(id).expect("job");
+        assert_eq!(job.state, JobState::Completed);
+        assert!(
+            job.film().as_deref() == Some(&local),
+            "adaptive {adaptive_on}: the farm's film differs from render_local's"
+        );
+        assert!(fed.film() == Some(&local));
+        let info = job.info(0);
+        assert_eq!((info.units_merged, info.progress), (info.units_total, 1.0));
+        let held: u64 = local.sums.iter().map(|p| u64::from(p.weight)).sum();
+        assert_eq!((info.samples_done, info.samples_total), (held, held));
+    }
+}
+
+/// Folds run outside the farm lock, under their frame's lock: a fold completes while another
+/// thread holds the farm lock; four threads lease, fold and record units of two jobs at once
+/// (one adaptive, one not; 7 passes of 1 sample), each leasing a few units and delivering them
+/// in reverse after a pause drawn from a fixed-seed xorshift, so results of a tile fold out of
+/// order and the records of one tile arrive in either order. Each job's film is the sequential
+/// fold's (`render_local`'s) bit for bit, and its figures are complete.
+#[test]
+fn concurrent_folds_of_two_jobs_give_the_sequential_films() {
+    use std::sync::{Arc, Mutex};
+    let mut adaptive = adaptive_settings();
+    adaptive.tile_size = 8;
+    adaptive.passes = PassSchedule::Fixed { spp: 1 };
+    let plain = RenderSettings { adaptive: None, ..adaptive.clone() };
+    let farm = Arc::new(Mutex::new(Farm::new(FarmConfig::default())));
+    let ids: Vec<JobId> = [&adaptive, &plain]
+        .iter()
+        .map(|s| farm.lock().expect("farm").submit("x".into(), None, 0, (*s).clone(), 0).expect("submit"))
+        .collect();
+    // A fold needs no farm lock.
+    {
+        let w = farm.lock().expect("farm").register("w".into(), 1, 0);
+        let mut f = farm.lock().expect("farm");
+        let g = f.lease(w, 0).expect("lease").expect("work");
+        let fold = f.begin_accept(g.lease_id, adaptive_grant_result(&g), 0).expect("begin");
+        let folding = std::thread::scope(|s| s.spawn(|| fold.fold()).join().expect("fold"));
+        f.finish_accept(folding, 0);
+        // Two folds of one tile recorded in reverse: the plain job's tile 0, passes 0 and 1.
+        let mut grants = Vec::new();
+        while grants.len() < 2 {
+            let g = f.lease(w, 0).expect("lease").expect("work");
+            if g.job_id == ids[1] && g.unit.tile == 0 {
+                grants.push(g);
+            } else {
+                let fold = f.begin_accept(g.lease_id, adaptive_grant_result(&g), 0).expect("begin");
+                f.finish_accept(fold.fold(), 0);
+            }
+        }
+        let mut folds: Vec<Folding> = grants
+            .iter()
+            .map(|g| f.begin_accept(g.lease_id, adaptive_grant_result(g), 0).expect("begin").fold())
+            .collect();
+        let first = folds.remove(0);
+        f.finish_accept(folds.remove(0), 0);
+        assert_eq!(f.job(ids[1]).expect("job").open[&0].next_passes()[0], 2, "the later record moves the tile");
+        f.finish_accept(first, 0);
+        assert_eq!(f.job(ids[1]).expect("job").open[&0].next_passes()[0], 2, "the earlier record is behind it");
+    }
+    let done = |farm: &Farm| ids.iter().all(|&id| farm.job(id).expect("job").state == JobState::Completed);
+    std::thread::scope(|scope| {
+        for t in 0..4u64 {
+            let farm = farm.clone();
+            let done = &done;
+            scope.spawn(move || {
+                let w = farm.lock().expect("farm").register(format!("w{t}"), 1, 0);
+                let mut x = 0x9e37_79b9_7f4a_7c15 ^ (t + 1);
+                let mut next = move || {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    x
+                };
+                // Bounded: a farm that lost track of its units fails the asserts, never hangs.
+                for _ in 0..100_000 {
+                    let mut grants = Vec::new();
+                    {
+                        let mut f = farm.lock().expect("farm");
+                        if done(&f) {
+                            return;
+                        }
+                        for _ in 0..1 + next() % 4 {
+                            match f.lease(w, 0).expect("lease") {
+                                Some(g) => grants.push(g),
+                                None => break,
+                            }
+                        }
+                    }
+                    if grants.is_empty() {
+                        std::thread::yield_now();
+                        continue;
+                    }
+                    for g in grants.iter().rev() {
+                        let fold = farm.lock().expect("farm").begin_accept(g.lease_id, adaptive_grant_result(g), 0);
+                        let folding = fold.expect("begin").fold();
+                        std::thread::sleep(std::time::Duration::from_micros(next() % 300));
+                        farm.lock().expect("farm").finish_accept(folding, 0);
+                    }
+                }
+            });
+        }
+    });
+    let farm = farm.lock().expect("farm");
+    for (id, s) in ids.iter().zip([&adaptive, &plain]) {
+        let job = farm.job(*id).expect("job");
+        let local = local_fold(s);
+        assert!(job.film().as_deref() == Some(&local), "job {id}: concurrent folds changed the film");
+        let info = job.info(0);
+        assert_eq!((info.units_merged, info.progress), (info.units_total, 1.0), "job {id}");
+        let held: u64 = local.sums.iter().map(|p| u64::from(p.weight)).sum();
+        assert_eq!((info.samples_done, info.samples_total), (held, held), "job {id}");
+        assert_eq!(job.leased, 0, "job {id}");
+    }
 }
 
 /// Units are derived from the plan, never stored per (pass, tile): the job of issue 17
@@ -840,7 +1043,7 @@ fn lazy_units_hand_out_returned_units_first_in_canonical_order() {
     }
     let job = farm.job(id).expect("job");
     assert_eq!(job.state, JobState::Completed);
-    assert_eq!(job.film(), Some(&reference));
+    assert_eq!(job.film().as_deref(), Some(&reference));
 }
 
 /// Films follow the jobs in progress: queued jobs hold none and are admitted while their film
@@ -877,7 +1080,7 @@ fn queued_jobs_hold_no_film_and_start_when_their_film_fits() {
     farm.job_mut(done[0]).expect("job").output_dirty = false;
     assert!(farm.final_image_written(done[0], Some(0.5)));
     let job = farm.job(done[0]).expect("job");
-    assert_eq!((job.film(), job.image_on_disk()), (None, Some(Some(0.5))));
+    assert_eq!((job.film().as_deref(), job.image_on_disk()), (None, Some(Some(0.5))));
     assert_eq!(job.info(0).progress, 1.0);
     assert_eq!(farm.film_bytes_held(), film);
     let g = farm.lease(w, 0).expect("lease").expect("the third job starts");
@@ -935,7 +1138,7 @@ fn run_residency(farm: &mut Farm, disk: &mut HashMap<(JobId, i32), Checkpoint>, 
 /// A job's film, from memory or from the disk map.
 fn film_of(farm: &Farm, disk: &HashMap<(JobId, i32), Checkpoint>, id: JobId) -> Film {
     let job = farm.job(id).expect("job");
-    job.film().cloned().unwrap_or_else(|| disk[&(id, job.settings.frame)].film.clone())
+    job.film().as_deref().cloned().unwrap_or_else(|| disk[&(id, job.settings.frame)].film.clone())
 }
 
 /// At most one film in memory (`max_resident_films` 1) and two jobs of equal priority: they
@@ -1061,6 +1264,6 @@ fn a_restart_reads_films_when_their_frames_are_leased() {
     }
     for &id in &ids[..2] {
         assert_eq!(again.job(id).expect("job").state, JobState::Completed);
-        assert_eq!(again.job(id).expect("job").film(), Some(&reference));
+        assert_eq!(again.job(id).expect("job").film().as_deref(), Some(&reference));
     }
 }

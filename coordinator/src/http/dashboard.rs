@@ -93,7 +93,7 @@ pub fn noise(film: &Film) -> (f64, f64, f64) {
 
 /// A point of a single-frame job (a sequence's frames have no convergence curve).
 fn measure(job: &crate::farm::Job) -> Option<ConvergencePoint> {
-    let (mean_spp, rmse, mean) = noise(job.film()?);
+    let (mean_spp, rmse, mean) = noise(&*job.film()?);
     let passes_done = job.passes_done();
     Some(ConvergencePoint {
         passes_done,

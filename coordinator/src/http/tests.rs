@@ -355,7 +355,7 @@ fn banded_resolve_equals_whole_resolve() {
         // The job's film exists from its first lease.
         let w = farm.register("w".into(), 1, 0);
         assert!(farm.lease(w, 0).expect("lease").is_some());
-        let film = farm.job_mut(id).expect("job").film_mut().expect("film");
+        let mut film = farm.job_mut(id).expect("job").film_mut().expect("film");
         let mut x: u64 = 0x1234_5678_9abc_def1;
         for p in film.sums.iter_mut() {
             let mut b = [0u8; pathfarm_common::film::PIXEL_BYTES];

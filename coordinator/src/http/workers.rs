@@ -427,13 +427,27 @@ pub(crate) fn decode_and_accept(
             return Err(ApiError::unprocessable("bad_result", e.to_string()));
         }
     };
-    let (r, changes) = state.locked(|farm| {
-        let r = farm.accept(lease_id, frame, now_ms());
-        if r.is_err() {
-            farm.counters.results_rejected += 1;
+    // Under the farm lock: check the result and take it from its lease. Then fold it under its
+    // frame's lock alone (leases and other frames' merges go on), and record the fold under the
+    // farm lock again (`farm/frame_run.rs`).
+    let begun = {
+        let mut farm = state.farm.lock();
+        match farm.begin_accept(lease_id, frame, now_ms()) {
+            Ok(fold) => Ok(fold),
+            Err(e) => {
+                farm.counters.results_rejected += 1;
+                Err((e, farm.take_changes()))
+            }
         }
-        r
-    });
+    };
+    let (r, changes) = match begun {
+        Ok(fold) => {
+            let folding = fold.fold();
+            let (out, changes) = state.locked(|farm| farm.finish_accept(folding, now_ms()));
+            (Ok(out), changes)
+        }
+        Err((e, changes)) => (Err(e), changes),
+    };
     // A merged result is in effect whether or not a record could be saved (the checkpoint loop
     // saves it again); the worker is told it was merged.
     state.apply_logged(changes, &format!("lease {lease_id}'s result"));

@@ -77,8 +77,9 @@ pub type CheckpointKey = (u64, JobState, i32);
 
 /// Checkpoints job `id` now (blocking): the films of its frames in progress that merged units
 /// since their last checkpoint, each with its merged set in one atomic file, and the job's row
-/// with each. One film copy at a time: the farm lock is held for one copy. Returns what was
-/// written, `None` when the job is gone.
+/// with each. One film copy at a time, made under its frame lock after the farm lock is
+/// released (merges of other frames and leases go on meanwhile). Returns what was written,
+/// `None` when the job is gone.
 pub fn checkpoint_job(state: &AppState, id: JobId) -> anyhow::Result<Option<CheckpointKey>> {
     let mut written = None;
     loop {
@@ -86,11 +87,12 @@ pub fn checkpoint_job(state: &AppState, id: JobId) -> anyhow::Result<Option<Chec
             let mut farm = state.farm.lock();
             farm.job_mut(id).ok().map(|j| {
                 let key = (j.units_merged, j.state, j.priority);
-                (key, j.record(now_ms()), j.sequence, j.take_checkpoints(false, 1))
+                (key, j.record(now_ms()), j.sequence, j.checkpoint_sources(false, 1))
             })
         };
-        let Some((key, rec, sequence, cps)) = snapshot else { return Ok(written) };
-        let more = sequence && !cps.is_empty();
+        let Some((key, rec, sequence, sources)) = snapshot else { return Ok(written) };
+        let more = sequence && !sources.is_empty();
+        let cps: Vec<_> = sources.iter().filter_map(crate::farm::CheckpointSource::copy).collect();
         for cp in &cps {
             let path = if sequence {
                 state.store().frame_checkpoint_path(id, cp.frame)

@@ -230,10 +230,10 @@ fn with_film<T>(
             job.frames.len(),
             job.frames.spec()
         ))),
-        None => job.film().map(f).ok_or_else(no_film),
+        None => job.film().map(|film| f(&film)).ok_or_else(no_film),
         Some(n) if !job.sequence => {
             if job.frames.frames().first() == Some(&n) {
-                job.film().map(f).ok_or_else(no_film)
+                job.film().map(|film| f(&film)).ok_or_else(no_film)
             } else {
                 Err(ServiceError::not_found(format!(
                     "job {id} renders frame {} only, not frame {n}",

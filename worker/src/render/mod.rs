@@ -518,5 +518,5 @@ pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize))
         }
         progress(done + 1, total);
     }
-    asm.into_film()
+    asm.into_film().unwrap_or_else(|| unreachable!("render_local never takes the film away"))
 }
