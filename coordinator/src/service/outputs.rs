@@ -90,12 +90,14 @@ impl FrameWriter {
 }
 
 /// Writes each job's EXR and PNG after a pass completes, and always when the job ends. A running
-/// job's images are written at most every `output_interval`, and at most ~10% of the time: the
-/// next write waits nine times as long as the last took (a 1024 x 1024 EXR costs ~0.4 s of CPU
-/// in ZIP compression, a 4K one four times that; the API serves running jobs' images from the
-/// film, so the files on disk may lag a little without anyone waiting on them).
+/// job's images are written at most every `output_interval`, and progressive writes of all jobs
+/// together take at most ~10% of the time: after one, the next waits nine times as long as it
+/// took (a 1024 x 1024 EXR costs ~0.4 s of CPU in ZIP compression, a 4K one four times that;
+/// the API serves running jobs' images from their films, so the files on disk may lag a little
+/// without anyone waiting on them). Final images and sequence frames are never held back.
 pub async fn output_loop(state: Arc<AppState>) {
     let mut next_due: HashMap<JobId, Instant> = HashMap::new();
+    let mut progressive_after = Instant::now();
     let writer = match FrameWriter::start() {
         Ok(w) => w,
         Err(e) => {
@@ -107,13 +109,22 @@ pub async fn output_loop(state: Arc<AppState>) {
         let _ = tokio::time::timeout(Duration::from_millis(500), state.output_ready.notified()).await;
         let (due, frames): (Vec<(JobId, JobState, pathfarm_common::film::PreviewExposure)>, Vec<FrameToWrite>) = {
             let mut farm = state.farm.lock();
+            // One progressive write per turn of the budget: the running job written longest ago.
+            let now = Instant::now();
+            let progressive = if now >= progressive_after {
+                farm.jobs()
+                    .filter(|j| j.output_due() && !j.sequence && !j.state.is_finished())
+                    .filter(|j| next_due.get(&j.id).is_none_or(|t| now >= *t))
+                    .min_by_key(|j| next_due.get(&j.id).copied())
+                    .map(|j| j.id)
+            } else {
+                None
+            };
             let mut frames = Vec::new();
             let due = farm
                 .jobs_mut()
                 .filter(|j| j.output_due())
-                .filter(|j| {
-                    j.sequence || j.state.is_finished() || next_due.get(&j.id).is_none_or(|t| Instant::now() >= *t)
-                })
+                .filter(|j| j.sequence || j.state.is_finished() || Some(j.id) == progressive)
                 .filter_map(|j| {
                     j.output_dirty = false;
                     let exposure = pathfarm_common::film::PreviewExposure::of(&j.settings);
@@ -184,7 +195,10 @@ pub async fn output_loop(state: Arc<AppState>) {
                 Err(e) => tracing::error!(job = id, "image writer panicked: {e}"),
             }
             let took = started.elapsed();
-            next_due.insert(id, started + state.config.output_interval.max(took * 9));
+            next_due.insert(id, started + state.config.output_interval);
+            if !job_state.is_finished() {
+                progressive_after = Instant::now() + took * 9;
+            }
             state.publish(crate::service::Event::Image { id });
         }
         if next_due.len() > 64 {
