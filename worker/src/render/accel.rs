@@ -271,15 +271,16 @@ impl Accel {
         let mut best = (0.0f32, 0.0f32);
         obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
             // `primitive_id` indexes primitive_indices; tris is stored in that order.
-            if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time) {
+            if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time)
+                && t < ray.tmax
+            {
                 best = (b1, b2);
-                if t < ray.tmax {
-                    hit = Some(state.primitive_id);
-                    ray.tmax = t;
-                }
+                hit = Some(state.primitive_id);
+                ray.tmax = t;
             }
         });
-        // Only t < tmax is accepted, so the last recorded barycentrics are the winner's.
+        // The triangle test also passes t == tmax (a tie on a shared edge): such a hit loses to
+        // the earlier one, barycentrics included.
         hit.map(|slot| Hit { t: ray.tmax, prim: self.prim_ids[slot as usize], b1: best.0, b2: best.1 })
     }
 
@@ -407,6 +408,31 @@ mod tests {
         assert!(accel.intersect(Vec3A::new(0.0, 0.0, 5.0), Vec3A::new(0.0, 0.0, -1.0), 3.9).is_none());
     }
 
+    /// A ray through the edge two triangles share hits both at the same t: the reported
+    /// triangle's barycentrics are its own (they were the other one's when it was tested
+    /// second), at every SIMD level and in the reference traversal.
+    #[test]
+    fn a_tie_on_a_shared_edge_keeps_the_winners_barycentrics() {
+        let tris = vec![
+            [Vec3A::new(0.0, 0.0, 0.0), Vec3A::new(1.0, 0.0, 0.0), Vec3A::new(0.0, 1.0, 0.0)],
+            [Vec3A::new(1.0, 0.0, 0.0), Vec3A::new(1.0, 1.0, 0.0), Vec3A::new(0.0, 1.0, 0.0)],
+        ];
+        let mut accel = Accel::new(&tris);
+        for level in [SimdLevel::Baseline, SimdLevel::Avx2] {
+            accel.set_simd_level(level);
+            for k in 1..16 {
+                let target = tris[0][1].lerp(tris[0][2], k as f32 / 16.0);
+                let (o, d) = (target + Vec3A::Z, -Vec3A::Z);
+                for hit in [accel.intersect(o, d, f32::INFINITY), reference_intersect(&accel, o, d, f32::INFINITY)] {
+                    let hit = hit.expect("hit");
+                    let tri = tris[hit.prim as usize];
+                    let p = tri[0] * (1.0 - hit.b1 - hit.b2) + tri[1] * hit.b1 + tri[2] * hit.b2;
+                    assert!((p - target).length() < 1e-5, "{level:?} k {k}: {hit:?} gives {p}, the ray hits {target}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn rays_through_edges_and_vertices_never_slip_through() {
         // From inside the closed cube, every ray must hit it: aim at every vertex, at points along
@@ -510,11 +536,11 @@ mod tests {
             let mut best = (0.0f32, 0.0f32);
             let found = bvh.ray_traverse(Ray::new(o, bvh_direction(d), 0.0, t_max), &mut hit, |r, slot| {
                 match shear(slot, r.tmax) {
-                    Some((t, b1, b2)) => {
+                    Some((t, b1, b2)) if t < r.tmax => {
                         best = (b1, b2);
                         t
                     }
-                    None => f32::INFINITY,
+                    _ => f32::INFINITY,
                 }
             });
             found.then(|| Hit { t: hit.t, prim: accel.prim_ids[hit.primitive_id as usize], b1: best.0, b2: best.1 })
