@@ -188,11 +188,13 @@ pub(crate) async fn upload_result(
     let declared = declared_length(&headers);
     check_declared(declared, state.config.max_upload_bytes as u64, || "the upload limit".to_string())
         .map_err(refuse_unread)?;
-    let bound = {
+    let (shape, bound) = {
         let mut farm = state.farm.lock();
         let shape = farm.check_lease(lease_id, secret.as_deref()).map(|()| farm.lease_shape(lease_id));
         match shape {
-            Ok(Some((tile, image))) => max_result_bytes(tile, image).min(state.config.max_upload_bytes as u64),
+            Ok(Some((tile, image))) => {
+                ((tile, image), max_result_bytes(tile, image).min(state.config.max_upload_bytes as u64))
+            }
             Ok(None) | Err(_) => {
                 farm.counters.results_rejected += 1;
                 let e = shape.err().unwrap_or(FarmError::LeaseLost(lease_id));
@@ -215,7 +217,7 @@ pub(crate) async fn upload_result(
     // cost 13% of the coordinator's CPU per unit in context switches: load tool, 500 workers.)
     let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()).into_response())?;
     let t0 = Instant::now();
-    let outcome = decode_and_accept(&state, lease_id, secret.as_deref(), &body).map_err(IntoResponse::into_response)?;
+    let outcome = decode_and_accept(&state, lease_id, shape, &body).map_err(IntoResponse::into_response)?;
     let outcome = outcome.map_err(|e| ApiError::from(e).into_response())?;
     state.metrics.observe_merge(t0.elapsed());
     Ok(Json(ResultAccepted { merged: outcome.folded > 0 }))
@@ -389,34 +391,16 @@ pub(crate) fn decode_slots() -> &'static tokio::sync::Semaphore {
     })
 }
 
-/// Decodes a result body and merges it; an undecodable body is a 422 (and its unit pending
-/// again), a refusal by the farm is returned as the inner error.
+/// Decodes a result body for lease `lease_id`, whose holder and shape (`tile`, `image`) were
+/// checked before its body was read, and merges it; an undecodable body is a 422 (and its unit
+/// pending again), a refusal by the farm (e.g. the lease was lost meanwhile) is returned as the
+/// inner error.
 pub(crate) fn decode_and_accept(
     state: &AppState,
     lease_id: LeaseId,
-    secret: Option<&str>,
+    (tile, image): (pathfarm_common::job::TileRect, (u32, u32)),
     body: &[u8],
 ) -> ApiResult<Result<crate::farm::MergeOutcome, FarmError>> {
-    // Refuse results for leases that are not held, or not held by the sender, before
-    // decoding: duplicates and late results cost nothing, and a body from someone without a
-    // lease cannot make the decoder allocate what its header declares (up to 4 GiB of sums).
-    let (tile, image) = {
-        let mut farm = state.farm.lock();
-        if let Err(e) = farm.check_lease(lease_id, secret) {
-            farm.counters.results_rejected += 1;
-            if matches!(e, FarmError::WrongWorker(_)) {
-                tracing::warn!(lease = lease_id, "result refused: {e}");
-            }
-            return Ok(Err(e));
-        }
-        match farm.lease_shape(lease_id) {
-            Some(shape) => shape,
-            None => {
-                farm.counters.results_rejected += 1;
-                return Ok(Err(FarmError::LeaseLost(lease_id)));
-            }
-        }
-    };
     let frame = match UnitResultFrame::decode_expecting(body, tile, image) {
         Ok(f) => f,
         Err(e) => {
