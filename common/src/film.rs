@@ -590,7 +590,9 @@ impl ImageLayers {
         out
     }
 
-    /// Writes `channels` as a float32 OpenEXR file (ZIP compression, lossless) to `w`.
+    /// Writes `channels` as a float32 OpenEXR file to `w`: ZIP compression of single scanlines
+    /// (OpenEXR's `ZIPS`), lossless; a third less CPU than 16-line blocks for a 1% larger file
+    /// (bench `film`: 0.47 against 0.69 s for 1024 x 1024).
     fn write_exr_channels(
         width: u32,
         height: u32,
@@ -602,7 +604,9 @@ impl ImageLayers {
         let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> =
             channels.into_iter().map(|(name, v)| AnyChannel::new(name, FlatSamples::F32(v))).collect();
         let attrs = LayerAttributes { software_name: Some(Text::from("pathfarm")), ..Default::default() };
-        let layer = Layer::new(size, attrs, Encoding::SMALL_LOSSLESS, AnyChannels::sort(channels));
+        let enc =
+            Encoding { compression: Compression::ZIP1, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
+        let layer = Layer::new(size, attrs, enc, AnyChannels::sort(channels));
         Image::from_layer(layer).write().to_buffered(w)
     }
 
