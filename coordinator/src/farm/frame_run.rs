@@ -15,20 +15,21 @@ use std::sync::Arc;
 /// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
 /// With adaptive sampling, pixels in the converged blocks of `mask` must hold no sample.
 pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&BlockMask>) -> Option<String> {
-    let w = accum.rect.width();
-    accum.sums.iter().enumerate().find_map(|(i, p)| {
-        let (lx, ly) = (i as u32 % w, i as u32 / w);
-        let expected = adaptive::expected_samples(mask, lx, ly, spp);
-        (p.weight != expected || p.hits > expected).then(|| {
-            let (x, y) = (accum.rect.x0 + lx, accum.rect.y0 + ly);
-            let why = if expected == spp {
-                format!("the pass has {spp} samples per pixel")
-            } else {
-                "its block has converged (adaptive sampling): it gets no samples".to_string()
-            };
-            format!("pixel ({x}, {y}) holds {:.3} samples and {:.3} hits; {why}", p.weight(), f64::from(p.hits))
+    // Row by row (no division per pixel: this runs for every result).
+    let w = accum.rect.width().max(1) as usize;
+    let (lx, ly, expected, p) = accum.sums.chunks(w).zip(0u32..).find_map(|(row, ly)| {
+        row.iter().zip(0u32..).find_map(|(p, lx)| {
+            let expected = adaptive::expected_samples(mask, lx, ly, spp);
+            (p.weight != expected || p.hits > expected).then_some((lx, ly, expected, p))
         })
-    })
+    })?;
+    let (x, y) = (accum.rect.x0 + lx, accum.rect.y0 + ly);
+    let why = if expected == spp {
+        format!("the pass has {spp} samples per pixel")
+    } else {
+        "its block has converged (adaptive sampling): it gets no samples".to_string()
+    };
+    Some(format!("pixel ({x}, {y}) holds {:.3} samples and {:.3} hits; {why}", p.weight(), f64::from(p.hits)))
 }
 
 /// One frame in progress: its scheduling state and its [`FilmAssembly`] (the film, each

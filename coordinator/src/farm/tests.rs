@@ -308,6 +308,18 @@ fn results_with_the_wrong_sample_count_are_refused() {
         }
         r => panic!("accepted: {r:?}"),
     }
+    // A pixel inside the tile: the reason names its image coordinates.
+    let g = farm.lease(w, 0).expect("lease").expect("requeued");
+    let mut off = fake_result(&g);
+    let (lx, ly) = (g.tile.width() - 1, g.tile.height() - 1);
+    pathfarm_common::film::add_sample(off.accum.pixel_mut(lx, ly), &v);
+    match farm.accept(g.lease_id, off, 0) {
+        Err(FarmError::ResultMismatch { reason, .. }) => {
+            let at = format!("pixel ({}, {}) holds 2.000 samples", g.tile.x0 + lx, g.tile.y0 + ly);
+            assert!(reason.contains(&at), "{reason}");
+        }
+        r => panic!("accepted: {r:?}"),
+    }
     let mut empty = fake_result(&g);
     empty.accum = TileAccum::new(g.tile);
     let g = farm.lease(w, 0).expect("lease").expect("requeued");
