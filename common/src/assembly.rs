@@ -306,6 +306,15 @@ mod tests {
         s
     }
 
+    /// 32 spp in passes of 4 with adaptive sampling: tiles converge after different passes.
+    fn adaptive_settings() -> RenderSettings {
+        let mut s = settings();
+        s.spp = 32;
+        s.passes = PassSchedule::Fixed { spp: 4 };
+        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        s
+    }
+
     /// A unit's sums: a value per sample that depends on the pixel and the sample index, with
     /// AOVs, so a different merge order would change the AOV means' bits.
     fn unit(plan: &Plan, key: UnitKey, mask: Option<&BlockMask>) -> TileAccum {
@@ -381,10 +390,7 @@ mod tests {
 
     #[test]
     fn adaptive_tiles_leave_the_schedule_and_resume_judges_the_same_masks() {
-        let mut s = settings();
-        s.spp = 32;
-        s.passes = PassSchedule::Fixed { spp: 4 };
-        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        let s = adaptive_settings();
         let plan = s.plan();
         let full = in_order(&s);
         let passes = plan.passes.len() as u32;
@@ -426,10 +432,7 @@ mod tests {
     /// the same adaptive decisions as an assembly that never let its film go.
     #[test]
     fn a_film_taken_away_and_put_back_assembles_the_same_bits() {
-        let mut s = settings();
-        s.spp = 32;
-        s.passes = PassSchedule::Fixed { spp: 4 };
-        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        let s = adaptive_settings();
         let plan = s.plan();
         let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
         let full = in_order(&s);
@@ -477,10 +480,7 @@ mod tests {
     /// tile (as `resume` does) and then folds them.
     #[test]
     fn resuming_without_the_film_judges_when_it_comes() {
-        let mut s = settings();
-        s.spp = 32;
-        s.passes = PassSchedule::Fixed { spp: 4 };
-        s.adaptive = Some(AdaptiveSettings { threshold: 0.05, min_spp: 4 });
+        let s = adaptive_settings();
         let plan = s.plan();
         let adaptive = s.adaptive.as_ref().map(|a| (a, s.spp));
         let mut asm = FilmAssembly::new(&plan, s.width, s.height);

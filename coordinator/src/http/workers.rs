@@ -214,7 +214,7 @@ pub(crate) async fn upload_result(
     // Decoding (CRC, 256 KiB of sums for a 64 px tile) and folding take ~100 us: they run
     // right here, on the async thread, at most one fewer at a time than there are cores, so a
     // thread is always free to answer lease requests. (A hop to the blocking pool per result
-    // cost 13% of the coordinator's CPU per unit in context switches: load tool, 500 workers.)
+    // cost ~13% more coordinator CPU per unit: load tool, 500 workers.)
     let _permit = decode_slots().acquire().await.map_err(|e| ApiError::internal(e.to_string()).into_response())?;
     let t0 = Instant::now();
     let outcome = decode_and_accept(&state, lease_id, shape, &body).map_err(IntoResponse::into_response)?;
