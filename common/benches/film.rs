@@ -3,6 +3,8 @@
 //!   normals and depths) into a film, as for every result: nanoseconds per pixel; once into a
 //!   64 x 64 film (in cache) and once spread over two 1024 x 1024 films (out of cache, as the
 //!   coordinator's films are);
+//! - decode: a 64 x 64 result body (CRC, header, sums) decoded, per codec: nanoseconds per
+//!   pixel and bytes per pixel on the wire;
 //! - outputs: resolving a 1024 x 1024 film, encoding its EXR (ZIP, as written) and its PNG:
 //!   CPU seconds of this process (the EXR encoder uses threads), and sizes.
 //!
@@ -11,7 +13,8 @@
 #![allow(clippy::print_stdout)]
 
 use pathfarm_common::film::{Film, SampleValue, TileAccum, add_sample};
-use pathfarm_common::job::TileRect;
+use pathfarm_common::job::{TileRect, UnitKey};
+use pathfarm_common::protocol::{Codec, UnitResultFrame};
 use std::time::Duration;
 use std::time::Instant;
 
@@ -64,6 +67,7 @@ fn main() {
         best * 1e6 / rounds as f64
     );
     merge_cold(&tiles);
+    decode(&tiles[1]);
     outputs(&tiles);
 }
 
@@ -137,4 +141,34 @@ fn outputs(tiles: &[TileAccum]) {
         best[2].as_secs_f64(),
         sizes.1 / 1024
     );
+}
+
+/// Decoding one result of the tile `accum` with each codec, as the coordinator does per result.
+fn decode(accum: &TileAccum) {
+    let frame = UnitResultFrame {
+        lease_id: 1,
+        job_id: 1,
+        unit: UnitKey { frame: 0, pass: 0, tile: 0 },
+        accum: accum.clone(),
+        splats: None,
+    };
+    let px = accum.sums.len() as f64;
+    for (name, codec) in [("raw", Codec::Raw), ("packed", Codec::Packed), ("lz4", Codec::Lz4)] {
+        let body = frame.encode_with(codec);
+        let rounds = 2000;
+        let mut best = f64::INFINITY;
+        for _ in 0..5 {
+            let t0 = Instant::now();
+            for _ in 0..rounds {
+                let f = UnitResultFrame::decode(std::hint::black_box(&body));
+                std::hint::black_box(f.is_ok());
+            }
+            best = best.min(t0.elapsed().as_secs_f64());
+        }
+        println!(
+            "result decode, 64x64 {name}: {:.2} ns per pixel, {:.1} bytes per pixel",
+            best * 1e9 / (px * rounds as f64),
+            body.len() as f64 / px
+        );
+    }
 }

@@ -574,21 +574,54 @@ pub enum Codec {
     Raw = 0,
     /// An lz4 block (`lz4_flex`, size-prepended).
     Lz4 = 1,
+    /// Pixel sums with each field cut to the bytes its largest value in the section needs
+    /// ([`push_pixels`]); other sections are stored raw. One unit's sums are far below their
+    /// 64-bit range (a sample of radiance 1 is 2^24), so a 1-spp tile packs to about half.
+    Packed = 2,
 }
 
-/// The codec results are sent with. Raw: on the load tool (500 workers, 64 px tiles) raw
-/// sections merge faster end to end than lz4 ones (the load tool's figures are in the commit that
-/// chose raw: 2,101-2,843 units/s raw on 2 shared cores).
-pub const RESULT_CODEC: Codec = Codec::Raw;
+/// The codec results are sent with. Packed: the fields of a unit's sums cut to their bytes
+/// (about half the bytes of raw for one sample per pixel), decoded about as fast as raw; lz4
+/// (tried before raw was chosen) cost more CPU than it saved. Load tool (500 workers, 64 px
+/// tiles, two jobs, 2 shared cores): the figures are in the commit that chose packed.
+pub const RESULT_CODEC: Codec = Codec::Packed;
+
+/// Bytes of [`PixelSums`]' fields in [`PixelSums::write_le`] order.
+const FIELD_BYTES: [usize; PIXEL_FIELDS] = [8, 8, 8, 8, 8, 4, 4, 4, 2, 2, 2, 2, 2, 2];
+/// Fields of [`PixelSums`].
+const PIXEL_FIELDS: usize = 14;
+
+/// A pixel's fields in [`PixelSums::write_le`] order, as unsigned integers.
+#[inline]
+fn pixel_fields(p: &PixelSums) -> [u64; PIXEL_FIELDS] {
+    [
+        p.rgb[0],
+        p.rgb[1],
+        p.rgb[2],
+        p.lum,
+        p.lum_sq,
+        u64::from(p.weight),
+        u64::from(p.hits),
+        u64::from(p.depth),
+        u64::from(p.albedo[0]),
+        u64::from(p.albedo[1]),
+        u64::from(p.albedo[2]),
+        u64::from(p.normal[0] as u16),
+        u64::from(p.normal[1] as u16),
+        u64::from(p.normal[2] as u16),
+    ]
+}
 
 /// Bytes of one sparse splat entry: u32 pixel index, 3 x u64 sums.
 pub const SPLAT_ENTRY_BYTES: usize = 4 + 3 * 8;
 
 /// Appends a section: u8 codec, u64 stored length, the stored bytes.
 pub fn push_section(out: &mut Vec<u8>, raw: &[u8], codec: Codec) {
+    // Packing applies to pixel sums ([`push_pixels`]); other sections are stored raw.
+    let codec = if codec == Codec::Packed { Codec::Raw } else { codec };
     out.push(codec as u8);
     match codec {
-        Codec::Raw => {
+        Codec::Raw | Codec::Packed => {
             out.extend_from_slice(&(raw.len() as u64).to_le_bytes());
             out.extend_from_slice(raw);
         }
@@ -606,6 +639,31 @@ pub fn max_section_bytes(raw: u64) -> u64 {
     1 + 8 + 4 + 20 + raw.saturating_mul(110) / 100 + 1
 }
 
+/// Takes a section's stored bytes (after its u8 codec and u64 length) from `rest`, refusing a
+/// length beyond the bytes left or above `max_stored`.
+fn read_section_bytes<'a>(
+    rest: &mut &'a [u8],
+    max_stored: usize,
+    section: &'static str,
+) -> Result<&'a [u8], DecodeError> {
+    let err = |message: String| DecodeError::Section { section, message };
+    let Some((head, tail)) = rest.split_first_chunk::<9>() else {
+        return Err(err("missing codec and length".into()));
+    };
+    let mut len = [0u8; 8];
+    len.copy_from_slice(&head[1..]);
+    let len = u64::from_le_bytes(len);
+    if len > tail.len() as u64 {
+        return Err(err(format!("length {len} exceeds the {} bytes left", tail.len())));
+    }
+    if len > max_stored as u64 {
+        return Err(err(format!("{len} bytes, at most {max_stored} expected")));
+    }
+    let (stored, tail) = tail.split_at(len as usize);
+    *rest = tail;
+    Ok(stored)
+}
+
 /// Reads a section written by [`push_section`]: raw bytes are borrowed from the body, lz4 ones
 /// decompressed. A section declaring more than `max_raw` bytes is refused before anything is
 /// allocated.
@@ -615,20 +673,9 @@ pub fn read_section<'a>(
     section: &'static str,
 ) -> Result<std::borrow::Cow<'a, [u8]>, DecodeError> {
     let err = |message: String| DecodeError::Section { section, message };
-    if rest.len() < 9 {
-        return Err(err("missing codec and length".into()));
-    }
-    let codec = rest[0];
-    let mut len = [0u8; 8];
-    len.copy_from_slice(&rest[1..9]);
-    let len = u64::from_le_bytes(len);
-    let tail = &rest[9..];
-    if len > tail.len() as u64 {
-        return Err(err(format!("length {len} exceeds the {} bytes left", tail.len())));
-    }
-    let (stored, tail) = tail.split_at(len as usize);
-    *rest = tail;
-    match codec {
+    let codec = rest.first().copied();
+    let stored = read_section_bytes(rest, usize::MAX, section)?;
+    match codec.unwrap_or(u8::MAX) {
         0 if stored.len() > max_raw => Err(err(format!("{} bytes, at most {max_raw} expected", stored.len()))),
         0 => Ok(std::borrow::Cow::Borrowed(stored)),
         1 => {
@@ -677,13 +724,103 @@ pub fn push_pixels(out: &mut Vec<u8>, pixels: &[PixelSums], codec: Codec) {
             }
         }
         Codec::Lz4 => push_section(out, &pixels_to_bytes(pixels), codec),
+        Codec::Packed => {
+            // The bytes each field needs: those of the OR of its values over the section.
+            let mut or = [0u64; PIXEL_FIELDS];
+            for p in pixels {
+                for (o, v) in or.iter_mut().zip(pixel_fields(p)) {
+                    *o |= v;
+                }
+            }
+            let widths = or.map(|v| (u64::BITS - v.leading_zeros()).div_ceil(8) as usize);
+            let stride: usize = widths.iter().sum();
+            out.push(Codec::Packed as u8);
+            out.extend_from_slice(&((PIXEL_FIELDS + pixels.len() * stride) as u64).to_le_bytes());
+            out.extend(widths.map(|w| w as u8));
+            out.reserve(pixels.len() * stride);
+            for p in pixels {
+                for (v, &w) in pixel_fields(p).iter().zip(&widths) {
+                    out.extend_from_slice(&v.to_le_bytes()[..w]);
+                }
+            }
+        }
     }
+}
+
+/// The pixels of a packed section's stored bytes (`stored`: the field widths, then `count`
+/// pixels, each its fields in [`PixelSums::write_le`] order cut to their widths). Widths above a
+/// field's size, or a length other than the widths give, are refused; any other bytes are some
+/// pixels.
+fn unpack_pixels(stored: &[u8], count: usize, section: &'static str) -> Result<Vec<PixelSums>, DecodeError> {
+    let err = |message: String| DecodeError::Section { section, message };
+    let Some((widths, data)) = stored.split_first_chunk::<PIXEL_FIELDS>() else {
+        return Err(err("packed section without its field widths".into()));
+    };
+    let mut offsets = [0usize; PIXEL_FIELDS];
+    let mut masks = [0u64; PIXEL_FIELDS];
+    let mut stride = 0;
+    for f in 0..PIXEL_FIELDS {
+        let w = usize::from(widths[f]);
+        if w > FIELD_BYTES[f] {
+            return Err(err(format!("field {f} packed in {w} bytes, it has {}", FIELD_BYTES[f])));
+        }
+        offsets[f] = stride;
+        masks[f] = if w == 8 { u64::MAX } else { (1u64 << (8 * w)) - 1 };
+        stride += w;
+    }
+    if Some(data.len()) != count.checked_mul(stride) {
+        return Err(err(format!(
+            "expected {count} pixels of {stride} packed bytes ({} bytes), got {} bytes",
+            count.saturating_mul(stride),
+            data.len()
+        )));
+    }
+    // Each field is read as 8 bytes at its offset (at most 62) in a 72-byte window on the pixel
+    // (the window has no bounds to check) and masked to its width; near the end of the data the
+    // window is a zero-padded copy.
+    let read = |px: &[u8; PIXEL_BYTES + 8]| {
+        let v = |f: usize| {
+            let o = offsets[f] & (PIXEL_BYTES - 1);
+            let mut b = [0u8; 8];
+            b.copy_from_slice(&px[o..o + 8]);
+            u64::from_le_bytes(b) & masks[f]
+        };
+        // Masked to the field's size: the casts keep every bit.
+        PixelSums {
+            rgb: [v(0), v(1), v(2)],
+            lum: v(3),
+            lum_sq: v(4),
+            weight: v(5) as u32,
+            hits: v(6) as u32,
+            depth: v(7) as u32,
+            albedo: [v(8) as u16, v(9) as u16, v(10) as u16],
+            normal: [v(11) as u16 as i16, v(12) as u16 as i16, v(13) as u16 as i16],
+        }
+    };
+    Ok((0..count)
+        .map(|i| {
+            let at = i * stride;
+            match data.get(at..).and_then(|d| d.first_chunk::<{ PIXEL_BYTES + 8 }>()) {
+                Some(window) => read(window),
+                None => {
+                    let mut px = [0u8; PIXEL_BYTES + 8];
+                    px[..stride].copy_from_slice(&data[at..at + stride]);
+                    read(&px)
+                }
+            }
+        })
+        .collect())
 }
 
 /// Reads a section of exactly `count` pixels, parsed straight from the body (raw) or from the
 /// decompressed block (lz4) into the returned vector.
 pub fn read_pixels(rest: &mut &[u8], count: usize, section: &'static str) -> Result<Vec<PixelSums>, DecodeError> {
     let expected = count.saturating_mul(PIXEL_BYTES);
+    if rest.first() == Some(&(Codec::Packed as u8)) {
+        // Never longer than raw plus its widths.
+        let stored = read_section_bytes(rest, expected.saturating_add(PIXEL_FIELDS), section)?;
+        return unpack_pixels(stored, count, section);
+    }
     let bytes = read_section(rest, expected, section)?;
     if bytes.len() != expected {
         return Err(DecodeError::Section {
@@ -984,7 +1121,7 @@ fn decode_planes(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::film::{SampleValue, add_sample};
+    use crate::film::{MAX_SAMPLE_VALUE, SampleValue, add_sample};
 
     #[test]
     fn denoise_bodies_round_trip_and_refuse_other_sizes() {
@@ -1043,7 +1180,7 @@ mod tests {
     #[test]
     fn roundtrip_with_and_without_splats() {
         for s in [false, true] {
-            for codec in [Codec::Raw, Codec::Lz4] {
+            for codec in [Codec::Raw, Codec::Lz4, Codec::Packed] {
                 let f = frame(s);
                 let bytes = f.encode_with(codec);
                 assert_eq!(UnitResultFrame::decode(&bytes).expect("decode"), f);
@@ -1053,7 +1190,7 @@ mod tests {
 
     #[test]
     fn corruption_is_refused_not_panicking() {
-        for codec in [Codec::Raw, Codec::Lz4] {
+        for codec in [Codec::Raw, Codec::Lz4, Codec::Packed] {
             let bytes = frame(true).encode_with(codec);
             // Every truncation.
             for n in 0..bytes.len() {
@@ -1095,10 +1232,77 @@ mod tests {
         assert_eq!(UnitResultFrame::decode(&f.encode_with(Codec::Lz4)).expect("lz4"), f);
     }
 
+    /// A packed section cuts each field to the bytes its largest value needs: one sample per
+    /// pixel of radiance below 1 packs to less than half of raw; a pixel of large sums widens
+    /// only its fields, and every field at full width is raw's size plus the widths.
+    #[test]
+    fn packed_sums_take_the_bytes_their_values_need() {
+        let rect = TileRect { x0: 0, y0: 0, x1: 64, y1: 64 };
+        let mut accum = TileAccum::new(rect);
+        for (i, p) in accum.sums.iter_mut().enumerate() {
+            let v = (i % 97) as f32 / 100.0;
+            add_sample(p, &SampleValue { radiance: [v, 0.5 * v, 0.25], depth: Some(3.0), ..Default::default() });
+        }
+        let frame = |accum: TileAccum| UnitResultFrame {
+            lease_id: 1,
+            job_id: 2,
+            unit: UnitKey { frame: 0, pass: 0, tile: 0 },
+            accum,
+            splats: None,
+        };
+        let f = frame(accum.clone());
+        let (raw, packed) = (f.encode_with(Codec::Raw), f.encode_with(Codec::Packed));
+        assert!(packed.len() * 2 < raw.len(), "packed {} bytes, raw {}", packed.len(), raw.len());
+        assert_eq!(UnitResultFrame::decode(&packed).expect("packed"), f);
+        // One bright pixel widens the radiance fields (to 6 bytes: 2^19 * 2^24 < 2^48), no other.
+        accum.sums[4095]
+            .merge(&PixelSums::from_sample(&SampleValue { radiance: [MAX_SAMPLE_VALUE; 3], ..Default::default() }));
+        let f = frame(accum.clone());
+        let bright = f.encode_with(Codec::Packed);
+        assert_eq!(UnitResultFrame::decode(&bright).expect("packed"), f);
+        assert!(bright.len() < raw.len() * 3 / 4, "{} of raw {}", bright.len(), raw.len());
+        // All ones: every field at full width.
+        for p in &mut accum.sums {
+            *p = PixelSums::read_le(&[0xFF; PIXEL_BYTES]);
+        }
+        let f = frame(accum);
+        let full = f.encode_with(Codec::Packed);
+        assert_eq!(full.len(), f.encode_with(Codec::Raw).len() + PIXEL_FIELDS);
+        assert_eq!(UnitResultFrame::decode(&full).expect("packed"), f);
+    }
+
+    /// Packed sums whose field widths exceed a field's size, or whose length is not the pixel
+    /// count times the widths' sum, are refused (with a valid checksum).
+    #[test]
+    fn packed_widths_and_lengths_are_checked() {
+        let pixels = vec![PixelSums::from_sample(&SampleValue { radiance: [0.5; 3], ..Default::default() }); 6];
+        let mut section = Vec::new();
+        push_pixels(&mut section, &pixels, Codec::Packed);
+        assert_eq!(read_pixels(&mut &section[..], 6, "sums").expect("valid"), pixels);
+        // The first width (rgb[0], 8 bytes) at 9.
+        let mut wide = section.clone();
+        wide[9] = 9;
+        let e = read_pixels(&mut &wide[..], 6, "sums").expect_err("width 9");
+        assert!(e.to_string().contains("field 0 packed in 9 bytes"), "{e}");
+        // Five pixels' bytes for six.
+        let e = read_pixels(&mut &section[..], 7, "sums").expect_err("count");
+        assert!(e.to_string().contains("expected 7 pixels"), "{e}");
+        // A length field larger than raw plus the widths.
+        let mut long = section.clone();
+        long[1..9].copy_from_slice(&(6 * 64 + 15u64).to_le_bytes());
+        long.resize(9 + 6 * 64 + 15, 0);
+        assert!(read_pixels(&mut &long[..], 6, "sums").is_err());
+        // Missing widths.
+        let mut short = vec![Codec::Packed as u8];
+        short.extend_from_slice(&3u64.to_le_bytes());
+        short.extend_from_slice(&[1, 2, 3]);
+        assert!(read_pixels(&mut &short[..], 0, "sums").is_err());
+    }
+
     #[test]
     fn results_fit_their_size_bound() {
         for s in [false, true] {
-            for codec in [Codec::Raw, Codec::Lz4] {
+            for codec in [Codec::Raw, Codec::Lz4, Codec::Packed] {
                 let f = frame(s);
                 let bound = max_result_bytes(f.accum.rect, (32, 32));
                 assert!(f.encode_with(codec).len() as u64 <= bound, "{} > {bound}", f.encode_with(codec).len());
@@ -1124,7 +1328,7 @@ mod tests {
             *v = next();
         }
         let bound = max_result_bytes(f.accum.rect, (32, 32));
-        for codec in [Codec::Raw, Codec::Lz4] {
+        for codec in [Codec::Raw, Codec::Lz4, Codec::Packed] {
             assert!(f.encode_with(codec).len() as u64 <= bound, "{} > {bound}", f.encode_with(codec).len());
             assert_eq!(UnitResultFrame::decode(&f.encode_with(codec)).expect("decode"), f);
         }
@@ -1134,7 +1338,7 @@ mod tests {
     #[test]
     fn wrong_size_with_valid_checksum_is_refused() {
         // A well-formed body whose sums section is the wrong length for its tile.
-        for codec in [Codec::Raw, Codec::Lz4] {
+        for codec in [Codec::Raw, Codec::Lz4, Codec::Packed] {
             let mut f = frame(false);
             f.accum.sums.pop();
             let bytes = f.encode_with(codec);
@@ -1285,11 +1489,11 @@ mod fuzz {
         /// refused, never a panic; unchanged it decodes to itself, with either codec.
         #[test]
         fn mutated_results_are_refused_or_decoded(
-            w in 1u32..9, h in 1u32..9, seed in any::<u64>(), splats in any::<bool>(), lz4 in any::<bool>(),
+            w in 1u32..9, h in 1u32..9, seed in any::<u64>(), splats in any::<bool>(), codec in 0usize..3,
             edits in proptest::collection::vec((any::<usize>(), any::<u8>()), 0..6),
         ) {
             let f = result(w, h, seed, splats);
-            let codec = if lz4 { Codec::Lz4 } else { Codec::Raw };
+            let codec = [Codec::Raw, Codec::Lz4, Codec::Packed][codec];
             let bytes = f.encode_with(codec);
             let back = UnitResultFrame::decode(&bytes);
             prop_assert_eq!(back.as_ref(), Ok(&f));

@@ -22,8 +22,9 @@
 //! built per lease from a section encoded once per tile size and shared by every body (no copy;
 //! the CRC of the header is combined with the section's), so the workers cost little.
 //! `--payload noise` (default) puts 3 random low bytes in every sum and random AOV means,
-//! `--payload zeros` sends all-zero sums; `--codec raw|lz4` stores the section as it is (the
-//! default, `RESULT_CODEC`) or lz4-compressed.
+//! `--payload zeros` sends all-zero sums; `--codec raw|lz4|packed` stores the section as it is,
+//! lz4-compressed, or packed (each field cut to the bytes it needs: the default,
+//! `RESULT_CODEC`).
 //!
 //! With `--render-ms 0` (default) every worker asks for its next unit as soon as the last one is
 //! delivered: the coordinator is saturated and lease latency is mostly queueing behind 499
@@ -108,7 +109,8 @@ fn parse_args() -> anyhow::Result<Args> {
                 a.codec = match val()?.as_str() {
                     "raw" => Codec::Raw,
                     "lz4" => Codec::Lz4,
-                    other => bail!("--codec raw|lz4, not {other}"),
+                    "packed" => Codec::Packed,
+                    other => bail!("--codec raw|lz4|packed, not {other}"),
                 }
             }
             "--in-process" => a.in_process = true,
@@ -122,7 +124,7 @@ fn parse_args() -> anyhow::Result<Args> {
             "-h" | "--help" => {
                 eprintln!(
                     "load [--workers 500] [--width 1024] [--height 1024] [--tile 64] [--spp 100 | --units N] \
-                     [--payload noise|zeros] [--codec raw|lz4] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]] [--jobs 1]"
+                     [--payload noise|zeros] [--codec raw|lz4|packed] [--in-process | --url URL] [--client-threads 2] [--wait-ms 5000] [--render-ms 0] [--frames 1-1000 [--stop-after-frames N]] [--jobs 1]"
                 );
                 std::process::exit(0);
             }
