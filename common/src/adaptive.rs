@@ -276,6 +276,7 @@ pub fn converged_blocks(
 
 /// Samples a pixel (tile-local `(x, y)`) of a unit must hold: the pass's spp, or 0 in a
 /// converged block. For the coordinator's check of a result against its lease.
+#[inline]
 pub fn expected_samples(mask: Option<&BlockMask>, x: u32, y: u32, pass_spp: u32) -> u32 {
     if mask.is_some_and(|m| m.pixel_converged(x, y)) { 0 } else { pass_spp }
 }
