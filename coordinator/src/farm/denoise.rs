@@ -13,7 +13,13 @@
 //! not written) until the layer is stored, never longer: when no live worker can denoise, when
 //! none took the step within [`super::FarmConfig::denoise_grace_ms`], or when it failed
 //! `max_unit_failures` times, the frame goes on without the layer and the job's log says why.
-//! Previews never hold anything back: one nobody takes is dropped.
+//! Previews never hold anything back: one nobody takes is dropped. After a coordinator restart
+//! the workers register again: for `denoise_grace_ms` after the restore, a step waits for a
+//! denoise worker to come back instead of being given up at once (a frame whose film is read
+//! back complete gets its final step then, as after any merge).
+//!
+//! Denoised layers live in memory until written: a frame whose final layer was stored but not
+//! written before a restart goes on without it.
 
 use super::lease::Lease;
 use super::{Farm, FarmError, Job};
@@ -154,14 +160,18 @@ impl Job {
 
 impl Farm {
     /// A live worker that can take job `job`'s denoise steps: tag `denoise`, the job's
-    /// `requires`, not blocklisted.
-    fn denoiser_exists(&self, job: &Job) -> bool {
-        self.workers.iter().any(|(id, w)| {
-            !w.offline
-                && w.tags.contains(DENOISE_TAG)
-                && job.requires.iter().all(|t| w.tags.contains(t))
-                && !job.blocklist.contains(id)
-        })
+    /// `requires`, not blocklisted; or, within `denoise_grace_ms` of a restore (a coordinator
+    /// restart: the workers have not registered again yet), one may still come. Then a final
+    /// step waits for the grace like any other instead of being given up at once.
+    fn denoiser_exists(&self, job: &Job, now_ms: u64) -> bool {
+        let registering = self.restored_ms.is_some_and(|t| now_ms.saturating_sub(t) < self.cfg.denoise_grace_ms);
+        registering
+            || self.workers.iter().any(|(id, w)| {
+                !w.offline
+                    && w.tags.contains(DENOISE_TAG)
+                    && job.requires.iter().all(|t| w.tags.contains(t))
+                    && !job.blocklist.contains(id)
+            })
     }
 
     /// After a merge: queues the denoise steps of job `id` for the passes its frame `index`
@@ -180,7 +190,7 @@ impl Farm {
         if !job.settings.denoise {
             return false;
         }
-        let capable = self.denoiser_exists(job);
+        let capable = self.denoiser_exists(job, now_ms);
         let Some(job) = self.jobs.get_mut(&id) else { return false };
         let total = job.plan.passes.len() as u32;
         // A step may be queued: workers that can denoise are woken.
@@ -384,7 +394,7 @@ impl Farm {
         let mut changed = Vec::new();
         for id in ids {
             let Some(job) = self.jobs.get(&id) else { continue };
-            let capable = self.denoiser_exists(job);
+            let capable = self.denoiser_exists(job, now_ms);
             let Some(job) = self.jobs.get_mut(&id) else { continue };
             let due: Vec<(usize, Step)> = job
                 .denoise
@@ -606,6 +616,50 @@ mod tests {
         restarted.restore(record, checkpoints, &[], 1).expect("restore");
         assert_eq!(restarted.job(id).expect("job").state, JobState::Completed);
         assert!(log_has(&restarted, id, "restarted are finished without the denoised layer"));
+    }
+
+    /// A restart while the final step is owed, as the service restores (checkpoint heads; the
+    /// film read back by the residency loop before any worker registered again): the step waits
+    /// for a denoise worker to register within the grace, and the job completes with its layer.
+    /// Past the grace with none, the frame goes on without it.
+    #[test]
+    fn after_a_restart_the_final_step_waits_for_denoise_workers_to_register() {
+        let cfg = FarmConfig { denoise_grace_ms: 30_000, ..FarmConfig::default() };
+        let mut farm = Farm::new(cfg.clone());
+        let id = farm.submit("x".into(), None, 0, settings(false), 0).expect("submit");
+        let plain = tagged(&mut farm, "plain", &["cpu"]);
+        tagged(&mut farm, "d", &[DENOISE_TAG]);
+        render_all(&mut farm, plain, 0);
+        assert!(farm.job(id).expect("job").denoise_owed(0));
+        let record = farm.job(id).expect("job").record(0);
+        let checkpoint = farm.job_mut(id).expect("job").take_checkpoints(true, 4).pop().expect("checkpoint");
+        for (grace_left, registers) in [(true, true), (false, false)] {
+            let t0 = 1_000_000;
+            let mut restarted = Farm::new(cfg.clone());
+            restarted.restore(record.clone(), [checkpoint.head()], &[], t0).expect("restore");
+            // The residency loop reads the film back at once, before any worker registered.
+            let plan = restarted.residency_plan(t0);
+            assert_eq!(plan.load.len(), 1, "{plan:?}");
+            let now = if grace_left { t0 + 10 } else { t0 + cfg.denoise_grace_ms + 1 };
+            restarted.attach_film(plan.load[0], Ok(checkpoint.clone()), now).expect("attach");
+            let job = restarted.job(id).expect("job");
+            if !grace_left {
+                assert_eq!(job.state, JobState::Completed, "no denoiser past the grace");
+                assert!(log_has(&restarted, id, "no live worker can denoise"));
+                continue;
+            }
+            assert!(job.denoise_owed(0) && job.state == JobState::Running, "the step waits for a worker");
+            restarted.expire_denoise(now + 1_000);
+            assert!(restarted.job(id).expect("job").denoise_owed(0), "not given up within the grace");
+            if registers {
+                let d = tagged(&mut restarted, "d again", &[DENOISE_TAG]);
+                let g = restarted.lease(d, now + 2_000).expect("lease").expect("the final step");
+                assert_eq!(g.kind, LeaseKind::Denoise);
+                let out = restarted.accept_denoised(g.lease_id, layer(&restarted, g.lease_id, 2.0), now + 3_000);
+                assert!(out.expect("stored").job_completed);
+                assert!(restarted.job(id).expect("job").denoised(0).is_some());
+            }
+        }
     }
 
     /// A sequence: each frame's final step holds that frame back from being written (not the

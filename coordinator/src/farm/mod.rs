@@ -186,6 +186,9 @@ pub struct Farm {
     last_expire_ms: Option<u64>,
     /// After a stall, nothing is expired, marked offline or pruned before this time.
     grace_until_ms: u64,
+    /// When jobs were last restored (a coordinator restart): workers register again during the
+    /// following `denoise_grace_ms`, so a denoise step is not given up for want of one before.
+    restored_ms: Option<u64>,
     /// Webhook events of jobs that asked for them, oldest first; the server drains them
     /// (`take_notifications`).
     notifications: Vec<(JobId, NotifyEvent)>,
@@ -214,6 +217,7 @@ impl Farm {
             counters: Counters::default(),
             last_expire_ms: None,
             grace_until_ms: 0,
+            restored_ms: None,
         }
     }
 
@@ -229,6 +233,7 @@ impl Farm {
         done: &[usize],
         now_ms: u64,
     ) -> Result<(), String> {
+        self.restored_ms = Some(now_ms);
         let spec = JobSpec {
             scene_id: rec.scene_id,
             name: Some(rec.name),
