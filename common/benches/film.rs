@@ -14,7 +14,7 @@
 
 use pathfarm_common::film::{Film, SampleValue, TileAccum, add_sample};
 use pathfarm_common::job::{TileRect, UnitKey};
-use pathfarm_common::protocol::{Codec, UnitResultFrame};
+use pathfarm_common::protocol::{Codec, UnitResultFrame, push_pixels, read_packed_pixels, read_pixels};
 use std::time::Duration;
 use std::time::Instant;
 
@@ -93,6 +93,40 @@ fn merge_cold(tiles: &[TileAccum]) {
         best = best.min(t0.elapsed().as_secs_f64());
     }
     let px = (rounds * 64 * 64) as f64;
+    // The same merges from packed result sections: decoded to a tile first, or read in place.
+    let sections: Vec<Vec<u8>> = tiles
+        .iter()
+        .map(|t| {
+            let mut s = Vec::new();
+            push_pixels(&mut s, &t.sums, Codec::Packed);
+            s
+        })
+        .collect();
+    let (mut decoded, mut fused) = (f64::INFINITY, f64::INFINITY);
+    for _ in 0..3 {
+        for in_place in [false, true] {
+            let t0 = Instant::now();
+            for i in 0..rounds {
+                let (x, y) = places[(i / 2) % places.len()];
+                let rect = TileRect { x0: x, y0: y, x1: x + 64, y1: y + 64 };
+                let mut rest = &sections[i % sections.len()][..];
+                if in_place {
+                    if let Some(Ok(p)) = read_packed_pixels(&mut rest, 4096, "sums") {
+                        films[i % 2].add_tile_with(rect, |k| p.get(k));
+                    }
+                } else if let Ok(sums) = read_pixels(&mut rest, 4096, "sums") {
+                    films[i % 2].add_tile(&TileAccum { rect, sums });
+                }
+            }
+            let t = t0.elapsed().as_secs_f64();
+            if in_place { fused = fused.min(t) } else { decoded = decoded.min(t) }
+        }
+    }
+    println!(
+        "film merge of packed results (cold): decoded then merged {:.2} ns per pixel, merged as read {:.2}",
+        decoded * 1e9 / px,
+        fused * 1e9 / px
+    );
     println!(
         "film merge, two 1024x1024 films (cold): {:.2} ns per pixel, {:.1} us per 64x64 tile",
         best * 1e9 / px,

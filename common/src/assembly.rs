@@ -14,6 +14,7 @@
 use crate::adaptive::{self, AdaptiveSettings, BlockMask};
 use crate::film::{Film, PixelSums, SplatBuffer, TileAccum};
 use crate::job::{Plan, TileRect, UnitKey};
+use crate::protocol::TileSums;
 use std::collections::{BTreeSet, HashMap};
 
 /// A frame's film being assembled from units.
@@ -223,6 +224,62 @@ impl FilmAssembly {
         out
     }
 
+    /// [`FilmAssembly::offer`] of a result's sums as they come (`rect`: the unit's tile): a unit
+    /// in order is merged as its sums are read (packed sums straight from the result body, with
+    /// no tile of pixels in between); one that must wait is decoded to wait.
+    pub fn offer_sums(
+        &mut self,
+        plan: &Plan,
+        adaptive: Option<(&AdaptiveSettings, u32)>,
+        key: UnitKey,
+        rect: TileRect,
+        sums: TileSums<'_>,
+        splats: Option<SplatBuffer>,
+    ) -> Vec<Folded> {
+        let t = key.tile as usize;
+        let in_order = key.pass == self.next_pass[t] && key.pass < plan.passes.len() as u32;
+        let (true, Some(film)) = (in_order, self.film.as_mut()) else {
+            let accum = TileAccum { rect, sums: sums.into_pixels() };
+            return self.offer(plan, adaptive, key, accum, splats);
+        };
+        let samples = match &sums {
+            TileSums::Pixels(p) => film.add_tile_with(rect, |i| p.get(i).copied().unwrap_or_default()),
+            TileSums::Packed(p) => film.add_tile_with(rect, |i| p.get(i)),
+        };
+        if let Some(s) = &splats {
+            film.add_splats(s);
+        }
+        let mut out = Vec::new();
+        if !self.folded(plan, adaptive, key.tile, key.pass, samples, &mut out) {
+            self.fold_in_order(plan, adaptive, key.tile, &mut out);
+        }
+        out
+    }
+
+    /// Records that `tile`'s pass `pass` (of `samples` samples) is in the film: the tile's next
+    /// pass, and the tile judged (adaptive sampling). Returns whether the tile is now done (its
+    /// waiting units are dropped).
+    fn folded(
+        &mut self,
+        plan: &Plan,
+        adaptive: Option<(&AdaptiveSettings, u32)>,
+        tile: u32,
+        pass: u32,
+        samples: u64,
+        out: &mut Vec<Folded>,
+    ) -> bool {
+        let t = tile as usize;
+        self.next_pass[t] += 1;
+        let judged = adaptive.map(|(a, spp)| self.judge(plan, a, spp, t));
+        out.push(Folded { tile, pass, samples, judged });
+        if judged.is_some_and(|j| j.tile_done) {
+            // Later passes of a done tile can only be stale; drop any that waited.
+            self.waiting.retain(|&(w, _), _| w != tile);
+            return true;
+        }
+        false
+    }
+
     /// Folds `tile`'s waiting units while the next is here (and the film is), judging the tile
     /// after each (adaptive sampling).
     fn fold_in_order(
@@ -238,17 +295,11 @@ impl FilmAssembly {
             let Some(film) = self.film.as_mut() else { return };
             let pass = self.next_pass[t];
             let Some((accum, splats)) = self.waiting.remove(&(tile, pass)) else { return };
-            film.add_tile(&accum);
+            let samples = film.add_tile_with(accum.rect, |i| accum.sums.get(i).copied().unwrap_or_default());
             if let Some(s) = &splats {
                 film.add_splats(s);
             }
-            self.next_pass[t] += 1;
-            let samples = accum.sums.iter().map(|p| u64::from(p.weight)).sum();
-            let judged = adaptive.map(|(a, spp)| self.judge(plan, a, spp, t));
-            out.push(Folded { tile, pass, samples, judged });
-            if judged.is_some_and(|j| j.tile_done) {
-                // Later passes of a done tile can only be stale; drop any that waited.
-                self.waiting.retain(|&(w, _), _| w != tile);
+            if self.folded(plan, adaptive, tile, pass, samples, out) {
                 return;
             }
         }

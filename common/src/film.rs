@@ -492,6 +492,25 @@ impl Film {
         }
     }
 
+    /// [`Film::add_tile`] of the sums `pixel(i)` gives for the tile's pixel `i` (row-major in
+    /// `rect`): merged as they are read, with no tile in between. Returns the sample weights
+    /// merged, summed.
+    pub fn add_tile_with(&mut self, rect: TileRect, pixel: impl Fn(usize) -> PixelSums) -> u64 {
+        assert!(rect.x1 <= self.width && rect.y1 <= self.height, "tile outside the film");
+        let row = rect.width() as usize;
+        let mut weights = 0u64;
+        for y in rect.y0..rect.y1 {
+            let src = (y - rect.y0) as usize * row;
+            let dst = y as usize * self.width as usize + rect.x0 as usize;
+            for (i, a) in self.sums[dst..dst + row].iter_mut().enumerate() {
+                let p = pixel(src + i);
+                weights += u64::from(p.weight);
+                a.merge(&p);
+            }
+        }
+        weights
+    }
+
     /// Adds a unit's light-tracing splats to the radiance sums (exact, any order).
     pub fn add_splats(&mut self, splats: &SplatBuffer) {
         assert_eq!((self.width, self.height), (splats.width, splats.height), "splat buffer size");

@@ -747,43 +747,96 @@ pub fn push_pixels(out: &mut Vec<u8>, pixels: &[PixelSums], codec: Codec) {
     }
 }
 
-/// The pixels of a packed section's stored bytes (`stored`: the field widths, then `count`
-/// pixels, each its fields in [`PixelSums::write_le`] order cut to their widths). Widths above a
-/// field's size, or a length other than the widths give, are refused; any other bytes are some
-/// pixels.
-fn unpack_pixels(stored: &[u8], count: usize, section: &'static str) -> Result<Vec<PixelSums>, DecodeError> {
-    let err = |message: String| DecodeError::Section { section, message };
-    let Some((widths, data)) = stored.split_first_chunk::<PIXEL_FIELDS>() else {
-        return Err(err("packed section without its field widths".into()));
-    };
-    let mut offsets = [0usize; PIXEL_FIELDS];
-    let mut masks = [0u64; PIXEL_FIELDS];
-    let mut stride = 0;
-    for f in 0..PIXEL_FIELDS {
-        let w = usize::from(widths[f]);
-        if w > FIELD_BYTES[f] {
-            return Err(err(format!("field {f} packed in {w} bytes, it has {}", FIELD_BYTES[f])));
+/// A packed section's pixels, read one at a time from its stored bytes (the field widths,
+/// then `count` pixels, each its fields in [`PixelSums::write_le`] order cut to their widths).
+#[derive(Clone, Copy, Debug)]
+pub struct PackedPixels<'a> {
+    data: &'a [u8],
+    offsets: [usize; PIXEL_FIELDS],
+    masks: [u64; PIXEL_FIELDS],
+    stride: usize,
+    count: usize,
+}
+
+impl<'a> PackedPixels<'a> {
+    /// Checks a packed section's stored bytes for `count` pixels: widths above a field's size,
+    /// or a length other than the widths give, are refused; any other bytes are some pixels.
+    pub fn parse(stored: &'a [u8], count: usize, section: &'static str) -> Result<Self, DecodeError> {
+        let err = |message: String| DecodeError::Section { section, message };
+        let Some((widths, data)) = stored.split_first_chunk::<PIXEL_FIELDS>() else {
+            return Err(err("packed section without its field widths".into()));
+        };
+        let mut offsets = [0usize; PIXEL_FIELDS];
+        let mut masks = [0u64; PIXEL_FIELDS];
+        let mut stride = 0;
+        for f in 0..PIXEL_FIELDS {
+            let w = usize::from(widths[f]);
+            if w > FIELD_BYTES[f] {
+                return Err(err(format!("field {f} packed in {w} bytes, it has {}", FIELD_BYTES[f])));
+            }
+            offsets[f] = stride;
+            masks[f] = if w == 8 { u64::MAX } else { (1u64 << (8 * w)) - 1 };
+            stride += w;
         }
-        offsets[f] = stride;
-        masks[f] = if w == 8 { u64::MAX } else { (1u64 << (8 * w)) - 1 };
-        stride += w;
+        if Some(data.len()) != count.checked_mul(stride) {
+            return Err(err(format!(
+                "expected {count} pixels of {stride} packed bytes ({} bytes), got {} bytes",
+                count.saturating_mul(stride),
+                data.len()
+            )));
+        }
+        Ok(Self { data, offsets, masks, stride, count })
     }
-    if Some(data.len()) != count.checked_mul(stride) {
-        return Err(err(format!(
-            "expected {count} pixels of {stride} packed bytes ({} bytes), got {} bytes",
-            count.saturating_mul(stride),
-            data.len()
-        )));
+
+    /// Pixels in the section.
+    pub fn len(&self) -> usize {
+        self.count
     }
-    // Each field is read as 8 bytes at its offset (at most 62) in a 72-byte window on the pixel
-    // (the window has no bounds to check) and masked to its width; near the end of the data the
-    // window is a zero-padded copy.
-    let read = |px: &[u8; PIXEL_BYTES + 8]| {
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// Pixel `i`'s sums (`i < len()`).
+    #[inline]
+    pub fn get(&self, i: usize) -> PixelSums {
+        // Each field is read as 8 bytes at its offset (at most 62) in a 72-byte window on the
+        // pixel (the window has no bounds to check) and masked to its width; near the end of the
+        // data the window is a zero-padded copy.
+        let at = i * self.stride;
+        match self.data.get(at..).and_then(|d| d.first_chunk::<{ PIXEL_BYTES + 8 }>()) {
+            Some(window) => self.read(window),
+            None => {
+                let mut px = [0u8; PIXEL_BYTES + 8];
+                let end = (at + self.stride).min(self.data.len());
+                let part = self.data.get(at..end).unwrap_or_default();
+                px[..part.len()].copy_from_slice(part);
+                self.read(&px)
+            }
+        }
+    }
+
+    /// Pixel `i`'s sample weight and hit count (`i < len()`), its other fields unread.
+    #[inline]
+    pub fn weight_hits(&self, i: usize) -> (u32, u32) {
+        let field = |f: usize| {
+            let at = i * self.stride + self.offsets[f];
+            let mut b = [0u8; 8];
+            let part = self.data.get(at..(at + 8).min(self.data.len())).unwrap_or_default();
+            b[..part.len()].copy_from_slice(part);
+            // Masked to the field's size (4 bytes at most): the cast keeps every bit.
+            (u64::from_le_bytes(b) & self.masks[f]) as u32
+        };
+        (field(5), field(6))
+    }
+
+    #[inline(always)]
+    fn read(&self, px: &[u8; PIXEL_BYTES + 8]) -> PixelSums {
         let v = |f: usize| {
-            let o = offsets[f] & (PIXEL_BYTES - 1);
+            let o = self.offsets[f] & (PIXEL_BYTES - 1);
             let mut b = [0u8; 8];
             b.copy_from_slice(&px[o..o + 8]);
-            u64::from_le_bytes(b) & masks[f]
+            u64::from_le_bytes(b) & self.masks[f]
         };
         // Masked to the field's size: the casts keep every bit.
         PixelSums {
@@ -796,20 +849,27 @@ fn unpack_pixels(stored: &[u8], count: usize, section: &'static str) -> Result<V
             albedo: [v(8) as u16, v(9) as u16, v(10) as u16],
             normal: [v(11) as u16 as i16, v(12) as u16 as i16, v(13) as u16 as i16],
         }
-    };
-    Ok((0..count)
-        .map(|i| {
-            let at = i * stride;
-            match data.get(at..).and_then(|d| d.first_chunk::<{ PIXEL_BYTES + 8 }>()) {
-                Some(window) => read(window),
-                None => {
-                    let mut px = [0u8; PIXEL_BYTES + 8];
-                    px[..stride].copy_from_slice(&data[at..at + stride]);
-                    read(&px)
-                }
-            }
-        })
-        .collect())
+    }
+}
+
+/// The pixels of a packed section's stored bytes ([`PackedPixels`]).
+fn unpack_pixels(stored: &[u8], count: usize, section: &'static str) -> Result<Vec<PixelSums>, DecodeError> {
+    let packed = PackedPixels::parse(stored, count, section)?;
+    Ok((0..count).map(|i| packed.get(i)).collect())
+}
+
+/// A packed sums section's pixels, read in place ([`PackedPixels`]); `None` when the section is
+/// stored another way. Advances `rest` past the section.
+pub fn read_packed_pixels<'a>(
+    rest: &mut &'a [u8],
+    count: usize,
+    section: &'static str,
+) -> Option<Result<PackedPixels<'a>, DecodeError>> {
+    if rest.first() != Some(&(Codec::Packed as u8)) {
+        return None;
+    }
+    let max = count.saturating_mul(PIXEL_BYTES).saturating_add(PIXEL_FIELDS);
+    Some(read_section_bytes(rest, max, section).and_then(|stored| PackedPixels::parse(stored, count, section)))
 }
 
 /// Reads a section of exactly `count` pixels, parsed straight from the body (raw) or from the
@@ -936,7 +996,25 @@ impl UnitResultFrame {
         Self::decode_inner(bytes, Some((tile, image)))
     }
 
+    /// Like [`decode_expecting`](Self::decode_expecting), but packed sums stay in the body,
+    /// read as they are merged ([`TileSums::Packed`]): no tile of decoded pixels in between.
+    pub fn decode_view(bytes: &[u8], tile: TileRect, image: (u32, u32)) -> Result<ResultView<'_>, DecodeError> {
+        Self::parse(bytes, Some((tile, image)), true)
+    }
+
     fn decode_inner(bytes: &[u8], expect: Option<(TileRect, (u32, u32))>) -> Result<Self, DecodeError> {
+        let v = Self::parse(bytes, expect, false)?;
+        // The sums were checked against the tile's size.
+        let accum = TileAccum { rect: v.rect, sums: v.sums.into_pixels() };
+        Ok(Self { lease_id: v.lease_id, job_id: v.job_id, unit: v.unit, accum, splats: v.splats })
+    }
+
+    /// Checks and parses a body; `in_place`: packed sums are read in place, not decoded.
+    fn parse(
+        bytes: &[u8],
+        expect: Option<(TileRect, (u32, u32))>,
+        in_place: bool,
+    ) -> Result<ResultView<'_>, DecodeError> {
         if bytes.len() < 12 {
             return Err(DecodeError::Truncated(bytes.len()));
         }
@@ -978,7 +1056,11 @@ impl UnitResultFrame {
             }
         }
         let mut rest = &body[8 + hlen..];
-        let sums = read_pixels(&mut rest, t.pixel_count(), "sums")?;
+        let packed = if in_place { read_packed_pixels(&mut rest, t.pixel_count(), "sums") } else { None };
+        let sums = match packed {
+            Some(packed) => TileSums::Packed(packed?),
+            None => TileSums::Pixels(read_pixels(&mut rest, t.pixel_count(), "sums")?),
+        };
         let splats = match header.splats {
             None => None,
             Some((w, h)) => Some(read_splats(&mut rest, w, h, "splats")?),
@@ -986,9 +1068,80 @@ impl UnitResultFrame {
         if !rest.is_empty() {
             return Err(DecodeError::Section { section: "trailer", message: format!("{} extra bytes", rest.len()) });
         }
-        // The sums were checked against the tile's size above.
-        let accum = TileAccum { rect: t, sums };
-        Ok(Self { lease_id: header.lease_id, job_id: header.job_id, unit: header.unit, accum, splats })
+        Ok(ResultView { lease_id: header.lease_id, job_id: header.job_id, unit: header.unit, rect: t, sums, splats })
+    }
+}
+
+/// A tile's sums as a result holds them: decoded pixels, or a packed section read in place
+/// from the body. Either way `len()` is the tile's pixel count (checked when decoded).
+#[derive(Clone, Debug)]
+#[allow(clippy::large_enum_variant)] // one per result, moved a few times: boxing would allocate
+pub enum TileSums<'a> {
+    Pixels(Vec<PixelSums>),
+    Packed(PackedPixels<'a>),
+}
+
+impl TileSums<'_> {
+    pub fn len(&self) -> usize {
+        match self {
+            Self::Pixels(p) => p.len(),
+            Self::Packed(p) => p.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Pixel `i`'s sums (row-major in the tile; `i < len()`, else empty sums).
+    #[inline]
+    pub fn get(&self, i: usize) -> PixelSums {
+        match self {
+            Self::Pixels(p) => p.get(i).copied().unwrap_or_default(),
+            Self::Packed(p) => p.get(i),
+        }
+    }
+
+    /// The decoded pixels (a packed section is decoded now).
+    pub fn into_pixels(self) -> Vec<PixelSums> {
+        match self {
+            Self::Pixels(p) => p,
+            Self::Packed(p) => (0..p.len()).map(|i| p.get(i)).collect(),
+        }
+    }
+
+    /// Pixel `i`'s sample weight and hit count.
+    #[inline]
+    pub fn weight_hits(&self, i: usize) -> (u32, u32) {
+        match self {
+            Self::Pixels(p) => p.get(i).map_or((0, 0), |p| (p.weight, p.hits)),
+            Self::Packed(p) => p.weight_hits(i),
+        }
+    }
+}
+
+/// A checked result body ([`UnitResultFrame::decode_view`]): the header's fields, the tile,
+/// its sums (packed ones still in the body) and its splats.
+#[derive(Clone, Debug)]
+pub struct ResultView<'a> {
+    pub lease_id: LeaseId,
+    pub job_id: JobId,
+    pub unit: UnitKey,
+    pub rect: TileRect,
+    pub sums: TileSums<'a>,
+    pub splats: Option<SplatBuffer>,
+}
+
+impl From<UnitResultFrame> for ResultView<'static> {
+    fn from(f: UnitResultFrame) -> Self {
+        Self {
+            lease_id: f.lease_id,
+            job_id: f.job_id,
+            unit: f.unit,
+            rect: f.accum.rect,
+            sums: TileSums::Pixels(f.accum.sums),
+            splats: f.splats,
+        }
     }
 }
 
@@ -1269,6 +1422,40 @@ mod tests {
         let full = f.encode_with(Codec::Packed);
         assert_eq!(full.len(), f.encode_with(Codec::Raw).len() + PIXEL_FIELDS);
         assert_eq!(UnitResultFrame::decode(&full).expect("packed"), f);
+    }
+
+    /// Packed sums read in place give the decoded pixels, every one (those at the end of the
+    /// data read from a padded copy), and their weights and hits.
+    #[test]
+    fn packed_pixels_read_in_place_equal_the_decoded_ones() {
+        for n in [1usize, 2, 3, 7, 64] {
+            let pixels: Vec<PixelSums> = (0..n)
+                .map(|i| {
+                    let mut p = PixelSums::from_sample(&SampleValue {
+                        radiance: [i as f32 * 0.3, 1.0, 2.0],
+                        depth: Some(i as f32),
+                        ..Default::default()
+                    });
+                    p.weight += i as u32;
+                    p.hits = (i % 3) as u32;
+                    p
+                })
+                .collect();
+            let mut section = Vec::new();
+            push_pixels(&mut section, &pixels, Codec::Packed);
+            let mut rest = &section[..];
+            let packed = read_packed_pixels(&mut rest, n, "sums").expect("packed").expect("valid");
+            assert!(rest.is_empty());
+            for (i, p) in pixels.iter().enumerate() {
+                assert_eq!(packed.get(i), *p, "pixel {i} of {n}");
+                assert_eq!(packed.weight_hits(i), (p.weight, p.hits), "pixel {i} of {n}");
+            }
+            assert_eq!(TileSums::Packed(packed).into_pixels(), pixels);
+        }
+        // Another codec is not read in place.
+        let mut raw = Vec::new();
+        push_pixels(&mut raw, &[PixelSums::default()], Codec::Raw);
+        assert!(read_packed_pixels(&mut &raw[..], 1, "sums").is_none());
     }
 
     /// Packed sums whose field widths exceed a field's size, or whose length is not the pixel

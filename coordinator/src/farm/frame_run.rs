@@ -5,31 +5,43 @@
 use parking_lot::{MappedMutexGuard, Mutex, MutexGuard};
 use pathfarm_common::adaptive::{self, BlockMask};
 use pathfarm_common::assembly::FilmAssembly;
-use pathfarm_common::film::{Film, TileAccum};
-use pathfarm_common::job::Plan;
+use pathfarm_common::film::Film;
+use pathfarm_common::job::{Plan, TileRect};
 use pathfarm_common::protocol::LeaseId;
+use pathfarm_common::protocol::TileSums;
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::sync::Arc;
 
-/// Why a tile's sums do not hold exactly `spp` samples per pixel (each sample adds weight 1 and
-/// at most one hit), or `None`. A result claiming 1,000 samples for a 1-sample pass was merged.
-/// With adaptive sampling, pixels in the converged blocks of `mask` must hold no sample.
-pub(super) fn sample_count_mismatch(accum: &TileAccum, spp: u32, mask: Option<&BlockMask>) -> Option<String> {
+/// Why a tile's sums (`rect`) do not hold exactly `spp` samples per pixel (each sample adds
+/// weight 1 and at most one hit), as `Err`; else the samples they hold. A result claiming 1,000
+/// samples for a 1-sample pass was merged. With adaptive sampling, pixels in the converged
+/// blocks of `mask` must hold no sample.
+pub(super) fn sample_count_mismatch(
+    sums: &TileSums<'_>,
+    rect: TileRect,
+    spp: u32,
+    mask: Option<&BlockMask>,
+) -> Result<u64, String> {
     // Row by row (no division per pixel: this runs for every result).
-    let w = accum.rect.width().max(1) as usize;
-    let (lx, ly, expected, p) = accum.sums.chunks(w).zip(0u32..).find_map(|(row, ly)| {
-        row.iter().zip(0u32..).find_map(|(p, lx)| {
+    let w = rect.width().max(1) as usize;
+    let mut samples = 0u64;
+    for ly in 0..rect.height() {
+        for lx in 0..w as u32 {
+            let (weight, hits) = sums.weight_hits(ly as usize * w + lx as usize);
             let expected = adaptive::expected_samples(mask, lx, ly, spp);
-            (p.weight != expected || p.hits > expected).then_some((lx, ly, expected, p))
-        })
-    })?;
-    let (x, y) = (accum.rect.x0 + lx, accum.rect.y0 + ly);
-    let why = if expected == spp {
-        format!("the pass has {spp} samples per pixel")
-    } else {
-        "its block has converged (adaptive sampling): it gets no samples".to_string()
-    };
-    Some(format!("pixel ({x}, {y}) holds {:.3} samples and {:.3} hits; {why}", p.weight(), f64::from(p.hits)))
+            if weight != expected || hits > expected {
+                let (x, y) = (rect.x0 + lx, rect.y0 + ly);
+                let why = if expected == spp {
+                    format!("the pass has {spp} samples per pixel")
+                } else {
+                    "its block has converged (adaptive sampling): it gets no samples".to_string()
+                };
+                return Err(format!("pixel ({x}, {y}) holds {weight} samples and {hits} hits; {why}"));
+            }
+            samples += u64::from(weight);
+        }
+    }
+    Ok(samples)
 }
 
 /// One frame in progress: its scheduling state and its [`FilmAssembly`] (the film, each

@@ -12,10 +12,10 @@ use parking_lot::Mutex;
 use pathfarm_common::adaptive::AdaptiveSettings;
 use pathfarm_common::assembly::{FilmAssembly, Folded};
 use pathfarm_common::film::Film;
-use pathfarm_common::film::{SplatBuffer, TileAccum};
-use pathfarm_common::job::{Plan, UnitKey};
+use pathfarm_common::film::SplatBuffer;
+use pathfarm_common::job::{Plan, TileRect, UnitKey};
 use pathfarm_common::protocol::{
-    FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, UnitResultFrame, WorkerId,
+    FrameOrder, FrameState, JobId, JobState, LeaseGrant, LeaseId, NotifyEvent, ResultView, TileSums, WorkerId,
 };
 use std::sync::Arc;
 
@@ -33,14 +33,15 @@ pub(super) struct Lease {
 
 /// A result taken from its lease ([`Farm::begin_accept`]), to be folded into its frame's
 /// film outside the farm lock.
-pub struct Fold {
+pub struct Fold<'a> {
     job: JobId,
     index: usize,
     key: UnitKey,
     asm: Arc<Mutex<FilmAssembly>>,
     plan: Arc<Plan>,
     adaptive: Option<(AdaptiveSettings, u32)>,
-    accum: TileAccum,
+    rect: TileRect,
+    sums: TileSums<'a>,
     splats: Option<SplatBuffer>,
 }
 
@@ -54,13 +55,14 @@ pub struct Folding {
     folded: Vec<Folded>,
 }
 
-impl Fold {
+impl Fold<'_> {
     /// Folds the result under its frame's lock alone: the one merge (`FilmAssembly`, as
     /// `render_local`'s) folds every unit of the tile now in order (none while the film is on
-    /// disk: the result waits in the assembly).
+    /// disk: the result waits in the assembly). A result in order is merged as its sums are
+    /// read (packed sums straight from the body); one that must wait is decoded to wait.
     pub fn fold(self) -> Folding {
         let adaptive = self.adaptive.as_ref().map(|(a, spp)| (a, *spp));
-        let folded = self.asm.lock().offer(&self.plan, adaptive, self.key, self.accum, self.splats);
+        let folded = self.asm.lock().offer_sums(&self.plan, adaptive, self.key, self.rect, self.sums, self.splats);
         Folding { job: self.job, index: self.index, asm: self.asm, folded }
     }
 }
@@ -295,10 +297,10 @@ impl Farm {
 
     /// Accepts a unit's result from the worker holding its lease and merges it: the three
     /// steps of [`Farm::begin_accept`], [`Fold::fold`] and [`Farm::finish_accept`] at once.
-    pub fn accept(
+    pub fn accept<'a>(
         &mut self,
         lease_id: LeaseId,
-        frame: UnitResultFrame,
+        frame: impl Into<ResultView<'a>>,
         now_ms: u64,
     ) -> Result<MergeOutcome, FarmError> {
         let fold = self.begin_accept(lease_id, frame, now_ms)?;
@@ -309,7 +311,13 @@ impl Farm {
     /// marks the unit received (in flight: neither pending nor merged). The returned [`Fold`]
     /// folds it under its frame's lock alone, with the farm lock released meanwhile; then
     /// [`Farm::finish_accept`] records what it folded.
-    pub fn begin_accept(&mut self, lease_id: LeaseId, frame: UnitResultFrame, now_ms: u64) -> Result<Fold, FarmError> {
+    pub fn begin_accept<'a>(
+        &mut self,
+        lease_id: LeaseId,
+        frame: impl Into<ResultView<'a>>,
+        now_ms: u64,
+    ) -> Result<Fold<'a>, FarmError> {
+        let frame = frame.into();
         let l = self.leases.get(&lease_id).ok_or(FarmError::LeaseLost(lease_id))?.clone();
         if l.denoise.is_some() {
             return Err(FarmError::ResultMismatch {
@@ -323,21 +331,21 @@ impl Farm {
         }
         let key = job.unit_key(l.frame, l.unit);
         let rect = job.plan.tiles[key.tile as usize];
-        let mismatch = if frame.lease_id != lease_id {
-            Some(format!("frame is for lease {}", frame.lease_id))
+        let checked = if frame.lease_id != lease_id {
+            Err(format!("frame is for lease {}", frame.lease_id))
         } else if frame.job_id != l.job || frame.unit != key {
-            Some(format!(
+            Err(format!(
                 "frame is for job {} unit {:?}, lease holds job {} unit {key:?}",
                 frame.job_id, frame.unit, l.job
             ))
-        } else if frame.accum.rect != rect {
-            Some(format!("tile {:?}, expected {rect:?}", frame.accum.rect))
+        } else if frame.rect != rect || frame.sums.len() != rect.pixel_count() {
+            Err(format!("tile {:?} of {} pixels, expected {rect:?}", frame.rect, frame.sums.len()))
         } else if frame
             .splats
             .as_ref()
             .is_some_and(|s| (s.width, s.height) != (job.settings.width, job.settings.height))
         {
-            Some("splat buffer size differs from the image".into())
+            Err("splat buffer size differs from the image".into())
         } else {
             // Adaptive jobs only: the mask is read under the frame lock (a fold of the frame in
             // progress finishes first). It is the tile's mask its pass was leased with: the
@@ -345,21 +353,23 @@ impl Farm {
             let run = job.open.get(&l.frame);
             let asm = run.filter(|_| job.settings.adaptive.is_some()).map(|r| r.asm.lock());
             let mask = asm.as_ref().and_then(|a| a.mask(key.tile as usize));
-            sample_count_mismatch(&frame.accum, job.plan.passes[key.pass as usize].spp(), mask)
+            sample_count_mismatch(&frame.sums, rect, job.plan.passes[key.pass as usize].spp(), mask)
         };
-        if let Some(reason) = mismatch {
-            // The worker holds the lease but sent something else: give the unit to someone else.
-            self.counters.results_rejected += 1;
-            self.take_lease(lease_id);
-            self.changes.work_ready = true;
-            self.changes.progress(l.job);
-            if let Some(job) = self.jobs.get_mut(&l.job) {
-                job.requeue(l.frame, l.unit);
-                job.log(format!("refused a result of worker {}: {reason}", l.worker));
+        let rendered = match checked {
+            Ok(samples) => samples,
+            Err(reason) => {
+                // The worker holds the lease but sent something else: give the unit to someone else.
+                self.counters.results_rejected += 1;
+                self.take_lease(lease_id);
+                self.changes.work_ready = true;
+                self.changes.progress(l.job);
+                if let Some(job) = self.jobs.get_mut(&l.job) {
+                    job.requeue(l.frame, l.unit);
+                    job.log(format!("refused a result of worker {}: {reason}", l.worker));
+                }
+                return Err(FarmError::ResultMismatch { lease: lease_id, reason });
             }
-            return Err(FarmError::ResultMismatch { lease: lease_id, reason });
-        }
-        let rendered = frame.accum.sums.iter().map(|p| u64::from(p.weight)).sum::<u64>();
+        };
         self.take_lease(lease_id);
         self.changes.progress(l.job);
         self.changes.workers.insert(l.worker);
@@ -379,7 +389,8 @@ impl Farm {
             asm: run.asm.clone(),
             plan: job.plan.clone(),
             adaptive,
-            accum: frame.accum,
+            rect,
+            sums: frame.sums,
             splats: frame.splats,
         })
     }

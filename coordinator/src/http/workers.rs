@@ -401,7 +401,8 @@ pub(crate) fn decode_and_accept(
     (tile, image): (pathfarm_common::job::TileRect, (u32, u32)),
     body: &[u8],
 ) -> ApiResult<Result<crate::farm::MergeOutcome, FarmError>> {
-    let frame = match UnitResultFrame::decode_expecting(body, tile, image) {
+    // Packed sums stay in the body: they are read as they are merged.
+    let frame = match UnitResultFrame::decode_view(body, tile, image) {
         Ok(f) => f,
         Err(e) => {
             // The worker does not retry a refused body, so its unit would sit leased until the
