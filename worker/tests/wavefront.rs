@@ -316,8 +316,11 @@ fn digest(scene: &Scene, integrator: IntegratorSettings, size: u32, spp: u32) ->
 /// The estimators are those of the renderer before the wavefront (main at dfd437a, one path at
 /// a time, VPL shadow rays one by one): the same unit results, bit for bit, at the default
 /// kernels. The digests were printed by this function's body built against that commit's
-/// renderer; a deliberate change of an estimator (or of the film's fixed-point encoding) changes
-/// them, and they must then be printed anew.
+/// renderer, and printed anew when the renderer's elementary functions (sin, atan2, exp, pow,
+/// ...) became its own (`render::math`) instead of the system's libm (the only change of that
+/// commit to the renderer's arithmetic; its images still pass the reference, furnace and
+/// chi-square tests). A deliberate change of an estimator, of an elementary function or of the
+/// film's fixed-point encoding changes them, and they must then be printed anew.
 #[test]
 fn unit_results_are_those_of_the_renderer_before_the_wavefront() {
     let spheres = file_scene(&reference().join("cornell_spheres.glb"));
@@ -335,14 +338,18 @@ fn unit_results_are_those_of_the_renderer_before_the_wavefront() {
         ("bdpt spheres", digest(&spheres, bdpt, 24, 4)),
     ];
     let want = [
-        ("path cornell area", 0x3a84_bec9_9b63_dbb0),
-        ("path spheres solid angle", 0xb2e5_14b6_3d91_745b),
-        ("path caustics", 0x139a_90b9_f972_3d4f),
-        ("direct cornell", 0x2d92_7c4f_bb25_3182),
-        ("igi spheres", 0xa6b3_c6be_ecd5_ec71),
-        ("bdpt spheres", 0x1961_d538_02e7_e0c9),
+        ("path cornell area", 0xd036_4aa5_31a3_cad9),
+        ("path spheres solid angle", 0x618a_fda8_a448_354e),
+        ("path caustics", 0xba36_6d35_5773_346e),
+        ("direct cornell", 0xb2e3_8688_8484_8f0a),
+        ("igi spheres", 0x1b3c_4675_bf65_22a9),
+        ("bdpt spheres", 0x6446_4c44_a992_92bc),
     ];
-    for ((name, got), (_, want)) in got.iter().zip(want) {
-        assert_eq!(*got, want, "{name}: 0x{got:016x}, not the earlier renderer's 0x{want:016x}");
-    }
+    let differing: Vec<String> = got
+        .iter()
+        .zip(want)
+        .filter(|((_, got), (_, want))| got != want)
+        .map(|((name, got), (_, want))| format!("{name}: 0x{got:016x}, not the earlier renderer's 0x{want:016x}"))
+        .collect();
+    assert!(differing.is_empty(), "{}", differing.join("\n"));
 }

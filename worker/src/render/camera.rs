@@ -51,7 +51,7 @@ impl Camera {
         let aspect = width as f32 / height.max(1) as f32;
         let kind = match cam.projection {
             Projection::Perspective { yfov, .. } => {
-                Kind::Perspective { tan_half_y: (yfov.clamp(1e-4, 3.1) * 0.5).tan(), aspect }
+                Kind::Perspective { tan_half_y: super::math::tan(yfov.clamp(1e-4, 3.1) * 0.5), aspect }
             }
             Projection::Orthographic { xmag, ymag } => Kind::Orthographic { xmag: xmag.abs(), ymag: ymag.abs() },
         };

@@ -12,6 +12,7 @@ pub mod igi;
 pub mod integrator;
 pub mod light;
 pub mod material;
+pub mod math;
 pub mod microfacet;
 pub mod sampler;
 pub mod sampling;

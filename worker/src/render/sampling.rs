@@ -5,6 +5,7 @@
 //! solid angle, planar pdfs per unit area. Inputs `u` are in [0, 1); every routine stays finite
 //! for `u` exactly 0 or just below 1.
 
+use super::math;
 use glam::{Vec2, Vec3A};
 use std::f32::consts::{FRAC_1_PI, FRAC_PI_2, FRAC_PI_4, PI, TAU};
 
@@ -27,7 +28,7 @@ fn safe_sqrt(x: f32) -> f32 {
 
 #[inline]
 fn safe_asin(x: f32) -> f32 {
-    x.clamp(-1.0, 1.0).asin()
+    math::asin(x.clamp(-1.0, 1.0))
 }
 
 /// The angle between two unit vectors, accurate for nearly parallel and nearly opposite ones.
@@ -48,7 +49,7 @@ fn gram_schmidt(v: Vec3A, w: Vec3A) -> Vec3A {
 
 #[inline]
 fn spherical_direction(sin_theta: f32, cos_theta: f32, phi: f32) -> Vec3A {
-    let (sin_phi, cos_phi) = phi.sin_cos();
+    let (sin_phi, cos_phi) = math::sin_cos(phi);
     Vec3A::new(sin_theta.clamp(-1.0, 1.0) * cos_phi, sin_theta.clamp(-1.0, 1.0) * sin_phi, cos_theta.clamp(-1.0, 1.0))
 }
 
@@ -62,7 +63,7 @@ pub fn sample_uniform_disk_concentric(u: Vec2) -> Vec2 {
     }
     let (r, theta) =
         if o.x.abs() > o.y.abs() { (o.x, FRAC_PI_4 * (o.y / o.x)) } else { (o.y, FRAC_PI_2 - FRAC_PI_4 * (o.x / o.y)) };
-    let (s, c) = theta.sin_cos();
+    let (s, c) = math::sin_cos(theta);
     r * Vec2::new(c, s)
 }
 
@@ -70,7 +71,7 @@ pub fn sample_uniform_disk_concentric(u: Vec2) -> Vec2 {
 #[inline]
 pub fn sample_uniform_disk_polar(u: Vec2) -> Vec2 {
     let r = u.x.sqrt();
-    let (s, c) = (TAU * u.y).sin_cos();
+    let (s, c) = math::sin_cos(TAU * u.y);
     r * Vec2::new(c, s)
 }
 
@@ -150,7 +151,7 @@ pub fn sample_uniform_triangle(u: Vec2) -> [f32; 3] {
 /// Strackee's formula, accurate for small triangles).
 #[inline]
 pub fn spherical_triangle_area(a: Vec3A, b: Vec3A, c: Vec3A) -> f32 {
-    (2.0 * a.dot(b.cross(c)).atan2(1.0 + a.dot(b) + a.dot(c) + b.dot(c))).abs()
+    (2.0 * math::atan2(a.dot(b.cross(c)), 1.0 + a.dot(b) + a.dot(c) + b.dot(c))).abs()
 }
 
 /// Solid angle subtended by the triangle `v` seen from `p` (0 if `p` is a vertex). Light
@@ -202,8 +203,8 @@ pub fn sample_spherical_triangle(v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f
     let ap_pi = PI64 + f64::from(u.x) * (alpha + beta + gamma - PI64);
 
     // c' lies on the arc from a to c; b' is the length of the arc (a, c') (side opposite b).
-    let (sin_alpha, cos_alpha) = alpha.sin_cos();
-    let (sin_ap, cos_ap) = ap_pi.sin_cos();
+    let (sin_alpha, cos_alpha) = math::sin_cos_f64(alpha);
+    let (sin_ap, cos_ap) = math::sin_cos_f64(ap_pi);
     let sin_phi = sin_ap * cos_alpha - cos_ap * sin_alpha;
     let cos_phi = cos_ap * cos_alpha + sin_ap * sin_alpha;
     let k1 = cos_phi + cos_alpha;
@@ -219,7 +220,8 @@ pub fn sample_spherical_triangle(v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f
     // Sample the arc from b towards c' uniformly in cos theta. 1 - cos theta is computed from the
     // half-angle, 2 sin^2(theta / 2), which keeps its precision for short arcs.
     let half = 0.5 * angle_between(b, cp.normalize_or_zero());
-    let one_minus_cos = u.y * 2.0 * half.sin() * half.sin();
+    let sin_half = math::sin(half);
+    let one_minus_cos = u.y * 2.0 * sin_half * sin_half;
     let cos_theta = 1.0 - one_minus_cos;
     let sin_theta = safe_sqrt(one_minus_cos * (2.0 - one_minus_cos));
     let w = cos_theta * b + sin_theta * gram_schmidt(cp, b).normalize_or_zero();

@@ -4,6 +4,7 @@
 use super::accel::{Accel, Hit, RayQuery, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
 use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::math;
 use super::sampler::hash_u64;
 use super::sampling::Distribution1D;
 use glam::{Vec2, Vec3, Vec3A, Vec4};
@@ -186,7 +187,7 @@ impl RenderScene {
             lights.push(match pl.kind {
                 PunctualKind::Point => Light::Point { p, i },
                 PunctualKind::Spot { inner_cone, outer_cone } => {
-                    Light::Spot { p, i, axis: dir, cos_inner: inner_cone.cos(), cos_outer: outer_cone.cos() }
+                    Light::Spot { p, i, axis: dir, cos_inner: math::cos(inner_cone), cos_outer: math::cos(outer_cone) }
                 }
                 PunctualKind::Directional => Light::Directional { w: dir, e: i, radius },
             });
@@ -466,13 +467,13 @@ impl RenderScene {
     /// `si`: when it leaves through the back of a surface whose material has
     /// KHR_materials_volume attenuation, the segment ran inside that object (closed meshes,
     /// outward winding, no nesting), and `exp(-sigma t)` of it is left.
+    #[inline]
     pub fn transmittance(&self, si: &SurfaceInteraction, d: Vec3A) -> Vec3A {
         let Some(m) = self.materials.get(si.material as usize) else { return Vec3A::ONE };
         if m.attenuation == glam::Vec3::ZERO || si.ng.dot(d) <= 0.0 {
             return Vec3A::ONE;
         }
-        let sigma = Vec3A::from(m.attenuation) * (si.t * d.length());
-        Vec3A::new((-sigma.x).exp(), (-sigma.y).exp(), (-sigma.z).exp())
+        beer_lambert(Vec3A::from(m.attenuation) * (si.t * d.length()))
     }
 
     /// Whether the segment between two surface points (or a point and a light) is blocked.
@@ -628,6 +629,12 @@ impl RenderScene {
 #[inline]
 pub fn luminance(c: Vec3A) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// `exp(-sigma)` per channel; out of line, as few materials have an attenuation.
+#[inline(never)]
+fn beer_lambert(sigma: Vec3A) -> Vec3A {
+    Vec3A::new(math::exp(-sigma.x), math::exp(-sigma.y), math::exp(-sigma.z))
 }
 
 #[cfg(test)]
