@@ -9,15 +9,15 @@
 //! IEEE 754 makes `+ - * /` and `sqrt` correctly rounded everywhere, so functions built from them
 //! alone give the same bits on every machine.
 //!
-//! Why generic: the wavefront integrator shades 8 paths at once, and each lane must give the
-//! scalar path's bits. The lane-wise functions ([`sin_cos`], [`atan2`], [`asin`], [`acos`],
-//! [`exp`]) have one body over [`Real`], implemented by `f32` and by [`F32x8`] (8 lanes whose
-//! operations are element-wise IEEE operations, which the compiler turns into AVX2 instructions
-//! inside [`super::wide::Avx2::run`]): the same operations in the same order, so the same bits,
-//! and no branch on a lane's value (both sides are computed, then selected).
+//! Why generic: the wavefront integrator samples 8 paths at once, and each lane must give the
+//! scalar path's bits. The lane-wise functions ([`sin_cos`], [`sin_cos_small`], [`atan2`],
+//! [`asin`], [`acos`], [`exp`]) have one body over [`Real`], implemented by `f32` and by
+//! [`super::wide::F32x8`] (8 lanes of AVX2 instructions): the same IEEE operations in the same
+//! order, so the same bits, and no branch on a lane's value (both sides are computed, then
+//! selected).
 //!
 //! Accuracy (measured by the tests over dense sweeps against `f64` std, which they assert):
-//! - [`sin_cos`]: absolute error <= 1.2e-7 for |x| <= 8192 (the range reduction by pi/2 is
+//! - [`sin_cos`] ([`sin_cos_small`] on [-pi/4, pi/4]): absolute error <= 1.2e-7 for |x| <= 8192 (the range reduction by pi/2 is
 //!   Cody-Waite's in three parts; beyond 8192 it loses bits, and beyond 2^22 it is meaningless:
 //!   callers pass angles, and reduce user input such as degrees first); <= 2 ulp on [-pi, pi]
 //!   where |sin| >= 1e-3.
@@ -31,11 +31,13 @@
 
 use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Sub};
 
-/// A number type the lane-wise functions are written over: `f32`, or 8 lanes of it.
+/// A number type the lane-wise functions are written over: `f32`, or 8 lanes of it
+/// ([`super::wide::F32x8`], AVX2).
 ///
 /// Implementations must make every operation the lane-wise IEEE operation of `f32` (no fused
 /// multiply-add, no approximate reciprocal or square root), so that a lane of the result is the
-/// scalar function's result for that lane's input.
+/// scalar function's result for that lane's input. Constants are made from an existing value
+/// ([`Real::splat`] takes `self`): a lane type's values exist only where its instructions do.
 pub trait Real:
     Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self> + Neg<Output = Self>
 {
@@ -49,17 +51,21 @@ pub trait Real:
     /// One truth value per lane.
     type Mask: Copy + BitAnd<Output = Self::Mask> + BitOr<Output = Self::Mask> + Not<Output = Self::Mask>;
 
-    fn splat(v: f32) -> Self;
-    fn int(v: i32) -> Self::Int;
+    /// `v` in every lane.
+    fn splat(self, v: f32) -> Self;
+    /// `v` in every lane.
+    fn int(self, v: i32) -> Self::Int;
     fn to_bits(self) -> Self::Int;
     fn from_bits(i: Self::Int) -> Self;
-    /// Shift left by `n` (below 32).
-    fn shl(i: Self::Int, n: u32) -> Self::Int;
-    /// Arithmetic shift right by `n` (below 32).
-    fn sar(i: Self::Int, n: u32) -> Self::Int;
+    /// Shift left by `N` (below 32).
+    fn shl<const N: i32>(i: Self::Int) -> Self::Int;
+    /// Arithmetic shift right by `N` (below 32).
+    fn sar<const N: i32>(i: Self::Int) -> Self::Int;
     fn int_eq(a: Self::Int, b: Self::Int) -> Self::Mask;
     fn sqrt(self) -> Self;
+    /// `self < o`, false where either is NaN.
     fn lt(self, o: Self) -> Self::Mask;
+    /// `self == o`, false where either is NaN.
     fn eq(self, o: Self) -> Self::Mask;
     /// `a` where `m` holds, else `b`.
     fn select(m: Self::Mask, a: Self, b: Self) -> Self;
@@ -71,12 +77,12 @@ pub trait Real:
     /// `|x|` (the sign bit cleared).
     #[inline(always)]
     fn abs(self) -> Self {
-        Self::from_bits(self.to_bits() & Self::int(i32::MAX))
+        Self::from_bits(self.to_bits() & self.int(i32::MAX))
     }
     /// The sign bit of `self` alone, as an integer.
     #[inline(always)]
     fn sign_bit(self) -> Self::Int {
-        self.to_bits() & Self::int(i32::MIN)
+        self.to_bits() & self.int(i32::MIN)
     }
     /// `self` with `bits` xor-ed into its bits.
     #[inline(always)]
@@ -90,11 +96,11 @@ impl Real for f32 {
     type Mask = bool;
 
     #[inline(always)]
-    fn splat(v: f32) -> Self {
+    fn splat(self, v: f32) -> Self {
         v
     }
     #[inline(always)]
-    fn int(v: i32) -> i32 {
+    fn int(self, v: i32) -> i32 {
         v
     }
     #[inline(always)]
@@ -106,12 +112,12 @@ impl Real for f32 {
         f32::from_bits(i as u32)
     }
     #[inline(always)]
-    fn shl(i: i32, n: u32) -> i32 {
-        i << n
+    fn shl<const N: i32>(i: i32) -> i32 {
+        i << N
     }
     #[inline(always)]
-    fn sar(i: i32, n: u32) -> i32 {
-        i >> n
+    fn sar<const N: i32>(i: i32) -> i32 {
+        i >> N
     }
     #[inline(always)]
     fn int_eq(a: i32, b: i32) -> bool {
@@ -135,135 +141,6 @@ impl Real for f32 {
     }
 }
 
-/// 8 lanes of `f32`. Every operation is the element-wise `f32` operation; the compiler makes
-/// them AVX2 instructions where the calling code runs under [`super::wide::Avx2::run`] (and SSE
-/// pairs elsewhere): the bits are the same either way.
-#[derive(Clone, Copy, Debug, PartialEq)]
-#[repr(C, align(32))]
-pub struct F32x8(pub [f32; 8]);
-
-/// 8 lanes of `i32` (the bits and integers of [`F32x8`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(C, align(32))]
-pub struct I32x8(pub [i32; 8]);
-
-/// 8 truth values, each lane all ones (true) or all zeros.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(C, align(32))]
-pub struct M32x8(pub [i32; 8]);
-
-macro_rules! lanewise {
-    ($ty:ident, $tr:ident, $f:ident, $op:tt) => {
-        impl $tr for $ty {
-            type Output = $ty;
-            #[inline(always)]
-            fn $f(self, o: $ty) -> $ty {
-                $ty(std::array::from_fn(|i| self.0[i] $op o.0[i]))
-            }
-        }
-    };
-}
-lanewise!(F32x8, Add, add, +);
-lanewise!(F32x8, Sub, sub, -);
-lanewise!(F32x8, Mul, mul, *);
-lanewise!(F32x8, Div, div, /);
-lanewise!(M32x8, BitAnd, bitand, &);
-lanewise!(M32x8, BitOr, bitor, |);
-lanewise!(I32x8, BitAnd, bitand, &);
-lanewise!(I32x8, BitOr, bitor, |);
-lanewise!(I32x8, BitXor, bitxor, ^);
-
-impl Add for I32x8 {
-    type Output = I32x8;
-    #[inline(always)]
-    fn add(self, o: I32x8) -> I32x8 {
-        I32x8(std::array::from_fn(|i| self.0[i].wrapping_add(o.0[i])))
-    }
-}
-
-impl Sub for I32x8 {
-    type Output = I32x8;
-    #[inline(always)]
-    fn sub(self, o: I32x8) -> I32x8 {
-        I32x8(std::array::from_fn(|i| self.0[i].wrapping_sub(o.0[i])))
-    }
-}
-
-impl Neg for F32x8 {
-    type Output = F32x8;
-    #[inline(always)]
-    fn neg(self) -> F32x8 {
-        F32x8(self.0.map(|x| -x))
-    }
-}
-
-impl Not for M32x8 {
-    type Output = M32x8;
-    #[inline(always)]
-    fn not(self) -> M32x8 {
-        M32x8(self.0.map(|x| !x))
-    }
-}
-
-impl F32x8 {
-    /// Lane `i` is `f(i)`.
-    #[inline(always)]
-    pub fn from_fn(f: impl FnMut(usize) -> f32) -> Self {
-        Self(std::array::from_fn(f))
-    }
-}
-
-impl Real for F32x8 {
-    type Int = I32x8;
-    type Mask = M32x8;
-
-    #[inline(always)]
-    fn splat(v: f32) -> Self {
-        Self([v; 8])
-    }
-    #[inline(always)]
-    fn int(v: i32) -> I32x8 {
-        I32x8([v; 8])
-    }
-    #[inline(always)]
-    fn to_bits(self) -> I32x8 {
-        I32x8(self.0.map(|x| x.to_bits() as i32))
-    }
-    #[inline(always)]
-    fn from_bits(i: I32x8) -> Self {
-        Self(i.0.map(|x| f32::from_bits(x as u32)))
-    }
-    #[inline(always)]
-    fn shl(i: I32x8, n: u32) -> I32x8 {
-        I32x8(i.0.map(|x| x << n))
-    }
-    #[inline(always)]
-    fn sar(i: I32x8, n: u32) -> I32x8 {
-        I32x8(i.0.map(|x| x >> n))
-    }
-    #[inline(always)]
-    fn int_eq(a: I32x8, b: I32x8) -> M32x8 {
-        M32x8(std::array::from_fn(|i| -i32::from(a.0[i] == b.0[i])))
-    }
-    #[inline(always)]
-    fn sqrt(self) -> Self {
-        Self(self.0.map(f32::sqrt))
-    }
-    #[inline(always)]
-    fn lt(self, o: Self) -> M32x8 {
-        M32x8(std::array::from_fn(|i| -i32::from(self.0[i] < o.0[i])))
-    }
-    #[inline(always)]
-    fn eq(self, o: Self) -> M32x8 {
-        M32x8(std::array::from_fn(|i| -i32::from(self.0[i] == o.0[i])))
-    }
-    #[inline(always)]
-    fn select(m: M32x8, a: Self, b: Self) -> Self {
-        let (a, b) = (a.to_bits(), b.to_bits());
-        Self::from_bits(I32x8(std::array::from_fn(|i| (m.0[i] & a.0[i]) | (!m.0[i] & b.0[i]))))
-    }
-}
-
 /// 1.5 * 2^23: adding it to an f32 of magnitude below 2^22 rounds it to an integer (to nearest,
 /// ties to even), held in the sum's low mantissa bits.
 const ROUND_MAGIC: f32 = 12_582_912.0;
@@ -276,28 +153,37 @@ const FRAC_PI_2: f32 = std::f32::consts::FRAC_PI_2;
 const FRAC_PI_4: f32 = std::f32::consts::FRAC_PI_4;
 const PI: f32 = std::f32::consts::PI;
 
+/// `(sin x, cos x)` for |x| <= pi/4 (no range reduction): Cephes' `sinf`/`cosf` polynomials.
+#[inline(always)]
+pub fn sin_cos_small<R: Real>(r: R) -> (R, R) {
+    let c = |v: f32| r.splat(v);
+    let z = r * r;
+    let s = ((c(-1.951_529_6e-4) * z + c(8.332_161e-3)) * z + c(-1.666_665_5e-1)) * z * r + r;
+    // sin(-0) = -0 (the sum above makes it +0).
+    let s = R::select(r.eq(c(0.0)), r, s);
+    let cos = ((c(2.443_315_7e-5) * z + c(-1.388_731_6e-3)) * z + c(4.166_664_6e-2)) * z * z
+        - c(0.5) * z
+        + c(1.0);
+    (s, cos)
+}
+
 /// `(sin x, cos x)`: Cody-Waite reduction to [-pi/4, pi/4] by the nearest multiple of pi/2,
-/// Cephes' `sinf`/`cosf` polynomials, then the quadrant's swap and signs. NaN or infinite `x`
-/// gives NaN.
+/// [`sin_cos_small`], then the quadrant's swap and signs. NaN or infinite `x` gives NaN.
 #[inline(always)]
 pub fn sin_cos<R: Real>(x: R) -> (R, R) {
-    let t = x * R::splat(std::f32::consts::FRAC_2_PI) + R::splat(ROUND_MAGIC);
-    let j = t - R::splat(ROUND_MAGIC);
+    let c = |v: f32| x.splat(v);
+    let n = |v: i32| x.int(v);
+    let t = x * c(std::f32::consts::FRAC_2_PI) + c(ROUND_MAGIC);
+    let j = t - c(ROUND_MAGIC);
     // The quadrant, j mod 4, in the low bits of t's mantissa.
     let q = t.to_bits();
-    let r = ((x - j * R::splat(PIO2_1)) - j * R::splat(PIO2_2)) - j * R::splat(PIO2_3);
-    let z = r * r;
-    let s = ((R::splat(-1.951_529_6e-4) * z + R::splat(8.332_161e-3)) * z + R::splat(-1.666_665_5e-1)) * z * r + r;
-    // sin(-0) = -0 (the sum above makes it +0).
-    let s = R::select(r.eq(R::splat(0.0)), r, s);
-    let c = ((R::splat(2.443_315_7e-5) * z + R::splat(-1.388_731_6e-3)) * z + R::splat(4.166_664_6e-2)) * z * z
-        - R::splat(0.5) * z
-        + R::splat(1.0);
-    let odd = R::int_eq(q & R::int(1), R::int(1));
-    let (sin, cos) = (R::select(odd, c, s), R::select(odd, s, c));
+    let r = ((x - j * c(PIO2_1)) - j * c(PIO2_2)) - j * c(PIO2_3);
+    let (s0, c0) = sin_cos_small(r);
+    let odd = R::int_eq(q & n(1), n(1));
+    let (sin, cos) = (R::select(odd, c0, s0), R::select(odd, s0, c0));
     // sin changes sign in quadrants 2 and 3, cos in quadrants 1 and 2.
-    let sin_sign = R::shl(q & R::int(2), 30);
-    let cos_sign = R::shl((q + R::int(1)) & R::int(2), 30);
+    let sin_sign = R::shl::<30>(q & n(2));
+    let cos_sign = R::shl::<30>((q + n(1)) & n(2));
     (sin.xor_bits(sin_sign), cos.xor_bits(cos_sign))
 }
 
@@ -323,33 +209,36 @@ pub fn tan(x: f32) -> f32 {
 /// `atan a` for `a` in [0, 1] (Cephes' `atanf`: above tan(pi/8), `pi/4 + atan((a-1)/(a+1))`).
 #[inline(always)]
 fn atan_unit<R: Real>(a: R) -> R {
-    let big = a.gt(R::splat(0.414_213_57));
-    let x = R::select(big, (a - R::splat(1.0)) / (a + R::splat(1.0)), a);
+    let c = |v: f32| a.splat(v);
+    let big = a.gt(c(0.414_213_57));
+    let x = R::select(big, (a - c(1.0)) / (a + c(1.0)), a);
     let z = x * x;
-    let p = (((R::splat(8.053_744_5e-2) * z + R::splat(-1.387_768_6e-1)) * z + R::splat(1.997_771_1e-1)) * z
-        + R::splat(-3.333_295e-1))
+    let p = (((c(8.053_744_5e-2) * z + c(-1.387_768_6e-1)) * z + c(1.997_771_1e-1)) * z
+        + c(-3.333_295e-1))
         * z
         * x
         + x;
-    R::select(big, R::splat(FRAC_PI_4) + p, p)
+    R::select(big, c(FRAC_PI_4) + p, p)
 }
 
 /// `atan2(y, x)`, the angle of (x, y) in [-pi, pi], with IEEE 754's special cases (signed
 /// zeros: `atan2(+-0, -0) = +-pi`; infinities). NaN in, NaN out.
 #[inline(always)]
 pub fn atan2<R: Real>(y: R, x: R) -> R {
+    let c = |v: f32| y.splat(v);
+    let n = |v: i32| y.int(v);
     let (ax, ay) = (x.abs(), y.abs());
     let steep = ay.gt(ax);
     let (lo, hi) = (R::select(steep, ax, ay), R::select(steep, ay, ax));
     // 0/0 (both zero) is 0; inf/inf (both infinite) is 1.
     let a = R::select(
-        hi.eq(R::splat(0.0)),
-        R::splat(0.0),
-        R::select(lo.eq(R::splat(f32::INFINITY)), R::splat(1.0), lo / hi),
+        hi.eq(c(0.0)),
+        c(0.0),
+        R::select(lo.eq(c(f32::INFINITY)), c(1.0), lo / hi),
     );
     let r = atan_unit(a);
-    let r = R::select(steep, R::splat(FRAC_PI_2) - r, r);
-    let r = R::select(R::int_eq(x.sign_bit(), R::int(0)), r, R::splat(PI) - r);
+    let r = R::select(steep, c(FRAC_PI_2) - r, r);
+    let r = R::select(R::int_eq(x.sign_bit(), n(0)), r, c(PI) - r);
     r.xor_bits(y.sign_bit())
 }
 
@@ -362,10 +251,11 @@ pub fn atan(x: f32) -> f32 {
 /// The polynomial of Cephes' `asinf`: `asin(s)` for `s` in [-0.5, 0.5], given `z = s * s`.
 #[inline(always)]
 fn asin_kernel<R: Real>(s: R, z: R) -> R {
-    ((((R::splat(4.216_32e-2) * z + R::splat(2.418_131_1e-2)) * z + R::splat(4.547_002_6e-2)) * z
-        + R::splat(7.495_300_3e-2))
+    let c = |v: f32| s.splat(v);
+    ((((c(4.216_32e-2) * z + c(2.418_131_1e-2)) * z + c(4.547_002_6e-2)) * z
+        + c(7.495_300_3e-2))
         * z
-        + R::splat(1.666_675_2e-1))
+        + c(1.666_675_2e-1))
         * z
         * s
         + s
@@ -375,26 +265,29 @@ fn asin_kernel<R: Real>(s: R, z: R) -> R {
 /// `asin a = pi/2 - 2 asin(sqrt((1 - a) / 2))`.
 #[inline(always)]
 pub fn asin<R: Real>(x: R) -> R {
+    let c = |v: f32| x.splat(v);
     let a = x.abs();
-    let big = a.gt(R::splat(0.5));
-    let z = R::select(big, R::splat(0.5) * (R::splat(1.0) - a), a * a);
+    let big = a.gt(c(0.5));
+    let z = R::select(big, c(0.5) * (c(1.0) - a), a * a);
     let s = R::select(big, z.sqrt(), a);
     let p = asin_kernel(s, z);
-    R::select(big, R::splat(FRAC_PI_2) - (p + p), p).xor_bits(x.sign_bit())
+    R::select(big, c(FRAC_PI_2) - (p + p), p).xor_bits(x.sign_bit())
 }
 
 /// `acos x` in [0, pi]; NaN outside [-1, 1]. Near +-1 through
 /// `acos a = 2 asin(sqrt((1 - a) / 2))`, so small angles keep their precision.
 #[inline(always)]
 pub fn acos<R: Real>(x: R) -> R {
+    let c = |v: f32| x.splat(v);
+    let n = |v: i32| x.int(v);
     let a = x.abs();
-    let big = a.gt(R::splat(0.5));
-    let z = R::select(big, R::splat(0.5) * (R::splat(1.0) - a), x * x);
+    let big = a.gt(c(0.5));
+    let z = R::select(big, c(0.5) * (c(1.0) - a), x * x);
     let s = R::select(big, z.sqrt(), x);
     let p = asin_kernel(s, z);
     let twice = p + p;
-    let negative = R::int_eq(x.sign_bit(), R::int(0));
-    R::select(big, R::select(negative, twice, R::splat(PI) - twice), R::splat(FRAC_PI_2) - p)
+    let negative = R::int_eq(x.sign_bit(), n(0));
+    R::select(big, R::select(negative, twice, c(PI) - twice), c(FRAC_PI_2) - p)
 }
 
 /// `e^x`: `2^n e^r` with `n` the nearest integer to `x / ln 2` and |r| <= ln 2 / 2 (Cephes'
@@ -402,32 +295,34 @@ pub fn acos<R: Real>(x: R) -> R {
 /// Overflows to infinity, underflows to 0; NaN in, NaN out.
 #[inline(always)]
 pub fn exp<R: Real>(x: R) -> R {
+    let c = |v: f32| x.splat(v);
+    let n = |v: i32| x.int(v);
     // Clamped where the result is already infinite or 0, so that n stays small.
-    let x = R::select(x.gt(R::splat(100.0)), R::splat(100.0), x);
-    let x = R::select(x.lt(R::splat(-110.0)), R::splat(-110.0), x);
-    let t = x * R::splat(std::f32::consts::LOG2_E) + R::splat(ROUND_MAGIC);
-    let nf = t - R::splat(ROUND_MAGIC);
-    let n = t.to_bits() - R::splat(ROUND_MAGIC).to_bits();
-    let r = (x - nf * R::splat(0.693_359_4)) - nf * R::splat(-2.121_944_4e-4);
+    let x = R::select(x.gt(c(100.0)), c(100.0), x);
+    let x = R::select(x.lt(c(-110.0)), c(-110.0), x);
+    let t = x * c(std::f32::consts::LOG2_E) + c(ROUND_MAGIC);
+    let nf = t - c(ROUND_MAGIC);
+    let k = t.to_bits() - c(ROUND_MAGIC).to_bits();
+    let r = (x - nf * c(0.693_359_4)) - nf * c(-2.121_944_4e-4);
     let z = r * r;
-    let p = (((((R::splat(1.987_569_1e-4) * r + R::splat(1.398_2e-3)) * r + R::splat(8.333_452e-3)) * r
-        + R::splat(4.166_579_6e-2))
+    let p = (((((c(1.987_569_1e-4) * r + c(1.398_2e-3)) * r + c(8.333_452e-3)) * r
+        + c(4.166_579_6e-2))
         * r
-        + R::splat(1.666_666_5e-1))
+        + c(1.666_666_5e-1))
         * r
-        + R::splat(5.000_000_1e-1))
+        + c(5.000_000_1e-1))
         * z
         + r
-        + R::splat(1.0);
-    let n1 = R::sar(n, 1);
-    let n2 = n - n1;
-    let pow2 = |k: R::Int| R::from_bits(R::shl(k + R::int(127), 23));
-    p * pow2(n1) * pow2(n2)
+        + c(1.0);
+    let k1 = R::sar::<1>(k);
+    let k2 = k - k1;
+    let pow2 = |e: R::Int| R::from_bits(R::shl::<23>(e + n(127)));
+    p * pow2(k1) * pow2(k2)
 }
 
-/// `ln x` in f64 for a finite normal `x > 0` (every positive f32 is one in f64): `k ln 2 + ln m` with `m` in [sqrt(1/2), sqrt(2)), and
-/// `ln m = 2 atanh(s)`, `s = (m - 1) / (m + 1)`, by its series (|s| <= 0.1716: 11 terms reach
-/// f64's precision).
+/// `ln x` in f64 for a finite normal `x > 0` (every positive f32 is one in f64):
+/// `k ln 2 + ln m` with `m` in [sqrt(1/2), sqrt(2)), and `ln m = 2 atanh(s)`,
+/// `s = (m - 1) / (m + 1)`, by its series (|s| <= 0.1716: 11 terms reach f64's precision).
 fn ln_f64(x: f64) -> f64 {
     let bits = x.to_bits();
     let mut k = ((bits >> 52) & 0x7ff) as i64 - 1023;
@@ -584,6 +479,12 @@ mod tests {
         let turn = || sweep(-PI, PI, 4_000_000).filter(|&x| f64::from(x).cos().abs() >= 1e-3);
         let (u, at) = max_ulps(turn(), cos, f64::cos);
         assert!(u <= 2, "cos: {u} ulp at {at}");
+        // The kernel alone on its interval.
+        let quarter = || sweep(-FRAC_PI_4, FRAC_PI_4, 1_000_000);
+        let (u, at) = max_ulps(quarter().filter(|&x| x.abs() >= 1e-3), |x| sin_cos_small(x).0, f64::sin);
+        assert!(u <= 2, "sin_cos_small sin: {u} ulp at {at}");
+        let (u, at) = max_ulps(quarter(), |x| sin_cos_small(x).1, f64::cos);
+        assert!(u <= 2, "sin_cos_small cos: {u} ulp at {at}");
         // Signed zero, and the quadrant boundaries.
         assert_eq!(sin(-0.0).to_bits(), (-0.0f32).to_bits());
         assert_eq!(sin_cos(0.0), (0.0, 1.0));
@@ -743,10 +644,10 @@ mod tests {
     }
 
     /// The 8-lane functions give the scalar bits in every lane (the inputs include NaN,
-    /// infinities, signed zeros and out-of-domain values), inside and outside AVX2 code.
+    /// infinities, signed zeros and out-of-domain values), where the CPU has AVX2.
     #[test]
     fn lanes_give_the_scalar_bits() {
-        let avx2 = super::super::wide::Avx2::new();
+        let Some(avx2) = super::super::wide::Avx2::new() else { return };
         let special = [0.0, -0.0, 1.0, -1.0, 0.5, -0.5, f32::INFINITY, f32::NEG_INFINITY, f32::NAN, 1e-40, 1e30, -88.0];
         let mut inputs: Vec<f32> = special.to_vec();
         inputs.extend((0..200_000u64).map(|i| {
@@ -763,27 +664,27 @@ mod tests {
         macro_rules! check {
             ($name:literal, |$x:ident, $y:ident| $body:expr) => {
                 for (k, chunk) in inputs.chunks_exact(8).enumerate() {
-                    let $x = F32x8::from_fn(|i| chunk[i]);
-                    let $y = F32x8::from_fn(|i| inputs[(k * 13 + i * 7) % inputs.len()]);
-                    let got = match avx2 {
-                        Some(avx2) => avx2.run(|| $body),
-                        None => $body,
-                    };
-                    let plain = $body;
+                    let xs: [f32; 8] = std::array::from_fn(|i| chunk[i]);
+                    let ys: [f32; 8] = std::array::from_fn(|i| inputs[(k * 13 + i * 7) % inputs.len()]);
+                    let got = avx2.run(|| {
+                        let ($x, $y) = (avx2.f32x8(&xs), avx2.f32x8(&ys));
+                        $body.to_array()
+                    });
                     for i in 0..8 {
                         let want = {
-                            let ($x, $y) = ($x.0[i], $y.0[i]);
+                            let ($x, $y) = (xs[i], ys[i]);
                             $body
                         };
-                        let at = ($x.0[i], $y.0[i]);
-                        assert_eq!(got.0[i].to_bits(), want.to_bits(), "{} at {at:?}", $name);
-                        assert_eq!(plain.0[i].to_bits(), want.to_bits(), "{} at {at:?}", $name);
+                        let at = (xs[i], ys[i]);
+                        assert_eq!(got[i].to_bits(), want.to_bits(), "{} at {at:?}", $name);
                     }
                 }
             };
         }
         check!("sin", |x, _y| sin_cos(x).0);
         check!("cos", |x, _y| sin_cos(x).1);
+        check!("sin small", |x, _y| sin_cos_small(x).0);
+        check!("cos small", |x, _y| sin_cos_small(x).1);
         check!("atan2", |x, y| atan2(y, x));
         check!("asin", |x, _y| asin(x));
         check!("acos", |x, _y| acos(x));

@@ -5,9 +5,10 @@
 //! solid angle, planar pdfs per unit area. Inputs `u` are in [0, 1); every routine stays finite
 //! for `u` exactly 0 or just below 1.
 
-use super::math;
+use super::math::{self, Real};
+use super::wide::{Avx2, SimdLevel};
 use glam::{Vec2, Vec3A};
-use std::f32::consts::{FRAC_1_PI, FRAC_PI_2, FRAC_PI_4, PI, TAU};
+use std::f32::consts::{FRAC_1_PI, FRAC_PI_4, PI, TAU};
 
 /// The largest float below 1 (pbrt's `OneMinusEpsilon`).
 pub const ONE_MINUS_EPSILON: f32 = 1.0 - f32::EPSILON / 2.0;
@@ -57,14 +58,26 @@ fn spherical_direction(sin_theta: f32, cos_theta: f32, phi: f32) -> Vec3A {
 /// stratification). Pdf `1 / pi` per unit area.
 #[inline]
 pub fn sample_uniform_disk_concentric(u: Vec2) -> Vec2 {
-    let o = 2.0 * u - Vec2::ONE;
-    if o.x == 0.0 && o.y == 0.0 {
-        return Vec2::ZERO;
-    }
-    let (r, theta) =
-        if o.x.abs() > o.y.abs() { (o.x, FRAC_PI_4 * (o.y / o.x)) } else { (o.y, FRAC_PI_2 - FRAC_PI_4 * (o.x / o.y)) };
-    let (s, c) = math::sin_cos(theta);
-    r * Vec2::new(c, s)
+    let (x, y) = disk_concentric(u.x, u.y);
+    Vec2::new(x, y)
+}
+
+/// [`sample_uniform_disk_concentric`] over lanes, without a branch on a lane's value: the angle
+/// is `phi` or `pi/2 - phi` with |phi| <= pi/4, so the sine and cosine of `phi` alone, swapped
+/// for the second case, need no range reduction.
+#[inline(always)]
+pub fn disk_concentric<R: Real>(ux: R, uy: R) -> (R, R) {
+    let c = |v: f32| ux.splat(v);
+    let (ox, oy) = (c(2.0) * ux - c(1.0), c(2.0) * uy - c(1.0));
+    let wide = ox.abs().gt(oy.abs());
+    let r = R::select(wide, ox, oy);
+    let phi = c(FRAC_PI_4) * (R::select(wide, oy, ox) / r);
+    let zero = c(0.0);
+    let (sin, cos) = math::sin_cos_small(phi);
+    // r = 0 only at the centre (both offsets 0), where phi is 0/0.
+    let centre = r.eq(zero);
+    let (x, y) = (R::select(wide, cos, sin), R::select(wide, sin, cos));
+    (R::select(centre, zero, r * x), R::select(centre, zero, r * y))
 }
 
 /// Uniform point on the unit disk in polar coordinates (`r = sqrt(u0)`). Pdf `1 / pi`.
@@ -78,9 +91,57 @@ pub fn sample_uniform_disk_polar(u: Vec2) -> Vec2 {
 /// Cosine-weighted direction on the `z >= 0` hemisphere (Malley's method on the concentric disk).
 #[inline]
 pub fn sample_cosine_hemisphere(u: Vec2) -> Vec3A {
-    let d = sample_uniform_disk_concentric(u);
-    let z = safe_sqrt(1.0 - d.x * d.x - d.y * d.y);
-    Vec3A::new(d.x, d.y, z)
+    let (x, y, z) = cosine_hemisphere(u.x, u.y);
+    Vec3A::new(x, y, z)
+}
+
+/// A direction of [`sample_cosine_hemisphere`] computed ahead for the 2D number `u` (the
+/// wavefront integrator computes a bounce's directions for its whole batch, 8 lanes at once,
+/// before shading).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CosineSample {
+    pub u: Vec2,
+    pub w: Vec3A,
+}
+
+impl CosineSample {
+    /// `sample_cosine_hemisphere(u)`: taken from `ahead` where it was computed for these very
+    /// bits of `u`, computed here otherwise (the same bits either way).
+    #[inline]
+    pub fn or_compute(ahead: Option<&CosineSample>, u: Vec2) -> Vec3A {
+        match ahead {
+            Some(a) if a.u.x.to_bits() == u.x.to_bits() && a.u.y.to_bits() == u.y.to_bits() => a.w,
+            _ => sample_cosine_hemisphere(u),
+        }
+    }
+}
+
+/// [`sample_cosine_hemisphere`] of every `u`, appended to `out` in order: 8 at a time in AVX2
+/// lanes where `level` is [`SimdLevel::Avx2`], one at a time otherwise (the bits are the same).
+pub fn cosine_hemisphere_many(us: &[Vec2], level: SimdLevel, out: &mut Vec<CosineSample>) {
+    let Some(avx2) = (level == SimdLevel::Avx2).then(Avx2::new).flatten() else {
+        out.extend(us.iter().map(|&u| CosineSample { u, w: sample_cosine_hemisphere(u) }));
+        return;
+    };
+    avx2.run(|| {
+        for chunk in us.chunks(8) {
+            // A short chunk's missing lanes compute (0.5, 0.5), and are dropped.
+            let ux = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.x));
+            let uy = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.y));
+            let [x, y, z] = avx2.cosine_hemisphere(&ux, &uy);
+            out.extend(chunk.iter().enumerate().map(|(i, &u)| CosineSample { u, w: Vec3A::new(x[i], y[i], z[i]) }));
+        }
+    });
+}
+
+/// [`sample_cosine_hemisphere`] over lanes.
+#[inline(always)]
+pub fn cosine_hemisphere<R: Real>(ux: R, uy: R) -> (R, R, R) {
+    let (x, y) = disk_concentric(ux, uy);
+    let z2 = ux.splat(1.0) - x * x - y * y;
+    // safe_sqrt: 1 - x^2 - y^2 is never -0, so this is `max(0, z2).sqrt()`, NaN included.
+    let zero = ux.splat(0.0);
+    (x, y, R::select(z2.gt(zero), z2, zero).sqrt())
 }
 
 /// Pdf of [`sample_cosine_hemisphere`]: `cos_theta / pi`, 0 below the horizon.
@@ -407,6 +468,7 @@ mod tests {
         Chi2Options, TestRng, integrate_2d, pearson, sphere_integral, test_rect, test_sphere, to_spherical,
     };
     use glam::DVec3;
+    use std::f32::consts::FRAC_PI_2;
 
     /// Number of chi-square tests in this module: each runs at the Sidak-corrected level
     /// 1 - (1 - 0.01)^(1 / CHI2_TESTS), so the whole suite has alpha = 0.01.

@@ -16,7 +16,7 @@
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
-//! ([`nee_sample`], [`sample_scatter`], `emission_weight`, [`shade`]); its sampler draws the
+//! ([`nee_sample`], [`sample_scatter_ahead`], `emission_weight`, [`shade`]); its sampler draws the
 //! same dimensions (the samplers are addressed by (seed, pixel, sample index, dimension), so a
 //! path's numbers never depend on its neighbours); its radiance sums its terms in the scalar
 //! order (a shadow ray's contribution is added in the shadow stage, before the next bounce adds
@@ -27,12 +27,13 @@
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
-use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter};
+use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter_ahead};
 use super::light::LightSampleContext;
 use super::material::shade;
 use super::sampler::{BounceDraws, Replay, Sampler};
+use super::sampling::{CosineSample, cosine_hemisphere_many};
 use super::scene::{RenderScene, SurfaceInteraction};
-use glam::{UVec2, Vec3A};
+use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::film::SampleValue;
 
 /// Paths per batch: enough that a stage's loop runs long over warm code and data, few enough
@@ -81,6 +82,10 @@ pub struct Wavefront<S> {
     /// Positions in `live` of the paths that shade this bounce, and their numbers.
     shading: Vec<u32>,
     draws: Vec<BounceDraws>,
+    /// The diffuse direction of each shading path, computed 8 lanes at a time from its
+    /// direction number (`draws[k].d2[1]`), and those numbers.
+    cosines: Vec<CosineSample>,
+    cosine_us: Vec<Vec2>,
     rays: Vec<RayQuery>,
     hits: Vec<Option<Hit>>,
     surfaces: Vec<Option<SurfaceInteraction>>,
@@ -97,6 +102,8 @@ impl<S: Sampler> Default for Wavefront<S> {
             next_live: Vec::with_capacity(BATCH),
             shading: Vec::with_capacity(BATCH),
             draws: Vec::with_capacity(BATCH),
+            cosines: Vec::with_capacity(BATCH),
+            cosine_us: Vec::with_capacity(BATCH),
             rays: Vec::with_capacity(BATCH),
             hits: Vec::with_capacity(BATCH),
             surfaces: Vec::with_capacity(BATCH),
@@ -177,15 +184,23 @@ impl<S: Sampler> Wavefront<S> {
                 scene.simd_level(),
                 &mut self.draws,
             );
+            // The cosine-hemisphere directions of diffuse lobes, for every shading path at once
+            // (8 lanes, the scalar bits): from the number a non-delta vertex samples its
+            // direction with (`BOUNCE_2D[1]`); a vertex that samples with another number
+            // computes its own.
+            self.cosine_us.clear();
+            self.cosine_us.extend(self.draws.iter().map(|d| d.d2[1]));
+            self.cosines.clear();
+            cosine_hemisphere_many(&self.cosine_us, scene.simd_level(), &mut self.cosines);
             // Shading stage: BSDF, light sample, scattering, roulette.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
-            for (&k, draws) in self.shading.iter().zip(&self.draws) {
+            for ((&k, draws), cosine) in self.shading.iter().zip(&self.draws).zip(&self.cosines) {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut self.paths[i as usize];
-                let pending = scatter(scene, params, path, si, draws);
+                let pending = scatter(scene, params, path, si, draws, cosine);
                 if let Some((ray, shadow)) = pending.shadow {
                     self.shadow_rays.push(ray);
                     self.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
@@ -279,6 +294,7 @@ fn scatter<S: Sampler>(
     path: &mut PathState<S>,
     si: &SurfaceInteraction,
     draws: &BounceDraws,
+    cosine: &CosineSample,
 ) -> Bounce {
     let done = Bounce { shadow: None, alive: false };
     let time = path.time;
@@ -303,7 +319,7 @@ fn scatter<S: Sampler>(
             None => path.l += path.beta * Vec3A::ZERO,
         }
     }
-    let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, &mut sampler) else {
+    let Some((bs, weight)) = sample_scatter_ahead(bsdf, sh.ng, wo, &mut sampler, Some(cosine)) else {
         return Bounce { shadow, alive: false };
     };
     path.beta *= weight;
