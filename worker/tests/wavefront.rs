@@ -276,6 +276,44 @@ fn lane_wise_diffuse_directions_are_the_scalar_bits() {
     assert!(compared > 4 * n * n);
 }
 
+/// The wavefront's lane-wise camera rays (8 lanes in AVX2, where the CPU has it) are
+/// `Camera::generate_ray`'s bits, over every pixel of images of several shapes and offsets at
+/// the pixel's edges; a thin-lens camera has no lane-wise rays.
+#[test]
+fn lane_wise_camera_rays_are_the_scalar_bits() {
+    use pathfarm_worker::render::camera::{Camera, Lens};
+    use pathfarm_worker::render::wide::Avx2;
+    let Some(avx2) = Avx2::new() else { return };
+    let bounds = Some((Vec3::new(-1.0, -0.5, -2.0), Vec3::new(1.5, 1.0, 0.5)));
+    let offsets = [0.0, 0.5, 0.999_999_94, 0.25, 1e-7, 0.75, 0.123_456_7, 0.9];
+    let mut compared = 0;
+    for (w, h) in [(64, 48), (17, 33), (1, 1), (1920, 1080)] {
+        let camera = Camera::framing(bounds, w, h);
+        let pixels: Vec<glam::UVec2> =
+            (0..h).step_by((h / 40).max(1) as usize).flat_map(|y| (0..w).map(move |x| glam::UVec2::new(x, y))).collect();
+        for chunk in pixels.chunks(8).filter(|c| c.len() == 8) {
+            for (k, &o) in offsets.iter().enumerate() {
+                let us: [Vec2; 8] = std::array::from_fn(|i| Vec2::new(o, offsets[(k + i) % 8]));
+                let lanes = |f: &dyn Fn(usize) -> f32| -> [f32; 8] { std::array::from_fn(f) };
+                let (px, py) = (lanes(&|i| chunk[i].x as f32), lanes(&|i| chunk[i].y as f32));
+                let (ux, uy) = (lanes(&|i| us[i].x), lanes(&|i| us[i].y));
+                let [x, y, z] =
+                    avx2.run(|| avx2.pinhole_directions(&camera, [&px, &py], [&ux, &uy])).expect("a pinhole camera");
+                for i in 0..8 {
+                    let want = camera.generate_ray(chunk[i], us[i]);
+                    assert_eq!(want.o, camera.position());
+                    assert_eq!([x[i], y[i], z[i]].map(f32::to_bits), want.d.to_array().map(f32::to_bits), "{w}x{h} {}", chunk[i]);
+                    compared += 1;
+                }
+            }
+        }
+        let lens = camera.clone().with_lens(Lens { radius: 0.1, focus_distance: 2.0 }).expect("a lens");
+        let zeros = [0.0f32; 8];
+        assert!(avx2.pinhole_directions(&lens, [&zeros, &zeros], [&zeros, &zeros]).is_none());
+    }
+    assert!(compared > 50_000, "{compared}");
+}
+
 /// Adaptive sampling's block masks: converged blocks stay empty in both kernels, the others
 /// equal.
 #[test]

@@ -645,6 +645,7 @@ mod tests {
 
     /// The 8-lane functions give the scalar bits in every lane (the inputs include NaN,
     /// infinities, signed zeros and out-of-domain values), where the CPU has AVX2.
+    #[cfg(target_arch = "x86_64")]
     #[test]
     fn lanes_give_the_scalar_bits() {
         let Some(avx2) = super::super::wide::Avx2::new() else { return };

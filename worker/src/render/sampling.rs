@@ -123,15 +123,13 @@ pub fn cosine_hemisphere_many(us: &[Vec2], level: SimdLevel, out: &mut Vec<Cosin
         out.extend(us.iter().map(|&u| CosineSample { u, w: sample_cosine_hemisphere(u) }));
         return;
     };
-    avx2.run(|| {
-        for chunk in us.chunks(8) {
-            // A short chunk's missing lanes compute (0.5, 0.5), and are dropped.
-            let ux = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.x));
-            let uy = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.y));
-            let [x, y, z] = avx2.cosine_hemisphere(&ux, &uy);
-            out.extend(chunk.iter().enumerate().map(|(i, &u)| CosineSample { u, w: Vec3A::new(x[i], y[i], z[i]) }));
-        }
-    });
+    for chunk in us.chunks(8) {
+        // A short chunk's missing lanes compute (0.5, 0.5), and are dropped.
+        let ux = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.x));
+        let uy = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.y));
+        let [x, y, z] = avx2.cosine_hemisphere(&ux, &uy);
+        out.extend(chunk.iter().enumerate().map(|(i, &u)| CosineSample { u, w: Vec3A::new(x[i], y[i], z[i]) }));
+    }
 }
 
 /// [`sample_cosine_hemisphere`] over lanes.

@@ -162,18 +162,67 @@ impl Avx2 {
     }
 
     /// [`super::sampling::cosine_hemisphere`] of 8 pairs of numbers, lane-wise in AVX2: the
-    /// scalar function's bits in every lane. Call it under [`Avx2::run`].
+    /// scalar function's bits in every lane.
     #[inline(always)]
     pub fn cosine_hemisphere(self, ux: &[f32; 8], uy: &[f32; 8]) -> [[f32; 8]; 3] {
+        // A function compiled for AVX2 (the lane operations and their intrinsics inline into it
+        // whatever the caller is compiled for).
         #[cfg(target_arch = "x86_64")]
-        {
-            let (x, y, z) = super::sampling::cosine_hemisphere(self.f32x8(ux), self.f32x8(uy));
+        #[target_feature(enable = "avx2")]
+        fn kernel(avx2: Avx2, ux: &[f32; 8], uy: &[f32; 8]) -> [[f32; 8]; 3] {
+            let (x, y, z) = super::sampling::cosine_hemisphere(avx2.f32x8(ux), avx2.f32x8(uy));
             [x.to_array(), y.to_array(), z.to_array()]
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            kernel(self, ux, uy)
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
             let w: [(f32, f32, f32); 8] = std::array::from_fn(|i| super::sampling::cosine_hemisphere(ux[i], uy[i]));
             [w.map(|v| v.0), w.map(|v| v.1), w.map(|v| v.2)]
+        }
+    }
+}
+
+impl Avx2 {
+    /// [`super::camera::Camera::pinhole_directions`] of 8 camera samples (pixel coordinates as
+    /// f32, offsets), lane-wise in AVX2: the scalar ray's bits in every lane. `None` where the
+    /// camera is not a pinhole.
+    #[inline(always)]
+    pub fn pinhole_directions(
+        self,
+        camera: &super::camera::Camera,
+        pixel: [&[f32; 8]; 2],
+        u: [&[f32; 8]; 2],
+    ) -> Option<[[f32; 8]; 3]> {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        fn kernel(
+            avx2: Avx2,
+            camera: &super::camera::Camera,
+            pixel: [&[f32; 8]; 2],
+            u: [&[f32; 8]; 2],
+        ) -> Option<[[f32; 8]; 3]> {
+            let [px, py] = pixel.map(|v| avx2.f32x8(v));
+            let [ux, uy] = u.map(|v| avx2.f32x8(v));
+            let (x, y, z) = camera.pinhole_directions(px, py, ux, uy)?;
+            Some([x.to_array(), y.to_array(), z.to_array()])
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            kernel(self, camera, pixel, u)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let mut out = [[0.0f32; 8]; 3];
+            for i in 0..8 {
+                let (x, y, z) = camera.pinhole_directions(pixel[0][i], pixel[1][i], u[0][i], u[1][i])?;
+                (out[0][i], out[1][i], out[2][i]) = (x, y, z);
+            }
+            Some(out)
         }
     }
 }
