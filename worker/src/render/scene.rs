@@ -60,6 +60,8 @@ pub struct RenderScene {
     environment: Option<usize>,
     /// Whether some mesh has a MASK or BLEND material (rays then test alpha at hits).
     has_alpha: bool,
+    /// Whether some material has an emission texture (else every area light's factor is 1).
+    has_emission_texture: bool,
     pub center: Vec3A,
     pub radius: f32,
     /// Motion blur: where things are at shutter close (`None`: nothing moves).
@@ -207,6 +209,10 @@ impl RenderScene {
             .meshes
             .iter()
             .any(|m| scene.materials.get(m.material).is_some_and(|mat| mat.alpha_mode != AlphaMode::Opaque));
+        let has_emission_texture = scene
+            .materials
+            .iter()
+            .any(|m| if m.unlit { m.base_color_texture.is_some() } else { m.emissive_texture.is_some() });
         let motion = close.zip(close_tris.as_ref()).map(|(c, ct)| Motion {
             close: c.meshes.clone(),
             light_close: lights
@@ -232,6 +238,7 @@ impl RenderScene {
             tri_light,
             environment,
             has_alpha,
+            has_emission_texture,
             center,
             radius,
             motion,
@@ -510,7 +517,16 @@ impl RenderScene {
     }
 
     /// Emission-texture factor of an area light's triangle at barycentrics `b`.
+    #[inline]
     fn emission_texture(&self, prim: u32, b: [f32; 3]) -> Vec3A {
+        if !self.has_emission_texture {
+            return Vec3A::ONE;
+        }
+        self.emission_texture_at(prim, b)
+    }
+
+    #[inline(never)]
+    fn emission_texture_at(&self, prim: u32, b: [f32; 3]) -> Vec3A {
         let tr = self.tris[prim as usize];
         let mesh = &self.meshes[tr.mesh as usize];
         let Some(m) = self.materials.get(mesh.material) else { return Vec3A::ONE };
