@@ -340,8 +340,11 @@ impl Bxdf {
             Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } => {
                 let p_spec = gltf_specular_probability(base_color, metallic, alpha, specular_factor, wo_up.z);
                 let ggx = MicrofacetDistribution::ggx(alpha);
-                let wi =
-                    if uc < p_spec { reflect(wo_up, ggx.sample_wm(wo_up, u)) } else { CosineSample::or_compute(ahead, u) };
+                let wi = if uc < p_spec {
+                    reflect(wo_up, ggx.sample_wm(wo_up, u))
+                } else {
+                    CosineSample::or_compute(ahead, u)
+                };
                 if !(wi.z > 0.0) {
                     return None;
                 }

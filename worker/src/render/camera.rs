@@ -143,7 +143,8 @@ impl Camera {
     pub fn generate_ray(&self, pixel: UVec2, u: Vec2) -> Ray {
         match self.kind {
             Kind::Perspective { tan_half_y, aspect } => {
-                let (x, y, z) = self.perspective_direction(tan_half_y, aspect, pixel.x as f32, pixel.y as f32, u.x, u.y);
+                let (x, y, z) =
+                    self.perspective_direction(tan_half_y, aspect, pixel.x as f32, pixel.y as f32, u.x, u.y);
                 Ray::new(self.world_from_camera.translation, Vec3A::new(x, y, z))
             }
             Kind::Orthographic { xmag, ymag } => {

@@ -29,6 +29,10 @@
 //! Polynomials: Cephes' single-precision minimax coefficients (Moshier) for the f32 kernels,
 //! fdlibm's for `sin_cos_f64`.
 
+// The polynomial and reduction constants are quoted digit for digit from Cephes and fdlibm, so
+// that they can be checked against those sources; each rounds to the float the source meant.
+#![allow(clippy::excessive_precision)]
+
 use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Sub};
 
 /// A number type the lane-wise functions are written over: `f32`, or 8 lanes of it
@@ -147,8 +151,8 @@ const ROUND_MAGIC: f32 = 12_582_912.0;
 /// pi/2 in three parts (Cephes' DP1..DP3 doubled): the first two have 8 and 11 significant bits,
 /// so `j * part` is exact for the quadrant numbers `j` of |x| <= 8192.
 const PIO2_1: f32 = 1.570_312_5;
-const PIO2_2: f32 = 4.837_513e-4;
-const PIO2_3: f32 = 7.549_79e-8;
+const PIO2_2: f32 = 4.837_512_969_970_703_125e-4;
+const PIO2_3: f32 = 7.549_789_954_891_882_16e-8;
 const FRAC_PI_2: f32 = std::f32::consts::FRAC_PI_2;
 const FRAC_PI_4: f32 = std::f32::consts::FRAC_PI_4;
 const PI: f32 = std::f32::consts::PI;
@@ -158,12 +162,13 @@ const PI: f32 = std::f32::consts::PI;
 pub fn sin_cos_small<R: Real>(r: R) -> (R, R) {
     let c = |v: f32| r.splat(v);
     let z = r * r;
-    let s = ((c(-1.951_529_6e-4) * z + c(8.332_161e-3)) * z + c(-1.666_665_5e-1)) * z * r + r;
+    let s = ((c(-1.951_529_589_1e-4) * z + c(8.332_160_873_6e-3)) * z + c(-1.666_665_461_1e-1)) * z * r + r;
     // sin(-0) = -0 (the sum above makes it +0).
     let s = R::select(r.eq(c(0.0)), r, s);
-    let cos = ((c(2.443_315_7e-5) * z + c(-1.388_731_6e-3)) * z + c(4.166_664_6e-2)) * z * z
-        - c(0.5) * z
-        + c(1.0);
+    let cos =
+        ((c(2.443_315_711_809_948e-5) * z + c(-1.388_731_625_493_765e-3)) * z + c(4.166_664_568_298_827e-2)) * z * z
+            - c(0.5) * z
+            + c(1.0);
     (s, cos)
 }
 
@@ -210,11 +215,11 @@ pub fn tan(x: f32) -> f32 {
 #[inline(always)]
 fn atan_unit<R: Real>(a: R) -> R {
     let c = |v: f32| a.splat(v);
-    let big = a.gt(c(0.414_213_57));
+    let big = a.gt(c(0.414_213_562_373_095_0));
     let x = R::select(big, (a - c(1.0)) / (a + c(1.0)), a);
     let z = x * x;
-    let p = (((c(8.053_744_5e-2) * z + c(-1.387_768_6e-1)) * z + c(1.997_771_1e-1)) * z
-        + c(-3.333_295e-1))
+    let p = (((c(8.053_744_495_38e-2) * z + c(-1.387_768_560_32e-1)) * z + c(1.997_771_064_78e-1)) * z
+        + c(-3.333_294_915_39e-1))
         * z
         * x
         + x;
@@ -231,11 +236,7 @@ pub fn atan2<R: Real>(y: R, x: R) -> R {
     let steep = ay.gt(ax);
     let (lo, hi) = (R::select(steep, ax, ay), R::select(steep, ay, ax));
     // 0/0 (both zero) is 0; inf/inf (both infinite) is 1.
-    let a = R::select(
-        hi.eq(c(0.0)),
-        c(0.0),
-        R::select(lo.eq(c(f32::INFINITY)), c(1.0), lo / hi),
-    );
+    let a = R::select(hi.eq(c(0.0)), c(0.0), R::select(lo.eq(c(f32::INFINITY)), c(1.0), lo / hi));
     let r = atan_unit(a);
     let r = R::select(steep, c(FRAC_PI_2) - r, r);
     let r = R::select(R::int_eq(x.sign_bit(), n(0)), r, c(PI) - r);
@@ -252,10 +253,9 @@ pub fn atan(x: f32) -> f32 {
 #[inline(always)]
 fn asin_kernel<R: Real>(s: R, z: R) -> R {
     let c = |v: f32| s.splat(v);
-    ((((c(4.216_32e-2) * z + c(2.418_131_1e-2)) * z + c(4.547_002_6e-2)) * z
-        + c(7.495_300_3e-2))
+    ((((c(4.216_319_904_8e-2) * z + c(2.418_131_104_9e-2)) * z + c(4.547_002_599_8e-2)) * z + c(7.495_300_268_6e-2))
         * z
-        + c(1.666_675_2e-1))
+        + c(1.666_675_242_2e-1))
         * z
         * s
         + s
@@ -303,14 +303,14 @@ pub fn exp<R: Real>(x: R) -> R {
     let t = x * c(std::f32::consts::LOG2_E) + c(ROUND_MAGIC);
     let nf = t - c(ROUND_MAGIC);
     let k = t.to_bits() - c(ROUND_MAGIC).to_bits();
-    let r = (x - nf * c(0.693_359_4)) - nf * c(-2.121_944_4e-4);
+    let r = (x - nf * c(0.693_359_375)) - nf * c(-2.121_944_40e-4);
     let z = r * r;
-    let p = (((((c(1.987_569_1e-4) * r + c(1.398_2e-3)) * r + c(8.333_452e-3)) * r
-        + c(4.166_579_6e-2))
+    let p = (((((c(1.987_569_150_0e-4) * r + c(1.398_199_950_7e-3)) * r + c(8.333_451_907_3e-3)) * r
+        + c(4.166_579_589_4e-2))
         * r
-        + c(1.666_666_5e-1))
+        + c(1.666_666_545_9e-1))
         * r
-        + c(5.000_000_1e-1))
+        + c(5.000_000_120_1e-1))
         * z
         + r
         + c(1.0);

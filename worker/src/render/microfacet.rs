@@ -51,7 +51,9 @@ impl MicrofacetDistribution {
             }
             Self::AshikhminShirley { exponent_x, exponent_y } => {
                 let (ex, ey) = (exponent_x.max(0.0), exponent_y.max(0.0));
-                ((ex + 2.0) * (ey + 2.0)).sqrt() * (0.5 * FRAC_1_PI) * math::powf(wm.z.min(1.0), as_exponent(ex, ey, wm))
+                ((ex + 2.0) * (ey + 2.0)).sqrt()
+                    * (0.5 * FRAC_1_PI)
+                    * math::powf(wm.z.min(1.0), as_exponent(ex, ey, wm))
             }
             Self::TrowbridgeReitz { alpha_x, alpha_y } => {
                 let (ax, ay) = (alpha_x.max(MIN_ALPHA), alpha_y.max(MIN_ALPHA));
@@ -168,7 +170,9 @@ impl MicrofacetDistribution {
             Self::Blinn { .. } => self.d(wm) * wm.z,
             Self::AshikhminShirley { exponent_x, exponent_y } => {
                 let (ex, ey) = (exponent_x.max(0.0), exponent_y.max(0.0));
-                ((ex + 1.0) * (ey + 1.0)).sqrt() * (0.5 * FRAC_1_PI) * math::powf(wm.z.min(1.0), as_exponent(ex, ey, wm))
+                ((ex + 1.0) * (ey + 1.0)).sqrt()
+                    * (0.5 * FRAC_1_PI)
+                    * math::powf(wm.z.min(1.0), as_exponent(ex, ey, wm))
             }
             Self::TrowbridgeReitz { .. } => {
                 let w = if wo.z < 0.0 { -wo } else { wo };
