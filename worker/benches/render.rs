@@ -287,8 +287,8 @@ fn newest_libllvm() -> Option<PathBuf> {
 }
 
 /// `tiny`: one small path-traced render on one thread, for instruction counts under
-/// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny igi` and
-/// `tiny bdpt`: the same with those integrators.
+/// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny solid`: with
+/// solid-angle light sampling; `tiny igi` and `tiny bdpt`: the same with those integrators.
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -299,6 +299,15 @@ fn tiny() {
         light_sampling: LightSampling::Area,
     };
     let mut name = "path (area)";
+    if std::env::args().any(|a| a == "solid") {
+        s.integrator = IntegratorSettings::Path {
+            max_depth: 8,
+            rr_depth: 5,
+            mis: MisHeuristic::Power,
+            light_sampling: LightSampling::SolidAngle,
+        };
+        name = "path (solid angle)";
+    }
     if std::env::args().any(|a| a == "igi") {
         s = RenderSettings::new(32, 32, 8);
         s.integrator =

@@ -8,7 +8,7 @@
 
 use super::geometry::Frame;
 use super::microfacet::{Fresnel, GgxAlbedo, MicrofacetDistribution, SMOOTH_ALPHA, Sheen, SheenAlbedo, fr_dielectric};
-use super::sampling::sample_cosine_hemisphere;
+use super::sampling::{CosineSample, sample_cosine_hemisphere};
 use glam::{Vec2, Vec3A};
 use std::f32::consts::FRAC_1_PI;
 
@@ -214,6 +214,7 @@ impl Bxdf {
 
     /// Lambertian-equivalent reflectance for the albedo AOV (denoisers' convention: the diffuse
     /// colour, or the specular tint of metals and glass). Normal-incidence values, not an integral.
+    #[inline]
     pub fn albedo(&self) -> Vec3A {
         match *self {
             Self::Lambertian { r } => r,
@@ -299,6 +300,13 @@ impl Bxdf {
 
     /// Samples an incident direction `wi` for outgoing `wo`; `uc` picks a lobe, `u` the direction.
     pub fn sample_f(&self, wo: Vec3A, uc: f32, u: Vec2) -> Option<BsdfSample> {
+        self.sample_f_ahead(wo, uc, u, None)
+    }
+
+    /// [`Bxdf::sample_f`] with a cosine-hemisphere direction computed ahead for the diffuse
+    /// lobes (used where it was computed for `u`).
+    #[inline]
+    pub fn sample_f_ahead(&self, wo: Vec3A, uc: f32, u: Vec2, ahead: Option<&CosineSample>) -> Option<BsdfSample> {
         if !(wo.z != 0.0) {
             return None;
         }
@@ -308,7 +316,7 @@ impl Bxdf {
         let wo_up = unflip(wo);
         match *self {
             Self::Lambertian { r } => {
-                let wi = sample_cosine_hemisphere(u);
+                let wi = CosineSample::or_compute(ahead, u);
                 let pdf = wi.z * FRAC_1_PI;
                 if !(pdf > 0.0) {
                     return None;
@@ -332,8 +340,11 @@ impl Bxdf {
             Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } => {
                 let p_spec = gltf_specular_probability(base_color, metallic, alpha, specular_factor, wo_up.z);
                 let ggx = MicrofacetDistribution::ggx(alpha);
-                let wi =
-                    if uc < p_spec { reflect(wo_up, ggx.sample_wm(wo_up, u)) } else { sample_cosine_hemisphere(u) };
+                let wi = if uc < p_spec {
+                    reflect(wo_up, ggx.sample_wm(wo_up, u))
+                } else {
+                    CosineSample::or_compute(ahead, u)
+                };
                 if !(wi.z > 0.0) {
                     return None;
                 }
@@ -347,7 +358,7 @@ impl Bxdf {
                 Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::GLOSSY_REFLECTION, eta: 1.0 })
             }
             Self::GltfSmoothBase { r, specular_factor } => {
-                let wi = sample_cosine_hemisphere(u);
+                let wi = CosineSample::or_compute(ahead, u);
                 let pdf = wi.z * FRAC_1_PI;
                 if !(pdf > 0.0) {
                     return None;
@@ -925,13 +936,20 @@ impl Bsdf {
     /// Samples `wi` (returned in world space) for world-space `wo`. Returns `None` instead of a
     /// sample with zero `f` or `pdf`, or a grazing `wi`.
     pub fn sample_f(&self, wo: Vec3A, uc: f32, u: Vec2) -> Option<BsdfSample> {
+        self.sample_f_ahead(wo, uc, u, None)
+    }
+
+    /// [`Bsdf::sample_f`] with a cosine-hemisphere direction computed ahead
+    /// ([`Bxdf::sample_f_ahead`]; layers sample without it).
+    #[inline]
+    pub fn sample_f_ahead(&self, wo: Vec3A, uc: f32, u: Vec2, ahead: Option<&CosineSample>) -> Option<BsdfSample> {
         let wo = self.frame.to_local(wo);
         if wo.z == 0.0 {
             return None;
         }
         let mut bs = match &self.layers {
             Some(l) => l.sample_f(&self.bxdf, wo, uc, u)?,
-            None => self.bxdf.sample_f(wo, uc, u)?,
+            None => self.bxdf.sample_f_ahead(wo, uc, u, ahead)?,
         };
         if bs.f == Vec3A::ZERO || !(bs.pdf > 0.0) || bs.wi.z == 0.0 {
             return None;

@@ -3,6 +3,7 @@
 //! job's `aperture_radius` and `focus_distance`: glTF cameras have no aperture).
 
 use super::geometry::Ray;
+use super::math::Real;
 use super::sampler::Sampler;
 use super::sampling::sample_uniform_disk_concentric;
 use glam::{Affine3A, Mat4, UVec2, Vec2, Vec3, Vec3A};
@@ -51,7 +52,7 @@ impl Camera {
         let aspect = width as f32 / height.max(1) as f32;
         let kind = match cam.projection {
             Projection::Perspective { yfov, .. } => {
-                Kind::Perspective { tan_half_y: (yfov.clamp(1e-4, 3.1) * 0.5).tan(), aspect }
+                Kind::Perspective { tan_half_y: super::math::tan(yfov.clamp(1e-4, 3.1) * 0.5), aspect }
             }
             Projection::Orthographic { xmag, ymag } => Kind::Orthographic { xmag: xmag.abs(), ymag: ymag.abs() },
         };
@@ -140,17 +141,50 @@ impl Camera {
 
     /// The primary ray through `pixel` at offset `u` in [0, 1)^2 inside it (box filter).
     pub fn generate_ray(&self, pixel: UVec2, u: Vec2) -> Ray {
-        let sx = 2.0 * (pixel.x as f32 + u.x) / self.width as f32 - 1.0;
-        let sy = 1.0 - 2.0 * (pixel.y as f32 + u.y) / self.height as f32;
         match self.kind {
             Kind::Perspective { tan_half_y, aspect } => {
-                let d = Vec3A::new(sx * tan_half_y * aspect, sy * tan_half_y, -1.0).normalize();
-                Ray::new(self.world_from_camera.translation, self.world_from_camera.transform_vector3a(d).normalize())
+                let (x, y, z) =
+                    self.perspective_direction(tan_half_y, aspect, pixel.x as f32, pixel.y as f32, u.x, u.y);
+                Ray::new(self.world_from_camera.translation, Vec3A::new(x, y, z))
             }
             Kind::Orthographic { xmag, ymag } => {
+                let sx = 2.0 * (pixel.x as f32 + u.x) / self.width as f32 - 1.0;
+                let sy = 1.0 - 2.0 * (pixel.y as f32 + u.y) / self.height as f32;
                 let o = self.world_from_camera.transform_point3a(Vec3A::new(sx * xmag, sy * ymag, 0.0));
                 Ray::new(o, self.world_from_camera.transform_vector3a(-Vec3A::Z).normalize())
             }
+        }
+    }
+
+    /// The world direction of the perspective camera ray through pixel (`px`, `py`) at offset
+    /// (`ux`, `uy`), over lanes: glam's operations of the scalar ray spelled out (`normalize` is
+    /// `v / sqrt((x x + y y) + z z)`, `transform_vector3a` is `(X x + Y y) + Z z`), so that
+    /// [`Camera::pinhole_directions`] and [`Camera::generate_ray`] give the same bits.
+    #[inline(always)]
+    fn perspective_direction<R: Real>(&self, tan_half_y: f32, aspect: f32, px: R, py: R, ux: R, uy: R) -> (R, R, R) {
+        let c = |v: f32| px.splat(v);
+        let sx = c(2.0) * (px + ux) / c(self.width as f32) - c(1.0);
+        let sy = c(1.0) - c(2.0) * (py + uy) / c(self.height as f32);
+        let (dx, dy, dz) = normalize3(sx * c(tan_half_y) * c(aspect), sy * c(tan_half_y), c(-1.0));
+        let m = &self.world_from_camera.matrix3;
+        let (x, y, z) = (m.x_axis, m.y_axis, m.z_axis);
+        normalize3(
+            (c(x.x) * dx + c(y.x) * dy) + c(z.x) * dz,
+            (c(x.y) * dx + c(y.y) * dy) + c(z.y) * dz,
+            (c(x.z) * dx + c(y.z) * dy) + c(z.z) * dz,
+        )
+    }
+
+    /// The directions of [`Camera::generate_ray`] for lanes of pixel coordinates (as f32) and
+    /// offsets, where the camera is a pinhole ([`Camera::is_pinhole`]: every ray starts at
+    /// [`Camera::position`]); `None` for other cameras.
+    #[inline(always)]
+    pub fn pinhole_directions<R: Real>(&self, px: R, py: R, ux: R, uy: R) -> Option<(R, R, R)> {
+        match (self.kind, self.lens) {
+            (Kind::Perspective { tan_half_y, aspect }, None) => {
+                Some(self.perspective_direction(tan_half_y, aspect, px, py, ux, uy))
+            }
+            _ => None,
         }
     }
 
@@ -260,6 +294,13 @@ impl Camera {
         }
         Some(CameraWiSample { we, wi, pdf: dist2 / cos, p_camera, raster })
     }
+}
+
+/// `v / |v|` as glam's `Vec3A::normalize` computes it: `v / sqrt((x x + y y) + z z)`.
+#[inline(always)]
+fn normalize3<R: Real>(x: R, y: R, z: R) -> (R, R, R) {
+    let len = ((x * x + y * y) + z * z).sqrt();
+    (x / len, y / len, z / len)
 }
 
 #[cfg(test)]

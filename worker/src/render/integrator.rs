@@ -8,7 +8,7 @@ use super::geometry::{Ray, offset_ray_origin};
 use super::light::{LightLiSample, LightSampleContext};
 use super::material::{Shading, shade};
 use super::sampler::Sampler;
-use super::sampling::{balance_heuristic, power_heuristic};
+use super::sampling::{CosineSample, balance_heuristic, power_heuristic};
 use super::scene::RenderScene;
 use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::film::SampleValue;
@@ -151,9 +151,21 @@ pub fn nee_sample(
 /// reflects below `ng`). Shared by every integrator that extends a path by BSDF sampling.
 #[inline]
 pub fn sample_scatter(bsdf: &Bsdf, ng: Vec3A, wo: Vec3A, sampler: &mut impl Sampler) -> Option<(BsdfSample, Vec3A)> {
+    sample_scatter_ahead(bsdf, ng, wo, sampler, None)
+}
+
+/// [`sample_scatter`] with a cosine-hemisphere direction computed ahead ([`Bsdf::sample_f_ahead`]).
+#[inline]
+pub fn sample_scatter_ahead(
+    bsdf: &Bsdf,
+    ng: Vec3A,
+    wo: Vec3A,
+    sampler: &mut impl Sampler,
+    ahead: Option<&CosineSample>,
+) -> Option<(BsdfSample, Vec3A)> {
     let uc = sampler.get_1d();
     let u = sampler.get_2d();
-    let bs = bsdf.sample_f(wo, uc, u)?;
+    let bs = bsdf.sample_f_ahead(wo, uc, u, ahead)?;
     // Reflection must stay on the viewer's side of the geometric surface.
     if !bs.is_transmission() && bs.wi.dot(ng) * wo.dot(ng) <= 0.0 {
         return None;

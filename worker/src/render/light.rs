@@ -4,6 +4,7 @@
 //! light selection by power.
 
 use super::geometry::Frame;
+use super::math;
 use super::sampling::{
     Distribution2D, MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA, cosine_hemisphere_pdf,
     sample_cosine_hemisphere, sample_spherical_triangle, sample_uniform_cone, sample_uniform_disk_concentric,
@@ -55,7 +56,7 @@ impl EnvironmentLight {
             let (w, h) = (img.width as usize, img.height as usize);
             let mut weights = Vec::with_capacity(w * h);
             for y in 0..h {
-                let sin_theta = (PI * (y as f32 + 0.5) / h as f32).sin();
+                let sin_theta = math::sin(PI * (y as f32 + 0.5) / h as f32);
                 weights.extend(img.texels[y * w..(y + 1) * w].iter().map(|t| {
                     let c = Vec3A::from(*t) * scale;
                     super::scene::luminance(c).max(0.0) * sin_theta
@@ -63,7 +64,8 @@ impl EnvironmentLight {
             }
             Some((img, Distribution2D::new(&weights, w, h)?))
         });
-        let (sin_rot, cos_rot) = rotation_deg.to_radians().sin_cos();
+        // Whole turns first: the sine's range reduction is for moderate angles.
+        let (sin_rot, cos_rot) = math::sin_cos(rotation_deg.rem_euclid(360.0).to_radians());
         Self { scale, image, cos_rot, sin_rot, center, radius }
     }
 
@@ -78,14 +80,14 @@ impl EnvironmentLight {
     /// Image coordinates of a light-space direction: `u` from the azimuth (centre = -X), `v`
     /// from the polar angle (0 = +Y).
     fn uv(w: Vec3A) -> Vec2 {
-        let phi = (-w.z).atan2(-w.x);
-        Vec2::new(0.5 + phi * (0.5 / PI), w.y.clamp(-1.0, 1.0).acos() / PI)
+        let phi = math::atan2(-w.z, -w.x);
+        Vec2::new(0.5 + phi * (0.5 / PI), math::acos(w.y.clamp(-1.0, 1.0)) / PI)
     }
 
     /// The light-space direction of image coordinates, and its sin(theta).
     fn direction(uv: Vec2) -> (Vec3A, f32) {
-        let (sin_t, cos_t) = (uv.y * PI).sin_cos();
-        let (sin_p, cos_p) = ((uv.x - 0.5) * 2.0 * PI).sin_cos();
+        let (sin_t, cos_t) = math::sin_cos(uv.y * PI);
+        let (sin_p, cos_p) = math::sin_cos((uv.x - 0.5) * 2.0 * PI);
         (Vec3A::new(-sin_t * cos_p, cos_t, -sin_t * sin_p), sin_t)
     }
 
@@ -111,7 +113,7 @@ impl EnvironmentLight {
                 let (uv, pdf_uv) = distr.sample(u)?;
                 let (w, _) = Self::direction(uv);
                 // From the direction, as pdf_wi computes it (accurate near the poles).
-                let sin_theta = w.x.hypot(w.z);
+                let sin_theta = math::hypot(w.x, w.z);
                 if !(sin_theta > 0.0) {
                     return None;
                 }
@@ -127,7 +129,7 @@ impl EnvironmentLight {
             None => uniform_sphere_pdf(),
             Some((_, distr)) => {
                 let w = self.to_light(wi);
-                let sin_theta = w.x.hypot(w.z);
+                let sin_theta = math::hypot(w.x, w.z);
                 if !(sin_theta > 0.0) {
                     return 0.0;
                 }
@@ -145,7 +147,7 @@ impl EnvironmentLight {
                 let (w, h) = (img.width as usize, img.height as usize);
                 let mut sum = Vec3A::ZERO;
                 for y in 0..h {
-                    let sin_theta = (PI * (y as f32 + 0.5) / h as f32).sin();
+                    let sin_theta = math::sin(PI * (y as f32 + 0.5) / h as f32);
                     let row: Vec3A = img.texels[y * w..(y + 1) * w].iter().map(|t| Vec3A::from(*t)).sum();
                     sum += row * sin_theta;
                 }
@@ -188,10 +190,18 @@ pub struct LightLiSample {
 /// cut-offs). `sample_li` and `pdf_li` decide alike, so their densities always match.
 /// Returns the solid angle where it is used (computed only in solid-angle mode: area sampling
 /// never needs it).
+#[inline(always)]
 fn use_solid_angle(mode: LightSampling, v: &[Vec3A; 3], p: Vec3A) -> Option<f32> {
     if mode != LightSampling::SolidAngle {
         return None;
     }
+    solid_angle_in_range(v, p)
+}
+
+/// The solid angle of `v` seen from `p`, where [`sample_spherical_triangle`] samples by it. Out
+/// of line: area sampling (inlined above) never calls it.
+#[inline(never)]
+fn solid_angle_in_range(v: &[Vec3A; 3], p: Vec3A) -> Option<f32> {
     let solid_angle = triangle_solid_angle(*v, p);
     (solid_angle.is_finite() && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&solid_angle))
         .then_some(solid_angle)

@@ -6,6 +6,7 @@
 //! on either side: the distributions are symmetric under `w -> -w`, so the lower side is handled
 //! by flipping `w`, as pbrt does.
 
+use super::math;
 use glam::{Vec2, Vec3A};
 use std::f32::consts::{FRAC_1_PI, FRAC_PI_2, PI};
 
@@ -46,11 +47,13 @@ impl MicrofacetDistribution {
         match *self {
             Self::Blinn { exponent } => {
                 let e = exponent.max(0.0);
-                (e + 2.0) * (0.5 * FRAC_1_PI) * wm.z.min(1.0).powf(e)
+                (e + 2.0) * (0.5 * FRAC_1_PI) * math::powf(wm.z.min(1.0), e)
             }
             Self::AshikhminShirley { exponent_x, exponent_y } => {
                 let (ex, ey) = (exponent_x.max(0.0), exponent_y.max(0.0));
-                ((ex + 2.0) * (ey + 2.0)).sqrt() * (0.5 * FRAC_1_PI) * wm.z.min(1.0).powf(as_exponent(ex, ey, wm))
+                ((ex + 2.0) * (ey + 2.0)).sqrt()
+                    * (0.5 * FRAC_1_PI)
+                    * math::powf(wm.z.min(1.0), as_exponent(ex, ey, wm))
             }
             Self::TrowbridgeReitz { alpha_x, alpha_y } => {
                 let (ax, ay) = (alpha_x.max(MIN_ALPHA), alpha_y.max(MIN_ALPHA));
@@ -109,7 +112,7 @@ impl MicrofacetDistribution {
     pub fn sample_wm(&self, wo: Vec3A, u: Vec2) -> Vec3A {
         match *self {
             Self::Blinn { exponent } => {
-                let cos_theta = u.x.powf(1.0 / (exponent.max(0.0) + 2.0));
+                let cos_theta = math::powf(u.x, 1.0 / (exponent.max(0.0) + 2.0));
                 spherical(cos_theta, 2.0 * PI * u.y)
             }
             Self::AshikhminShirley { exponent_x, exponent_y } => {
@@ -118,17 +121,17 @@ impl MicrofacetDistribution {
                 let quadrant = ((u.x * 4.0) as u32).min(3);
                 let up = u.x * 4.0 - quadrant as f32;
                 let k = ((ex + 1.0) / (ey + 1.0)).sqrt();
-                let (s, c) = (FRAC_PI_2 * up).sin_cos();
-                let phi0 = (k * s).atan2(c);
+                let (s, c) = math::sin_cos(FRAC_PI_2 * up);
+                let phi0 = math::atan2(k * s, c);
                 let phi = match quadrant {
                     0 => phi0,
                     1 => PI - phi0,
                     2 => PI + phi0,
                     _ => 2.0 * PI - phi0,
                 };
-                let (sp, cp) = phi.sin_cos();
+                let (sp, cp) = math::sin_cos(phi);
                 let e = ex * cp * cp + ey * sp * sp;
-                spherical(u.y.powf(1.0 / (e + 1.0)), phi)
+                spherical(math::powf(u.y, 1.0 / (e + 1.0)), phi)
             }
             Self::TrowbridgeReitz { alpha_x, alpha_y } => {
                 let (ax, ay) = (alpha_x.max(MIN_ALPHA), alpha_y.max(MIN_ALPHA));
@@ -144,7 +147,7 @@ impl MicrofacetDistribution {
                 let t2 = wh.cross(t1);
                 // Uniform disk point, warped to the visible half of the projected hemisphere.
                 let r = u.x.sqrt();
-                let (sp, cp) = (2.0 * PI * u.y).sin_cos();
+                let (sp, cp) = math::sin_cos(2.0 * PI * u.y);
                 let (px, py) = (r * cp, r * sp);
                 let h = (1.0 - px * px).max(0.0).sqrt();
                 let t = 0.5 * (1.0 + wh.z);
@@ -167,7 +170,9 @@ impl MicrofacetDistribution {
             Self::Blinn { .. } => self.d(wm) * wm.z,
             Self::AshikhminShirley { exponent_x, exponent_y } => {
                 let (ex, ey) = (exponent_x.max(0.0), exponent_y.max(0.0));
-                ((ex + 1.0) * (ey + 1.0)).sqrt() * (0.5 * FRAC_1_PI) * wm.z.min(1.0).powf(as_exponent(ex, ey, wm))
+                ((ex + 1.0) * (ey + 1.0)).sqrt()
+                    * (0.5 * FRAC_1_PI)
+                    * math::powf(wm.z.min(1.0), as_exponent(ex, ey, wm))
             }
             Self::TrowbridgeReitz { .. } => {
                 let w = if wo.z < 0.0 { -wo } else { wo };
@@ -334,7 +339,7 @@ fn v_cavity_g1(w: Vec3A, wm: Vec3A) -> f32 {
 
 fn spherical(cos_theta: f32, phi: f32) -> Vec3A {
     let sin_theta = (1.0 - cos_theta * cos_theta).max(0.0).sqrt();
-    let (sp, cp) = phi.sin_cos();
+    let (sp, cp) = math::sin_cos(phi);
     Vec3A::new(sin_theta * cp, sin_theta * sp, cos_theta)
 }
 
@@ -467,7 +472,7 @@ impl Sheen {
     pub fn d(&self, wm: Vec3A) -> f32 {
         let inv = 1.0 / self.alpha();
         let sin2 = (1.0 - wm.z * wm.z).max(0.0);
-        (2.0 + inv) * sin2.powf(0.5 * inv) * (0.5 * FRAC_1_PI)
+        (2.0 + inv) * math::powf(sin2, 0.5 * inv) * (0.5 * FRAC_1_PI)
     }
 
     /// Estevez and Kulla's fitted `Lambda(mu)`.
@@ -477,10 +482,10 @@ impl Sheen {
         let l = |x: f32| {
             let (a, b, c) = (lerp(21.5473, 25.3245), lerp(3.82987, 3.32435), lerp(0.19823, 0.16801));
             let (d, e) = (lerp(-1.97760, -1.27393), lerp(-4.32054, -4.85967));
-            a / (1.0 + b * x.max(0.0).powf(c)) + d * x + e
+            a / (1.0 + b * math::powf(x.max(0.0), c)) + d * x + e
         };
         let mu = mu.abs().min(1.0);
-        if mu < 0.5 { l(mu).exp() } else { (2.0 * l(0.5) - l(1.0 - mu)).exp() }
+        if mu < 0.5 { math::exp(l(mu)) } else { math::exp(2.0 * l(0.5) - l(1.0 - mu)) }
     }
 
     /// `D G / (4 mu_o mu_i)` for upper-side `wo`, `wi`.
@@ -541,7 +546,8 @@ impl SheenAlbedo {
                     let sin_i = (1.0 - mu_i * mu_i).max(0.0).sqrt();
                     for j in 0..np {
                         let phi = PI * (j as f32 + 0.5) / np as f32;
-                        let wi = Vec3A::new(sin_i * phi.cos(), sin_i * phi.sin(), mu_i);
+                        let (sin_phi, cos_phi) = math::sin_cos(phi);
+                        let wi = Vec3A::new(sin_i * cos_phi, sin_i * sin_phi, mu_i);
                         sum += f64::from(sheen.f(wo, wi) * mu_i * 2.0 * x);
                     }
                 }

@@ -12,6 +12,7 @@ pub mod igi;
 pub mod integrator;
 pub mod light;
 pub mod material;
+pub mod math;
 pub mod microfacet;
 pub mod sampler;
 pub mod sampling;
@@ -437,8 +438,7 @@ impl Renderer {
     ) -> Vec<film::PixelSums> {
         let camera_at = |time: f32| self.camera_at(time);
         let shutter: Option<&dyn Fn(f32) -> Camera> = self.shutter_cameras.as_ref().map(|_| &camera_at as _);
-        let start =
-            |pixel: UVec2, index: u32| wavefront::camera_sample(new_sampler(), pixel, index, &self.camera, shutter);
+        let start = wavefront::CameraStage { new_sampler, camera: &self.camera, shutter };
         let mut wf = Wavefront::<S>::default();
         let mut accs = vec![film::PixelAccum::default(); tile.width() as usize];
         let mut batch: Vec<(UVec2, u32)> = Vec::with_capacity(wavefront::BATCH);

@@ -152,6 +152,16 @@ pub trait Sampler {
     /// The numbers a path-tracing bounce may draw from the current dimension on (see
     /// [`BounceDraws`]), without moving the stream.
     fn bounce_draws(&self) -> BounceDraws;
+    /// [`Sampler::get_pixel_2d`] of many samplers at once (each one's stream moves as that call
+    /// moves it), appended to `out` in order; `level` picks the SIMD kernels where the sampler
+    /// has some (the values are the same).
+    fn pixel_2d_many<'a>(lanes: impl Iterator<Item = &'a mut Self>, level: super::wide::SimdLevel, out: &mut Vec<Vec2>)
+    where
+        Self: Sized + 'a,
+    {
+        let _ = level;
+        out.extend(lanes.map(|s| s.get_pixel_2d()));
+    }
     /// [`Sampler::bounce_draws`] of many samplers at once, appended to `out` in order; `level`
     /// picks the SIMD kernels where the sampler has some (the values are the same).
     fn bounce_draws_many<'a>(
@@ -407,6 +417,34 @@ impl Sampler for SobolSampler {
     fn bounce_draws(&self) -> BounceDraws {
         let at = |o: u32| Self { dim: self.dim.wrapping_add(o), ..self.clone() };
         BounceDraws { base: self.dim, d1: BOUNCE_1D.map(|o| at(o).get_1d()), d2: BOUNCE_2D.map(|o| at(o).get_2d()) }
+    }
+
+    fn pixel_2d_many<'a>(lanes: impl Iterator<Item = &'a mut Self>, level: super::wide::SimdLevel, out: &mut Vec<Vec2>)
+    where
+        Self: 'a,
+    {
+        let Some(avx2) = (level == super::wide::SimdLevel::Avx2).then(super::wide::Avx2::new).flatten() else {
+            out.extend(lanes.map(|s| s.get_pixel_2d()));
+            return;
+        };
+        // Eight samplers at a time: the 64-bit seeds of `get_2d` here, its scrambles 8-wide.
+        let mut lanes = lanes.peekable();
+        while lanes.peek().is_some() {
+            let mut rev_index = [0u32; 8];
+            let mut seeds = [[0u32; 8]; 3];
+            let mut n = 0;
+            for s in lanes.by_ref().take(8) {
+                let h = s.dim_hash(1);
+                rev_index[n] = s.index.reverse_bits();
+                seeds[0][n] = h as u32;
+                seeds[1][n] = (h >> 32) as u32;
+                seeds[2][n] = mix_bits(h.wrapping_add(GOLDEN)) as u32;
+                s.dim = s.dim.wrapping_add(2);
+                n += 1;
+            }
+            let (x, y) = avx2.run(|| avx2.sobol_xy(&rev_index, &seeds[0], &seeds[1], &seeds[2]));
+            out.extend((0..n).map(|i| Vec2::new(u32_to_unit_float(x[i]), u32_to_unit_float(y[i]))));
+        }
     }
 
     fn bounce_draws_many<'a>(

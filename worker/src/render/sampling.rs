@@ -5,8 +5,10 @@
 //! solid angle, planar pdfs per unit area. Inputs `u` are in [0, 1); every routine stays finite
 //! for `u` exactly 0 or just below 1.
 
+use super::math::{self, Real};
+use super::wide::{Avx2, SimdLevel};
 use glam::{Vec2, Vec3A};
-use std::f32::consts::{FRAC_1_PI, FRAC_PI_2, FRAC_PI_4, PI, TAU};
+use std::f32::consts::{FRAC_1_PI, FRAC_PI_4, PI, TAU};
 
 /// The largest float below 1 (pbrt's `OneMinusEpsilon`).
 pub const ONE_MINUS_EPSILON: f32 = 1.0 - f32::EPSILON / 2.0;
@@ -27,7 +29,7 @@ fn safe_sqrt(x: f32) -> f32 {
 
 #[inline]
 fn safe_asin(x: f32) -> f32 {
-    x.clamp(-1.0, 1.0).asin()
+    math::asin(x.clamp(-1.0, 1.0))
 }
 
 /// The angle between two unit vectors, accurate for nearly parallel and nearly opposite ones.
@@ -48,7 +50,7 @@ fn gram_schmidt(v: Vec3A, w: Vec3A) -> Vec3A {
 
 #[inline]
 fn spherical_direction(sin_theta: f32, cos_theta: f32, phi: f32) -> Vec3A {
-    let (sin_phi, cos_phi) = phi.sin_cos();
+    let (sin_phi, cos_phi) = math::sin_cos(phi);
     Vec3A::new(sin_theta.clamp(-1.0, 1.0) * cos_phi, sin_theta.clamp(-1.0, 1.0) * sin_phi, cos_theta.clamp(-1.0, 1.0))
 }
 
@@ -56,30 +58,88 @@ fn spherical_direction(sin_theta: f32, cos_theta: f32, phi: f32) -> Vec3A {
 /// stratification). Pdf `1 / pi` per unit area.
 #[inline]
 pub fn sample_uniform_disk_concentric(u: Vec2) -> Vec2 {
-    let o = 2.0 * u - Vec2::ONE;
-    if o.x == 0.0 && o.y == 0.0 {
-        return Vec2::ZERO;
-    }
-    let (r, theta) =
-        if o.x.abs() > o.y.abs() { (o.x, FRAC_PI_4 * (o.y / o.x)) } else { (o.y, FRAC_PI_2 - FRAC_PI_4 * (o.x / o.y)) };
-    let (s, c) = theta.sin_cos();
-    r * Vec2::new(c, s)
+    let (x, y) = disk_concentric(u.x, u.y);
+    Vec2::new(x, y)
+}
+
+/// [`sample_uniform_disk_concentric`] over lanes, without a branch on a lane's value: the angle
+/// is `phi` or `pi/2 - phi` with |phi| <= pi/4, so the sine and cosine of `phi` alone, swapped
+/// for the second case, need no range reduction.
+#[inline(always)]
+pub fn disk_concentric<R: Real>(ux: R, uy: R) -> (R, R) {
+    let c = |v: f32| ux.splat(v);
+    let (ox, oy) = (c(2.0) * ux - c(1.0), c(2.0) * uy - c(1.0));
+    let wide = ox.abs().gt(oy.abs());
+    let r = R::select(wide, ox, oy);
+    let phi = c(FRAC_PI_4) * (R::select(wide, oy, ox) / r);
+    let zero = c(0.0);
+    let (sin, cos) = math::sin_cos_small(phi);
+    // r = 0 only at the centre (both offsets 0), where phi is 0/0.
+    let centre = r.eq(zero);
+    let (x, y) = (R::select(wide, cos, sin), R::select(wide, sin, cos));
+    (R::select(centre, zero, r * x), R::select(centre, zero, r * y))
 }
 
 /// Uniform point on the unit disk in polar coordinates (`r = sqrt(u0)`). Pdf `1 / pi`.
 #[inline]
 pub fn sample_uniform_disk_polar(u: Vec2) -> Vec2 {
     let r = u.x.sqrt();
-    let (s, c) = (TAU * u.y).sin_cos();
+    let (s, c) = math::sin_cos(TAU * u.y);
     r * Vec2::new(c, s)
 }
 
 /// Cosine-weighted direction on the `z >= 0` hemisphere (Malley's method on the concentric disk).
 #[inline]
 pub fn sample_cosine_hemisphere(u: Vec2) -> Vec3A {
-    let d = sample_uniform_disk_concentric(u);
-    let z = safe_sqrt(1.0 - d.x * d.x - d.y * d.y);
-    Vec3A::new(d.x, d.y, z)
+    let (x, y, z) = cosine_hemisphere(u.x, u.y);
+    Vec3A::new(x, y, z)
+}
+
+/// A direction of [`sample_cosine_hemisphere`] computed ahead for the 2D number `u` (the
+/// wavefront integrator computes a bounce's directions for its whole batch, 8 lanes at once,
+/// before shading).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CosineSample {
+    pub u: Vec2,
+    pub w: Vec3A,
+}
+
+impl CosineSample {
+    /// `sample_cosine_hemisphere(u)`: taken from `ahead` where it was computed for these very
+    /// bits of `u`, computed here otherwise (the same bits either way).
+    #[inline]
+    pub fn or_compute(ahead: Option<&CosineSample>, u: Vec2) -> Vec3A {
+        match ahead {
+            Some(a) if a.u.x.to_bits() == u.x.to_bits() && a.u.y.to_bits() == u.y.to_bits() => a.w,
+            _ => sample_cosine_hemisphere(u),
+        }
+    }
+}
+
+/// [`sample_cosine_hemisphere`] of every `u`, appended to `out` in order: 8 at a time in AVX2
+/// lanes where `level` is [`SimdLevel::Avx2`], one at a time otherwise (the bits are the same).
+pub fn cosine_hemisphere_many(us: &[Vec2], level: SimdLevel, out: &mut Vec<CosineSample>) {
+    let Some(avx2) = (level == SimdLevel::Avx2).then(Avx2::new).flatten() else {
+        out.extend(us.iter().map(|&u| CosineSample { u, w: sample_cosine_hemisphere(u) }));
+        return;
+    };
+    for chunk in us.chunks(8) {
+        // A short chunk's missing lanes compute (0.5, 0.5), and are dropped.
+        let ux = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.x));
+        let uy = std::array::from_fn(|i| chunk.get(i).map_or(0.5, |u| u.y));
+        let [x, y, z] = avx2.cosine_hemisphere(&ux, &uy);
+        out.extend(chunk.iter().enumerate().map(|(i, &u)| CosineSample { u, w: Vec3A::new(x[i], y[i], z[i]) }));
+    }
+}
+
+/// [`sample_cosine_hemisphere`] over lanes.
+#[inline(always)]
+pub fn cosine_hemisphere<R: Real>(ux: R, uy: R) -> (R, R, R) {
+    let (x, y) = disk_concentric(ux, uy);
+    let z2 = ux.splat(1.0) - x * x - y * y;
+    // safe_sqrt: 1 - x^2 - y^2 is never -0, so this is `max(0, z2).sqrt()`, NaN included.
+    let zero = ux.splat(0.0);
+    (x, y, R::select(z2.gt(zero), z2, zero).sqrt())
 }
 
 /// Pdf of [`sample_cosine_hemisphere`]: `cos_theta / pi`, 0 below the horizon.
@@ -150,7 +210,7 @@ pub fn sample_uniform_triangle(u: Vec2) -> [f32; 3] {
 /// Strackee's formula, accurate for small triangles).
 #[inline]
 pub fn spherical_triangle_area(a: Vec3A, b: Vec3A, c: Vec3A) -> f32 {
-    (2.0 * a.dot(b.cross(c)).atan2(1.0 + a.dot(b) + a.dot(c) + b.dot(c))).abs()
+    (2.0 * math::atan2(a.dot(b.cross(c)), 1.0 + a.dot(b) + a.dot(c) + b.dot(c))).abs()
 }
 
 /// Solid angle subtended by the triangle `v` seen from `p` (0 if `p` is a vertex). Light
@@ -202,8 +262,8 @@ pub fn sample_spherical_triangle(v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f
     let ap_pi = PI64 + f64::from(u.x) * (alpha + beta + gamma - PI64);
 
     // c' lies on the arc from a to c; b' is the length of the arc (a, c') (side opposite b).
-    let (sin_alpha, cos_alpha) = alpha.sin_cos();
-    let (sin_ap, cos_ap) = ap_pi.sin_cos();
+    let (sin_alpha, cos_alpha) = math::sin_cos_f64(alpha);
+    let (sin_ap, cos_ap) = math::sin_cos_f64(ap_pi);
     let sin_phi = sin_ap * cos_alpha - cos_ap * sin_alpha;
     let cos_phi = cos_ap * cos_alpha + sin_ap * sin_alpha;
     let k1 = cos_phi + cos_alpha;
@@ -219,7 +279,8 @@ pub fn sample_spherical_triangle(v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f
     // Sample the arc from b towards c' uniformly in cos theta. 1 - cos theta is computed from the
     // half-angle, 2 sin^2(theta / 2), which keeps its precision for short arcs.
     let half = 0.5 * angle_between(b, cp.normalize_or_zero());
-    let one_minus_cos = u.y * 2.0 * half.sin() * half.sin();
+    let sin_half = math::sin(half);
+    let one_minus_cos = u.y * 2.0 * sin_half * sin_half;
     let cos_theta = 1.0 - one_minus_cos;
     let sin_theta = safe_sqrt(one_minus_cos * (2.0 - one_minus_cos));
     let w = cos_theta * b + sin_theta * gram_schmidt(cp, b).normalize_or_zero();
@@ -405,6 +466,7 @@ mod tests {
         Chi2Options, TestRng, integrate_2d, pearson, sphere_integral, test_rect, test_sphere, to_spherical,
     };
     use glam::DVec3;
+    use std::f32::consts::FRAC_PI_2;
 
     /// Number of chi-square tests in this module: each runs at the Sidak-corrected level
     /// 1 - (1 - 0.01)^(1 / CHI2_TESTS), so the whole suite has alpha = 0.01.

@@ -4,6 +4,7 @@
 use super::accel::{Accel, Hit, RayQuery, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
 use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::math;
 use super::sampler::hash_u64;
 use super::sampling::Distribution1D;
 use glam::{Vec2, Vec3, Vec3A, Vec4};
@@ -59,6 +60,8 @@ pub struct RenderScene {
     environment: Option<usize>,
     /// Whether some mesh has a MASK or BLEND material (rays then test alpha at hits).
     has_alpha: bool,
+    /// Whether some material has an emission texture (else every area light's factor is 1).
+    has_emission_texture: bool,
     pub center: Vec3A,
     pub radius: f32,
     /// Motion blur: where things are at shutter close (`None`: nothing moves).
@@ -186,7 +189,7 @@ impl RenderScene {
             lights.push(match pl.kind {
                 PunctualKind::Point => Light::Point { p, i },
                 PunctualKind::Spot { inner_cone, outer_cone } => {
-                    Light::Spot { p, i, axis: dir, cos_inner: inner_cone.cos(), cos_outer: outer_cone.cos() }
+                    Light::Spot { p, i, axis: dir, cos_inner: math::cos(inner_cone), cos_outer: math::cos(outer_cone) }
                 }
                 PunctualKind::Directional => Light::Directional { w: dir, e: i, radius },
             });
@@ -206,6 +209,10 @@ impl RenderScene {
             .meshes
             .iter()
             .any(|m| scene.materials.get(m.material).is_some_and(|mat| mat.alpha_mode != AlphaMode::Opaque));
+        let has_emission_texture = scene
+            .materials
+            .iter()
+            .any(|m| if m.unlit { m.base_color_texture.is_some() } else { m.emissive_texture.is_some() });
         let motion = close.zip(close_tris.as_ref()).map(|(c, ct)| Motion {
             close: c.meshes.clone(),
             light_close: lights
@@ -231,6 +238,7 @@ impl RenderScene {
             tri_light,
             environment,
             has_alpha,
+            has_emission_texture,
             center,
             radius,
             motion,
@@ -466,13 +474,13 @@ impl RenderScene {
     /// `si`: when it leaves through the back of a surface whose material has
     /// KHR_materials_volume attenuation, the segment ran inside that object (closed meshes,
     /// outward winding, no nesting), and `exp(-sigma t)` of it is left.
+    #[inline]
     pub fn transmittance(&self, si: &SurfaceInteraction, d: Vec3A) -> Vec3A {
         let Some(m) = self.materials.get(si.material as usize) else { return Vec3A::ONE };
         if m.attenuation == glam::Vec3::ZERO || si.ng.dot(d) <= 0.0 {
             return Vec3A::ONE;
         }
-        let sigma = Vec3A::from(m.attenuation) * (si.t * d.length());
-        Vec3A::new((-sigma.x).exp(), (-sigma.y).exp(), (-sigma.z).exp())
+        beer_lambert(Vec3A::from(m.attenuation) * (si.t * d.length()))
     }
 
     /// Whether the segment between two surface points (or a point and a light) is blocked.
@@ -509,7 +517,16 @@ impl RenderScene {
     }
 
     /// Emission-texture factor of an area light's triangle at barycentrics `b`.
+    #[inline]
     fn emission_texture(&self, prim: u32, b: [f32; 3]) -> Vec3A {
+        if !self.has_emission_texture {
+            return Vec3A::ONE;
+        }
+        self.emission_texture_at(prim, b)
+    }
+
+    #[inline(never)]
+    fn emission_texture_at(&self, prim: u32, b: [f32; 3]) -> Vec3A {
         let tr = self.tris[prim as usize];
         let mesh = &self.meshes[tr.mesh as usize];
         let Some(m) = self.materials.get(mesh.material) else { return Vec3A::ONE };
@@ -628,6 +645,12 @@ impl RenderScene {
 #[inline]
 pub fn luminance(c: Vec3A) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// `exp(-sigma)` per channel; out of line, as few materials have an attenuation.
+#[inline(never)]
+fn beer_lambert(sigma: Vec3A) -> Vec3A {
+    Vec3A::new(math::exp(-sigma.x), math::exp(-sigma.y), math::exp(-sigma.z))
 }
 
 #[cfg(test)]

@@ -1,22 +1,25 @@
 //! The wavefront path integrator: the `path` (and `direct`) integrator run on batches of camera
 //! samples, stage by stage, instead of one path at a time.
 //!
-//! A batch holds up to [`BATCH`] paths. After the camera stage, each bounce runs these stages
-//! over the paths still alive: closest hits for all their rays (one batched BVH query); arrival
-//! (emission found, the environment, the depth limit); the bounce's random numbers for every
-//! path that goes on, drawn at once ([`Sampler::bounce_draws_many`]: 8-wide Owen scrambles
-//! where the CPU has AVX2); shading, light sampling and BSDF sampling with Russian roulette
-//! (which queue a shadow ray and the next ray); one batched any-hit query for the queued shadow
-//! rays. Dead paths leave the list of live ones (compaction), so later stages touch only live
-//! paths.
+//! A batch holds up to [`BATCH`] paths. The camera stage makes their camera rays (a pinhole
+//! camera's 8 lanes at a time in AVX2: [`Sampler::pixel_2d_many`],
+//! [`super::wide::Avx2::pinhole_directions`]). Then each bounce runs these stages over the paths
+//! still alive: closest hits for all their rays (one batched BVH query); arrival (emission
+//! found, the environment, the depth limit); the bounce's random numbers for every path that
+//! goes on, drawn at once ([`Sampler::bounce_draws_many`]: 8-wide Owen scrambles where the CPU
+//! has AVX2), and their diffuse directions ([`cosine_hemisphere_many`], 8 lanes); shading, light
+//! sampling and BSDF sampling with Russian roulette (which queue a shadow ray and the next ray);
+//! one batched any-hit query for the queued shadow rays. Dead paths leave the list of live ones
+//! (compaction), so later stages touch only live paths.
 //!
 //! Measured on the Cornell box (area light sampling, max depth 8): 11.5k instructions per
 //! sample against 12.2k one path at a time (callgrind, the bench's `tiny`), and about 1.2x the
-//! samples per CPU-second: the stages run long loops over warm code and data.
+//! samples per CPU-second: the stages run long loops over warm code and data. The lane-wise
+//! camera and diffuse stages (with `render::math`) took it to 10.8k.
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
-//! ([`nee_sample`], [`sample_scatter`], `emission_weight`, [`shade`]); its sampler draws the
+//! ([`nee_sample`], [`sample_scatter_ahead`], `emission_weight`, [`shade`]); its sampler draws the
 //! same dimensions (the samplers are addressed by (seed, pixel, sample index, dimension), so a
 //! path's numbers never depend on its neighbours); its radiance sums its terms in the scalar
 //! order (a shadow ray's contribution is added in the shadow stage, before the next bounce adds
@@ -27,12 +30,14 @@
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
-use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter};
+use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter_ahead};
 use super::light::LightSampleContext;
 use super::material::shade;
 use super::sampler::{BounceDraws, Replay, Sampler};
+use super::sampling::{CosineSample, cosine_hemisphere_many};
 use super::scene::{RenderScene, SurfaceInteraction};
-use glam::{UVec2, Vec3A};
+use super::wide::{Avx2, SimdLevel};
+use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::film::SampleValue;
 
 /// Paths per batch: enough that a stage's loop runs long over warm code and data, few enough
@@ -65,6 +70,40 @@ struct PathState<S> {
     out: SampleValue,
 }
 
+impl<S> PathState<S> {
+    /// A path at its camera ray, before its first bounce.
+    fn new(sampler: S, ray: Ray, time: f32) -> Self {
+        Self {
+            sampler,
+            ray,
+            time,
+            l: Vec3A::ZERO,
+            beta: Vec3A::ONE,
+            eta_scale: 1.0,
+            specular_bounce: true,
+            prev_bsdf_pdf: 0.0,
+            prev_ctx: LightSampleContext { p: ray.o, n: Vec3A::ZERO },
+            depth: 0,
+            out: SampleValue::default(),
+        }
+    }
+}
+
+/// 8 lanes: `f(i)` for the first `n`, 0 for the rest (a short chunk's missing lanes compute
+/// something harmless, and are dropped).
+#[inline(always)]
+fn lanes8(n: usize, f: impl Fn(usize) -> f32) -> [f32; 8] {
+    std::array::from_fn(|i| if i < n { f(i) } else { 0.0 })
+}
+
+/// The camera stage of the wavefront (see [`Wavefront::trace`]): fresh samplers, the camera,
+/// and the camera at a shutter time where there is motion blur.
+pub struct CameraStage<'a, F> {
+    pub new_sampler: F,
+    pub camera: &'a Camera,
+    pub shutter: Option<&'a dyn Fn(f32) -> Camera>,
+}
+
 /// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
 /// if the ray is unoccluded, `beta * 0` if it is not (as the scalar integrator adds).
 struct PendingShadow {
@@ -81,6 +120,12 @@ pub struct Wavefront<S> {
     /// Positions in `live` of the paths that shade this bounce, and their numbers.
     shading: Vec<u32>,
     draws: Vec<BounceDraws>,
+    /// The camera stage's pixel offsets.
+    pixel_us: Vec<Vec2>,
+    /// The diffuse direction of each shading path, computed 8 lanes at a time from its
+    /// direction number (`draws[k].d2[1]`), and those numbers.
+    cosines: Vec<CosineSample>,
+    cosine_us: Vec<Vec2>,
     rays: Vec<RayQuery>,
     hits: Vec<Option<Hit>>,
     surfaces: Vec<Option<SurfaceInteraction>>,
@@ -97,6 +142,9 @@ impl<S: Sampler> Default for Wavefront<S> {
             next_live: Vec::with_capacity(BATCH),
             shading: Vec::with_capacity(BATCH),
             draws: Vec::with_capacity(BATCH),
+            pixel_us: Vec::with_capacity(BATCH),
+            cosines: Vec::with_capacity(BATCH),
+            cosine_us: Vec::with_capacity(BATCH),
             rays: Vec::with_capacity(BATCH),
             hits: Vec::with_capacity(BATCH),
             surfaces: Vec::with_capacity(BATCH),
@@ -109,21 +157,58 @@ impl<S: Sampler> Default for Wavefront<S> {
 
 impl<S: Sampler> Wavefront<S> {
     /// Traces one camera sample per entry of `samples` (pixel, sample index) and appends each
-    /// one's value to `out`, in order. `start` is the camera stage: it positions a fresh
-    /// sampler at the sample (`start_pixel_sample(pixel, index, 0)`), draws what the camera
-    /// needs and returns the camera ray and the shutter time, as the scalar renderer does before
-    /// calling `li_path`.
+    /// one's value to `out`, in order. `camera` is the camera stage: a fresh sampler positioned
+    /// at the sample (`start_pixel_sample(pixel, index, 0)`), what the camera draws from it, the
+    /// camera ray and the shutter time, as the scalar renderer does before calling `li_path`.
     pub fn trace(
         &mut self,
         scene: &RenderScene,
         params: &PathParams,
         samples: &[(UVec2, u32)],
-        start: &impl Fn(UVec2, u32) -> (S, Ray, f32),
+        camera: &CameraStage<'_, impl Fn() -> S>,
         out: &mut Vec<SampleValue>,
     ) {
         for chunk in samples.chunks(BATCH) {
-            self.trace_batch(scene, params, chunk, start);
+            self.trace_batch(scene, params, chunk, camera);
             out.extend(self.paths.drain(..).map(|p| p.out));
+        }
+    }
+
+    /// The camera stage: one path per sample. A pinhole camera without motion blur draws the
+    /// batch's pixel offsets and makes its rays 8 lanes at a time where the CPU has AVX2 (the
+    /// scalar bits); other cameras one path at a time ([`camera_sample`]).
+    fn start_paths(&mut self, samples: &[(UVec2, u32)], camera: &CameraStage<'_, impl Fn() -> S>, level: SimdLevel) {
+        self.paths.clear();
+        let lanes = (level == SimdLevel::Avx2 && camera.shutter.is_none() && camera.camera.is_pinhole())
+            .then(Avx2::new)
+            .flatten();
+        let Some(avx2) = lanes else {
+            self.paths.extend(samples.iter().map(|&(pixel, index)| {
+                let (sampler, ray, time) =
+                    camera_sample((camera.new_sampler)(), pixel, index, camera.camera, camera.shutter);
+                PathState::new(sampler, ray, time)
+            }));
+            return;
+        };
+        let origin = camera.camera.position();
+        self.paths.extend(samples.iter().map(|&(pixel, index)| {
+            let mut sampler = (camera.new_sampler)();
+            sampler.start_pixel_sample(pixel, index, 0);
+            PathState::new(sampler, Ray::new(origin, Vec3A::Z), 0.0)
+        }));
+        self.pixel_us.clear();
+        S::pixel_2d_many(self.paths.iter_mut().map(|p| &mut p.sampler), level, &mut self.pixel_us);
+        let chunks = self.paths.chunks_mut(8).zip(self.pixel_us.chunks(8)).zip(samples.chunks(8));
+        for ((paths, us), samples) in chunks {
+            let n = us.len();
+            let (px, py) = (lanes8(n, |i| samples[i].0.x as f32), lanes8(n, |i| samples[i].0.y as f32));
+            let (ux, uy) = (lanes8(n, |i| us[i].x), lanes8(n, |i| us[i].y));
+            let [x, y, z] = avx2
+                .pinhole_directions(camera.camera, [&px, &py], [&ux, &uy])
+                .expect("a pinhole camera (checked above)");
+            for (i, p) in paths.iter_mut().enumerate() {
+                p.ray.d = Vec3A::new(x[i], y[i], z[i]);
+            }
         }
     }
 
@@ -132,26 +217,9 @@ impl<S: Sampler> Wavefront<S> {
         scene: &RenderScene,
         params: &PathParams,
         samples: &[(UVec2, u32)],
-        start: &impl Fn(UVec2, u32) -> (S, Ray, f32),
+        camera: &CameraStage<'_, impl Fn() -> S>,
     ) {
-        // Camera stage.
-        self.paths.clear();
-        self.paths.extend(samples.iter().map(|&(pixel, index)| {
-            let (sampler, ray, time) = start(pixel, index);
-            PathState {
-                sampler,
-                ray,
-                time,
-                l: Vec3A::ZERO,
-                beta: Vec3A::ONE,
-                eta_scale: 1.0,
-                specular_bounce: true,
-                prev_bsdf_pdf: 0.0,
-                prev_ctx: LightSampleContext { p: ray.o, n: Vec3A::ZERO },
-                depth: 0,
-                out: SampleValue::default(),
-            }
-        }));
+        self.start_paths(samples, camera, scene.simd_level());
         self.live.clear();
         self.live.extend(0..self.paths.len() as u32);
         while !self.live.is_empty() {
@@ -177,15 +245,23 @@ impl<S: Sampler> Wavefront<S> {
                 scene.simd_level(),
                 &mut self.draws,
             );
+            // The cosine-hemisphere directions of diffuse lobes, for every shading path at once
+            // (8 lanes, the scalar bits): from the number a non-delta vertex samples its
+            // direction with (`BOUNCE_2D[1]`); a vertex that samples with another number
+            // computes its own.
+            self.cosine_us.clear();
+            self.cosine_us.extend(self.draws.iter().map(|d| d.d2[1]));
+            self.cosines.clear();
+            cosine_hemisphere_many(&self.cosine_us, scene.simd_level(), &mut self.cosines);
             // Shading stage: BSDF, light sample, scattering, roulette.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
-            for (&k, draws) in self.shading.iter().zip(&self.draws) {
+            for ((&k, draws), cosine) in self.shading.iter().zip(&self.draws).zip(&self.cosines) {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut self.paths[i as usize];
-                let pending = scatter(scene, params, path, si, draws);
+                let pending = scatter(scene, params, path, si, draws, cosine);
                 if let Some((ray, shadow)) = pending.shadow {
                     self.shadow_rays.push(ray);
                     self.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
@@ -279,6 +355,7 @@ fn scatter<S: Sampler>(
     path: &mut PathState<S>,
     si: &SurfaceInteraction,
     draws: &BounceDraws,
+    cosine: &CosineSample,
 ) -> Bounce {
     let done = Bounce { shadow: None, alive: false };
     let time = path.time;
@@ -303,7 +380,7 @@ fn scatter<S: Sampler>(
             None => path.l += path.beta * Vec3A::ZERO,
         }
     }
-    let Some((bs, weight)) = sample_scatter(bsdf, sh.ng, wo, &mut sampler) else {
+    let Some((bs, weight)) = sample_scatter_ahead(bsdf, sh.ng, wo, &mut sampler, Some(cosine)) else {
         return Bounce { shadow, alive: false };
     };
     path.beta *= weight;

@@ -6,7 +6,8 @@
 //! has AVX2 (with BMI1/2, LZCNT, POPCNT and FMA: the x86-64-v3 level), [`Avx2`] runs the BVH
 //! traversal compiled for it, with an 8-wide node test over the CWBVH's 8 children, and the
 //! Sobol sampler's Owen scrambles for 8 requests at once (the wavefront integrator draws a
-//! bounce's numbers for a batch of paths with them).
+//! bounce's numbers for a batch of paths with them), and [`F32x8`], the 8-lane type the
+//! renderer's lane-wise math ([`super::math::Real`]) runs on.
 //!
 //! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
 //! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
@@ -146,6 +147,211 @@ impl Avx2 {
         {
             let v: [(u32, u32); 8] = std::array::from_fn(|i| sobol_scalar(rev_index[i], s1[i], s2[i], Some(s3[i])));
             (v.map(|p| p.0), v.map(|p| p.1))
+        }
+    }
+}
+
+impl Avx2 {
+    /// 8 lanes of `f32` from `v` (the one way to make an [`F32x8`]: its values exist only where
+    /// AVX2 does).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn f32x8(self, v: &[f32; 8]) -> F32x8 {
+        // SAFETY: `self` proves the CPU has AVX; an unaligned load of 8 f32 of `v`.
+        F32x8(unsafe { std::arch::x86_64::_mm256_loadu_ps(v.as_ptr()) })
+    }
+
+    /// [`super::sampling::cosine_hemisphere`] of 8 pairs of numbers, lane-wise in AVX2: the
+    /// scalar function's bits in every lane.
+    #[inline(always)]
+    pub fn cosine_hemisphere(self, ux: &[f32; 8], uy: &[f32; 8]) -> [[f32; 8]; 3] {
+        // A function compiled for AVX2 (the lane operations and their intrinsics inline into it
+        // whatever the caller is compiled for).
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        fn kernel(avx2: Avx2, ux: &[f32; 8], uy: &[f32; 8]) -> [[f32; 8]; 3] {
+            let (x, y, z) = super::sampling::cosine_hemisphere(avx2.f32x8(ux), avx2.f32x8(uy));
+            [x.to_array(), y.to_array(), z.to_array()]
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            kernel(self, ux, uy)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let w: [(f32, f32, f32); 8] = std::array::from_fn(|i| super::sampling::cosine_hemisphere(ux[i], uy[i]));
+            [w.map(|v| v.0), w.map(|v| v.1), w.map(|v| v.2)]
+        }
+    }
+}
+
+impl Avx2 {
+    /// [`super::camera::Camera::pinhole_directions`] of 8 camera samples (pixel coordinates as
+    /// f32, offsets), lane-wise in AVX2: the scalar ray's bits in every lane. `None` where the
+    /// camera is not a pinhole.
+    #[inline(always)]
+    pub fn pinhole_directions(
+        self,
+        camera: &super::camera::Camera,
+        pixel: [&[f32; 8]; 2],
+        u: [&[f32; 8]; 2],
+    ) -> Option<[[f32; 8]; 3]> {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        fn kernel(
+            avx2: Avx2,
+            camera: &super::camera::Camera,
+            pixel: [&[f32; 8]; 2],
+            u: [&[f32; 8]; 2],
+        ) -> Option<[[f32; 8]; 3]> {
+            let [px, py] = pixel.map(|v| avx2.f32x8(v));
+            let [ux, uy] = u.map(|v| avx2.f32x8(v));
+            let (x, y, z) = camera.pinhole_directions(px, py, ux, uy)?;
+            Some([x.to_array(), y.to_array(), z.to_array()])
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            kernel(self, camera, pixel, u)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let mut out = [[0.0f32; 8]; 3];
+            for i in 0..8 {
+                let (x, y, z) = camera.pinhole_directions(pixel[0][i], pixel[1][i], u[0][i], u[1][i])?;
+                (out[0][i], out[1][i], out[2][i]) = (x, y, z);
+            }
+            Some(out)
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+pub use lanes::{F32x8, I32x8, M32x8};
+
+/// [`super::math::Real`] over 8 AVX2 lanes. Every operation is one AVX/AVX2 instruction doing the
+/// lane-wise IEEE operation of `f32` (no FMA, no approximate reciprocal), so a lane gives the
+/// scalar function's bits. Values exist only where the CPU has AVX2 (they are made from an
+/// [`Avx2`] proof, or from other values), so the operations are safe.
+#[cfg(target_arch = "x86_64")]
+mod lanes {
+    use super::super::math::Real;
+    use std::arch::x86_64::*;
+    use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Sub};
+
+    /// 8 lanes of `f32`.
+    #[derive(Clone, Copy, Debug)]
+    pub struct F32x8(pub(super) __m256);
+    /// 8 lanes of `i32` (the bits and integers of [`F32x8`]).
+    #[derive(Clone, Copy, Debug)]
+    pub struct I32x8(__m256i);
+    /// 8 truth values, each lane all ones (true) or all zeros.
+    #[derive(Clone, Copy, Debug)]
+    pub struct M32x8(__m256);
+
+    impl F32x8 {
+        /// The lanes.
+        #[inline(always)]
+        pub fn to_array(self) -> [f32; 8] {
+            let mut out = [0.0f32; 8];
+            // SAFETY: this value exists, so the CPU has AVX; an unaligned store of 8 f32.
+            unsafe { _mm256_storeu_ps(out.as_mut_ptr(), self.0) };
+            out
+        }
+    }
+
+    // SAFETY (every `unsafe` block below): an operand of the operation exists, so the CPU has
+    // AVX2 (see the module's doc); the intrinsics touch no memory.
+    macro_rules! binary {
+        ($ty:ident, $tr:ident, $f:ident, $intrinsic:ident) => {
+            impl $tr for $ty {
+                type Output = $ty;
+                #[inline(always)]
+                fn $f(self, o: $ty) -> $ty {
+                    $ty(unsafe { $intrinsic(self.0, o.0) })
+                }
+            }
+        };
+    }
+    binary!(F32x8, Add, add, _mm256_add_ps);
+    binary!(F32x8, Sub, sub, _mm256_sub_ps);
+    binary!(F32x8, Mul, mul, _mm256_mul_ps);
+    binary!(F32x8, Div, div, _mm256_div_ps);
+    binary!(I32x8, Add, add, _mm256_add_epi32);
+    binary!(I32x8, Sub, sub, _mm256_sub_epi32);
+    binary!(I32x8, BitAnd, bitand, _mm256_and_si256);
+    binary!(I32x8, BitOr, bitor, _mm256_or_si256);
+    binary!(I32x8, BitXor, bitxor, _mm256_xor_si256);
+    binary!(M32x8, BitAnd, bitand, _mm256_and_ps);
+    binary!(M32x8, BitOr, bitor, _mm256_or_ps);
+
+    impl Neg for F32x8 {
+        type Output = F32x8;
+        /// The sign bit flipped, as `-x` does.
+        #[inline(always)]
+        fn neg(self) -> F32x8 {
+            F32x8(unsafe { _mm256_xor_ps(self.0, _mm256_set1_ps(-0.0)) })
+        }
+    }
+
+    impl Not for M32x8 {
+        type Output = M32x8;
+        #[inline(always)]
+        fn not(self) -> M32x8 {
+            M32x8(unsafe { _mm256_xor_ps(self.0, _mm256_castsi256_ps(_mm256_set1_epi32(-1))) })
+        }
+    }
+
+    impl Real for F32x8 {
+        type Int = I32x8;
+        type Mask = M32x8;
+
+        #[inline(always)]
+        fn splat(self, v: f32) -> Self {
+            F32x8(unsafe { _mm256_set1_ps(v) })
+        }
+        #[inline(always)]
+        fn int(self, v: i32) -> I32x8 {
+            I32x8(unsafe { _mm256_set1_epi32(v) })
+        }
+        #[inline(always)]
+        fn to_bits(self) -> I32x8 {
+            I32x8(unsafe { _mm256_castps_si256(self.0) })
+        }
+        #[inline(always)]
+        fn from_bits(i: I32x8) -> Self {
+            F32x8(unsafe { _mm256_castsi256_ps(i.0) })
+        }
+        #[inline(always)]
+        fn shl<const N: i32>(i: I32x8) -> I32x8 {
+            I32x8(unsafe { _mm256_slli_epi32::<N>(i.0) })
+        }
+        #[inline(always)]
+        fn sar<const N: i32>(i: I32x8) -> I32x8 {
+            I32x8(unsafe { _mm256_srai_epi32::<N>(i.0) })
+        }
+        #[inline(always)]
+        fn int_eq(a: I32x8, b: I32x8) -> M32x8 {
+            M32x8(unsafe { _mm256_castsi256_ps(_mm256_cmpeq_epi32(a.0, b.0)) })
+        }
+        #[inline(always)]
+        fn sqrt(self) -> Self {
+            F32x8(unsafe { _mm256_sqrt_ps(self.0) })
+        }
+        /// `_CMP_LT_OQ`: false where either is NaN, as `<`.
+        #[inline(always)]
+        fn lt(self, o: Self) -> M32x8 {
+            M32x8(unsafe { _mm256_cmp_ps::<_CMP_LT_OQ>(self.0, o.0) })
+        }
+        /// `_CMP_EQ_OQ`: false where either is NaN, as `==`.
+        #[inline(always)]
+        fn eq(self, o: Self) -> M32x8 {
+            M32x8(unsafe { _mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn select(m: M32x8, a: Self, b: Self) -> Self {
+            F32x8(unsafe { _mm256_blendv_ps(b.0, a.0, m.0) })
         }
     }
 }
