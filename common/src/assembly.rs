@@ -295,7 +295,7 @@ impl FilmAssembly {
             let Some(film) = self.film.as_mut() else { return };
             let pass = self.next_pass[t];
             let Some((accum, splats)) = self.waiting.remove(&(tile, pass)) else { return };
-            let samples = film.add_tile_with(accum.rect, |i| accum.sums.get(i).copied().unwrap_or_default());
+            let samples = film.add_tile(&accum);
             if let Some(s) = &splats {
                 film.add_splats(s);
             }

@@ -478,18 +478,10 @@ impl Film {
     }
 
     /// Adds a tile's sums. The exact channels in any order; the AOV means are bit-identical
-    /// when every tile's passes are added in pass order (module doc).
-    pub fn add_tile(&mut self, tile: &TileAccum) {
-        let r = tile.rect;
-        assert!(r.x1 <= self.width && r.y1 <= self.height, "tile outside the film");
-        let row = r.width() as usize;
-        for y in r.y0..r.y1 {
-            let src = (y - r.y0) as usize * row;
-            let dst = y as usize * self.width as usize + r.x0 as usize;
-            for (a, b) in self.sums[dst..dst + row].iter_mut().zip(&tile.sums[src..src + row]) {
-                a.merge(b);
-            }
-        }
+    /// when every tile's passes are added in pass order (module doc). Returns the sample weights
+    /// added, summed.
+    pub fn add_tile(&mut self, tile: &TileAccum) -> u64 {
+        self.add_tile_with(tile.rect, |i| tile.sums.get(i).copied().unwrap_or_default())
     }
 
     /// [`Film::add_tile`] of the sums `pixel(i)` gives for the tile's pixel `i` (row-major in

@@ -798,7 +798,7 @@ impl<'a> PackedPixels<'a> {
     }
 
     /// Pixel `i`'s sums (`i < len()`).
-    #[inline]
+    #[inline(always)]
     pub fn get(&self, i: usize) -> PixelSums {
         // Each field is read as 8 bytes at its offset (at most 62) in a 72-byte window on the
         // pixel (the window has no bounds to check) and masked to its width; near the end of the
