@@ -1093,15 +1093,6 @@ impl TileSums<'_> {
         self.len() == 0
     }
 
-    /// Pixel `i`'s sums (row-major in the tile; `i < len()`, else empty sums).
-    #[inline]
-    pub fn get(&self, i: usize) -> PixelSums {
-        match self {
-            Self::Pixels(p) => p.get(i).copied().unwrap_or_default(),
-            Self::Packed(p) => p.get(i),
-        }
-    }
-
     /// The decoded pixels (a packed section is decoded now).
     pub fn into_pixels(self) -> Vec<PixelSums> {
         match self {
