@@ -3,9 +3,18 @@
 //!
 //! Triangles are intersected with the watertight algorithm of Woop, Benthin and Wald (JCGT 2013,
 //! as in pbrt-v4): rays through shared edges and vertices of a closed mesh never slip through.
+//! Where the CPU has AVX2, the traversal tests a node's leaf triangles 8 at a time (its leaves'
+//! triangles are consecutive BVH slots, stored also as structure of arrays): the same f32
+//! operations in every lane as the one-at-a-time test ([`Sheared`] is written once, for `f32`
+//! and for lanes), and the lanes' hits are taken in the one-at-a-time order with the `t_max`
+//! then in force, so hits stay bit-identical. Measured with the bench's `tiny`: the closest-hit
+//! and shadow queries use about 1.3 groups of 8 lanes for 3.4 triangles per ray on the Cornell
+//! box, and render it about 2% faster (1.1x the one-at-a-time code's own time on this
+//! build); 130k-triangle diffuse rays gain about 6%.
 //! The BVH build is single-threaded and deterministic, so every process that loads a scene gets
 //! the same tree and breaks ties between equal distances the same way.
 
+use super::math::Real;
 use super::wide::{Avx2, Baseline, NodeTest, SimdLevel};
 use glam::{UVec2, Vec3A};
 use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbvh, ray::Ray};
@@ -44,7 +53,22 @@ pub struct Accel {
     /// Where the CPU has AVX2: the queries run the traversal compiled for it, with the 8-wide
     /// node test (bit-identical results; see [`super::wide`]).
     avx2: Option<Avx2>,
+    /// Static triangles' vertices by BVH slot as structure of arrays: component `axis` of vertex
+    /// `i` of slot `k` at `soa[3 * i + axis][k]`, padded with [`LANES`] zeros, so that 8
+    /// consecutive slots (a node's leaves) load as lanes for the 8-wide triangle test. `None`
+    /// with motion blur (moving triangles are tested one at a time).
+    soa: Option<Box<[Vec<f32>; 9]>>,
 }
+
+/// What the 8-wide triangle test needs: the proof of AVX2 and the triangles as lanes.
+#[derive(Clone, Copy)]
+struct TriangleLanes<'a> {
+    avx2: Avx2,
+    soa: &'a [Vec<f32>; 9],
+}
+
+/// Triangles per lane-wise test.
+const LANES: usize = 8;
 
 /// The triangle `v0` moving to `v1`, at time `u` in [0, 1] of the shutter.
 #[inline(always)]
@@ -56,7 +80,7 @@ pub fn lerp_triangle(v0: &[Vec3A; 3], v1: &[Vec3A; 3], u: f32) -> [Vec3A; 3] {
 /// (`KZ` = the ray's dominant axis). The permutation is a const parameter, so vertex components
 /// are picked at compile time instead of by a runtime index into a SIMD register.
 #[derive(Clone, Copy)]
-struct RayShear<const KX: usize, const KY: usize, const KZ: usize> {
+pub(super) struct RayShear<const KX: usize, const KY: usize, const KZ: usize> {
     o: Vec3A,
     sx: f32,
     sy: f32,
@@ -84,64 +108,136 @@ impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
     /// Returns (t, b1, b2) of a hit with `0 < t < t_max`.
     #[inline(always)]
     fn intersect(&self, v: &[Vec3A; 3], t_max: f32) -> Option<(f32, f32, f32)> {
-        let p0 = v[0] - self.o;
-        let p1 = v[1] - self.o;
-        let p2 = v[2] - self.o;
-        let (mut p0x, mut p0y, p0z) = (p0[KX], p0[KY], p0[KZ]);
-        let (mut p1x, mut p1y, p1z) = (p1[KX], p1[KY], p1[KZ]);
-        let (mut p2x, mut p2y, p2z) = (p2[KX], p2[KY], p2[KZ]);
-        p0x += self.sx * p0z;
-        p0y += self.sy * p0z;
-        p1x += self.sx * p1z;
-        p1y += self.sy * p1z;
-        p2x += self.sx * p2z;
-        p2y += self.sy * p2z;
-        let mut e0 = p1x * p2y - p1y * p2x;
-        let mut e1 = p2x * p0y - p2y * p0x;
-        let mut e2 = p0x * p1y - p0y * p1x;
+        let p =
+            Sheared::new([self.o[KX], self.o[KY], self.o[KZ]], [self.sx, self.sy], v.map(|v| [v[KX], v[KY], v[KZ]]));
+        let mut e = p.edges();
         // Fall back to double precision on an edge, so shared edges are decided consistently.
-        if e0 == 0.0 || e1 == 0.0 || e2 == 0.0 {
-            let f = f64::from;
-            e0 = (f(p1x) * f(p2y) - f(p1y) * f(p2x)) as f32;
-            e1 = (f(p2x) * f(p0y) - f(p2y) * f(p0x)) as f32;
-            e2 = (f(p0x) * f(p1y) - f(p0y) * f(p1x)) as f32;
+        if e[0] == 0.0 || e[1] == 0.0 || e[2] == 0.0 {
+            e = p.edges_f64();
         }
-        if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
+        // Most triangles fail here: leave before the rest (`candidate` checks it again).
+        if (e[0] < 0.0 || e[1] < 0.0 || e[2] < 0.0) && (e[0] > 0.0 || e[1] > 0.0 || e[2] > 0.0) {
             return None;
         }
-        let det = e0 + e1 + e2;
-        if det == 0.0 {
-            return None;
+        let c = p.candidate(e, self.sz);
+        (c.pass && c.within(t_max)).then_some((c.t, c.b1, c.b2))
+    }
+}
+
+/// A triangle in the ray's sheared space (the watertight test's first step) for one ray and
+/// triangle (`f32`) or 8 rays and triangles in lanes ([`super::wide::F32x8`]): the same f32
+/// operations in the same order either way, so a lane gives the scalar test's bits.
+#[derive(Clone, Copy)]
+struct Sheared<R> {
+    x: [R; 3],
+    y: [R; 3],
+    z: [R; 3],
+}
+
+/// The watertight test's outcome before the ray's `t_max` is known: `pass` holds where every
+/// other test passes (edge signs, a nonzero determinant, the scaled distance on the right side,
+/// and pbrt-v4's conservative lower bound on t).
+#[derive(Clone, Copy)]
+struct Candidate<R: Real> {
+    pass: R::Mask,
+    det: R,
+    t_scaled: R,
+    t: R,
+    b1: R,
+    b2: R,
+}
+
+impl<R: Real> Sheared<R> {
+    /// Vertices `v` (components in the ray's (KX, KY, KZ) order) translated to the origin `o`
+    /// and sheared by `s` (x and y).
+    #[inline(always)]
+    ///
+    /// No closures here or below: the lane-wise form is inlined into a function compiled for
+    /// AVX2, and a closure that is not inlined would be compiled (and call its intrinsics)
+    /// without it.
+    fn new(o: [R; 3], s: [R; 2], v: [[R; 3]; 3]) -> Self {
+        let z = [v[0][2] - o[2], v[1][2] - o[2], v[2][2] - o[2]];
+        Self {
+            x: [(v[0][0] - o[0]) + s[0] * z[0], (v[1][0] - o[0]) + s[0] * z[1], (v[2][0] - o[0]) + s[0] * z[2]],
+            y: [(v[0][1] - o[1]) + s[1] * z[0], (v[1][1] - o[1]) + s[1] * z[1], (v[2][1] - o[1]) + s[1] * z[2]],
+            z,
         }
-        let (p0z, p1z, p2z) = (p0z * self.sz, p1z * self.sz, p2z * self.sz);
-        let t_scaled = e0 * p0z + e1 * p1z + e2 * p2z;
-        if det < 0.0 && (t_scaled >= 0.0 || t_scaled < t_max * det) {
-            return None;
-        }
-        if det > 0.0 && (t_scaled <= 0.0 || t_scaled > t_max * det) {
-            return None;
-        }
-        let inv_det = 1.0 / det;
+    }
+
+    /// The three edge functions.
+    #[inline(always)]
+    fn edges(&self) -> [R; 3] {
+        let (x, y) = (self.x, self.y);
+        [x[1] * y[2] - y[1] * x[2], x[2] * y[0] - y[2] * x[0], x[0] * y[1] - y[0] * x[1]]
+    }
+
+    /// The rest of the test from the edge functions `e`, with `sz` the ray's z scale.
+    #[inline(always)]
+    fn candidate(&self, e: [R; 3], sz: R) -> Candidate<R> {
+        let zero = sz.splat(0.0);
+        let any_negative = e[0].lt(zero) | e[1].lt(zero) | e[2].lt(zero);
+        let any_positive = e[0].gt(zero) | e[1].gt(zero) | e[2].gt(zero);
+        let det = e[0] + e[1] + e[2];
+        let (x, y) = (self.x, self.y);
+        let z = [self.z[0] * sz, self.z[1] * sz, self.z[2] * sz];
+        let t_scaled = e[0] * z[0] + e[1] * z[1] + e[2] * z[2];
+        let inv_det = sz.splat(1.0) / det;
         let t = t_scaled * inv_det;
         // Conservative lower bound on t (pbrt-v4 Triangle::Intersect): reject hits that may lie
         // behind the origin because of rounding.
         const GAMMA3: f32 = 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
         const GAMMA5: f32 = 5.0 * f32::EPSILON * 0.5 / (1.0 - 5.0 * f32::EPSILON * 0.5);
         const GAMMA7: f32 = 7.0 * f32::EPSILON * 0.5 / (1.0 - 7.0 * f32::EPSILON * 0.5);
-        let max_zt = p0z.abs().max(p1z.abs()).max(p2z.abs());
-        let delta_z = GAMMA3 * max_zt;
-        let max_xt = p0x.abs().max(p1x.abs()).max(p2x.abs());
-        let max_yt = p0y.abs().max(p1y.abs()).max(p2y.abs());
-        let delta_x = GAMMA5 * (max_xt + max_zt);
-        let delta_y = GAMMA5 * (max_yt + max_zt);
-        let delta_e = 2.0 * (GAMMA7 * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
-        let max_e = e0.abs().max(e1.abs()).max(e2.abs());
-        let delta_t = 3.0 * (GAMMA3 * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
-        if t <= delta_t {
-            return None;
-        }
-        Some((t, e1 * inv_det, e2 * inv_det))
+        let (gamma3, gamma5, gamma7) = (sz.splat(GAMMA3), sz.splat(GAMMA5), sz.splat(GAMMA7));
+        let max_zt = max_abs(z);
+        let delta_z = gamma3 * max_zt;
+        let max_xt = max_abs(x);
+        let max_yt = max_abs(y);
+        let delta_x = gamma5 * (max_xt + max_zt);
+        let delta_y = gamma5 * (max_yt + max_zt);
+        let delta_e = sz.splat(2.0) * (gamma7 * max_xt * max_yt + delta_y * max_xt + delta_x * max_yt);
+        let max_e = max_abs(e);
+        let delta_t = sz.splat(3.0) * (gamma3 * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv_det.abs();
+        let wrong_side = (det.lt(zero) & t_scaled.ge(zero)) | (det.gt(zero) & t_scaled.le(zero));
+        let pass = !((any_negative & any_positive) | det.eq(zero) | wrong_side | t.le(delta_t));
+        Candidate { pass, det, t_scaled, t, b1: e[1] * inv_det, b2: e[2] * inv_det }
     }
+}
+
+/// The largest magnitude of the three.
+#[inline(always)]
+fn max_abs<R: Real>(v: [R; 3]) -> R {
+    v[0].abs().max(v[1].abs()).max(v[2].abs())
+}
+
+impl Sheared<f32> {
+    /// The edge functions in double precision (the test's fallback where one is zero).
+    fn edges_f64(&self) -> [f32; 3] {
+        let f = f64::from;
+        let (x, y) = (self.x, self.y);
+        [
+            (f(x[1]) * f(y[2]) - f(y[1]) * f(x[2])) as f32,
+            (f(x[2]) * f(y[0]) - f(y[2]) * f(x[0])) as f32,
+            (f(x[0]) * f(y[1]) - f(y[0]) * f(x[1])) as f32,
+        ]
+    }
+}
+
+impl Candidate<f32> {
+    /// The test's last part: the hit lies before `t_max` (on the scaled distance, as the
+    /// watertight test compares it).
+    #[inline(always)]
+    fn within(&self, t_max: f32) -> bool {
+        !((self.det < 0.0 && self.t_scaled < t_max * self.det) || (self.det > 0.0 && self.t_scaled > t_max * self.det))
+    }
+}
+
+/// `tris` as structure of arrays ([`Accel::soa`]).
+fn soa_of(tris: &[[Vec3A; 3]]) -> [Vec<f32>; 9] {
+    std::array::from_fn(|k| {
+        let (vertex, axis) = (k / 3, k % 3);
+        tris.iter().map(|t| t[vertex][axis]).chain([0.0; LANES]).collect()
+    })
 }
 
 /// The direction given to obvhs: negative zeros made positive (`-0.0 + 0.0 = +0.0`, every other
@@ -167,7 +263,14 @@ impl Accel {
 
     fn build(tris: &[[Vec3A; 3]], close: Option<&[[Vec3A; 3]]>) -> Self {
         if tris.is_empty() {
-            return Self { bvh: None, tris: Vec::new(), prim_ids: Vec::new(), tris_close: None, avx2: Avx2::new() };
+            return Self {
+                bvh: None,
+                tris: Vec::new(),
+                prim_ids: Vec::new(),
+                tris_close: None,
+                avx2: Avx2::new(),
+                soa: None,
+            };
         }
         // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
         // box's edge (a mesh edge on the box boundary) can otherwise miss a node whose triangle
@@ -188,10 +291,11 @@ impl Accel {
             .collect();
         let bvh = build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut Duration::default());
         let prim_ids = bvh.primitive_indices.clone();
-        let ordered = prim_ids.iter().map(|&i| tris[i as usize]).collect();
+        let ordered: Vec<[Vec3A; 3]> = prim_ids.iter().map(|&i| tris[i as usize]).collect();
         let tris_close =
             close.map(|_| prim_ids.iter().map(|&i| close_of(i as usize).unwrap_or(tris[i as usize])).collect());
-        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new() }
+        let soa = tris_close.is_none().then(|| Box::new(soa_of(&ordered)));
+        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new(), soa }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -269,9 +373,20 @@ impl Accel {
         let mut node;
         let mut hit: Option<u32> = None;
         let mut best = (0.0f32, 0.0f32);
+        let lanes = nodes.lanes().zip(self.soa.as_deref()).map(|(avx2, soa)| TriangleLanes { avx2, soa });
         obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
+            if let Some(lanes) = lanes {
+                // The node's whole group of leaf triangles at once: this one and those left.
+                let base = state.primitive_group.x;
+                let group = state.primitive_group.y | (1 << (state.primitive_id - base));
+                state.primitive_group.y = 0;
+                if let Some((slot, t, b1, b2)) = self.closest_in_group(lanes, &shear, base, group, ray.tmax) {
+                    best = (b1, b2);
+                    hit = Some(slot);
+                    ray.tmax = t;
+                }
             // `primitive_id` indexes primitive_indices; tris is stored in that order.
-            if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time)
+            } else if let Some((t, b1, b2)) = self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time)
                 && t < ray.tmax
             {
                 best = (b1, b2);
@@ -363,15 +478,230 @@ impl Accel {
         let mut state = bvh.new_traversal(ray.direction);
         let mut node;
         let mut blocked = false;
+        let lanes = nodes.lanes().zip(self.soa.as_deref()).map(|(avx2, soa)| TriangleLanes { avx2, soa });
         'traversal: {
             obvhs::traverse!(bvh, node, state, nodes.hits(node, &ray, state.oct_inv4), {
-                if self.test_slot(&shear, state.primitive_id as usize, ray.tmax, time).is_some_and(|h| h.0 < ray.tmax) {
+                if let Some(lanes) = lanes {
+                    let base = state.primitive_group.x;
+                    let group = state.primitive_group.y | (1 << (state.primitive_id - base));
+                    state.primitive_group.y = 0;
+                    if self.any_in_group(lanes, &shear, base, group, ray.tmax) {
+                        blocked = true;
+                        break 'traversal;
+                    }
+                } else if self
+                    .test_slot(&shear, state.primitive_id as usize, ray.tmax, time)
+                    .is_some_and(|h| h.0 < ray.tmax)
+                {
                     blocked = true;
                     break 'traversal;
                 }
             });
         }
         blocked
+    }
+}
+
+/// The outcome of the watertight test for 8 consecutive BVH slots: `pass` and `redo` as lane
+/// bits (`redo`: an edge function is zero, so the lane's triangle must take the scalar test's
+/// double-precision fallback), the lanes' values as arrays.
+pub(super) struct LaneCandidates {
+    pass: u32,
+    redo: u32,
+    det: [f32; LANES],
+    t_scaled: [f32; LANES],
+    t: [f32; LANES],
+    b1: [f32; LANES],
+    b2: [f32; LANES],
+}
+
+impl LaneCandidates {
+    /// Lane `i`'s candidate.
+    #[inline(always)]
+    fn get(&self, i: usize) -> Candidate<f32> {
+        Candidate {
+            pass: true,
+            det: self.det[i],
+            t_scaled: self.t_scaled[i],
+            t: self.t[i],
+            b1: self.b1[i],
+            b2: self.b2[i],
+        }
+    }
+}
+
+/// The watertight test of slots `first..first + 8` (static triangles), lane-wise (called from
+/// [`Avx2::watertight8`], compiled for AVX2).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(super) fn lane_candidates<const KX: usize, const KY: usize, const KZ: usize>(
+    avx2: Avx2,
+    soa: &[Vec<f32>; 9],
+    shear: &RayShear<KX, KY, KZ>,
+    first: usize,
+) -> LaneCandidates {
+    // No closures: see `Sheared::new`.
+    let v = [
+        [load8(avx2, soa, KX, first), load8(avx2, soa, KY, first), load8(avx2, soa, KZ, first)],
+        [load8(avx2, soa, 3 + KX, first), load8(avx2, soa, 3 + KY, first), load8(avx2, soa, 3 + KZ, first)],
+        [load8(avx2, soa, 6 + KX, first), load8(avx2, soa, 6 + KY, first), load8(avx2, soa, 6 + KZ, first)],
+    ];
+    let l = v[0][0];
+    let p = Sheared::new(
+        [l.splat(shear.o[KX]), l.splat(shear.o[KY]), l.splat(shear.o[KZ])],
+        [l.splat(shear.sx), l.splat(shear.sy)],
+        v,
+    );
+    let e = p.edges();
+    let zero = l.splat(0.0);
+    let redo = (e[0].eq(zero) | e[1].eq(zero) | e[2].eq(zero)).bits();
+    let c = p.candidate(e, l.splat(shear.sz));
+    LaneCandidates {
+        pass: c.pass.bits(),
+        redo,
+        det: c.det.to_array(),
+        t_scaled: c.t_scaled.to_array(),
+        t: c.t.to_array(),
+        b1: c.b1.to_array(),
+        b2: c.b2.to_array(),
+    }
+}
+
+/// Lanes `first..first + 8` of the structure-of-arrays component `k`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn load8(avx2: Avx2, soa: &[Vec<f32>; 9], k: usize, first: usize) -> super::wide::F32x8 {
+    match soa[k].get(first..first + LANES).and_then(|s| <&[f32; LANES]>::try_from(s).ok()) {
+        Some(lanes) => avx2.f32x8(lanes),
+        // Unreachable: the arrays are padded by LANES and `first` is a slot.
+        None => avx2.f32x8(&[0.0; LANES]),
+    }
+}
+
+impl Accel {
+    /// The watertight test of the slots `first..first + 8`, lane-wise where this target has the
+    /// lanes (else one by one: the same values).
+    #[inline(always)]
+    fn candidates<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        lanes: TriangleLanes<'_>,
+        shear: &RayShear<KX, KY, KZ>,
+        first: usize,
+    ) -> LaneCandidates {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let _ = self;
+            lanes.avx2.watertight8(lanes.soa, shear, first)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = lanes;
+            let mut out = LaneCandidates {
+                pass: 0,
+                redo: 0,
+                det: [0.0; LANES],
+                t_scaled: [0.0; LANES],
+                t: [0.0; LANES],
+                b1: [0.0; LANES],
+                b2: [0.0; LANES],
+            };
+            for i in 0..LANES.min(self.tris.len().saturating_sub(first)) {
+                let v = &self.tris[first + i];
+                let p = Sheared::new(
+                    [shear.o[KX], shear.o[KY], shear.o[KZ]],
+                    [shear.sx, shear.sy],
+                    v.map(|v| [v[KX], v[KY], v[KZ]]),
+                );
+                let e = p.edges();
+                let c = p.candidate(e, shear.sz);
+                out.redo |= u32::from(e.contains(&0.0)) << i;
+                out.pass |= u32::from(c.pass) << i;
+                (out.det[i], out.t_scaled[i], out.t[i], out.b1[i], out.b2[i]) = (c.det, c.t_scaled, c.t, c.b1, c.b2);
+            }
+            out
+        }
+    }
+
+    /// Calls `f(slot, hit)` for each slot of `group` (bits relative to `base`, a node's leaf
+    /// triangles) that the ray hits before the `t_max` that `f` returns, highest slot first, as
+    /// obvhs' traversal visits them one at a time. The triangles are tested 8 at a time; `f`
+    /// sees exactly the hits (and the `t_max` in force) of the one-at-a-time test. `f` returns
+    /// `None` to stop.
+    #[inline(always)]
+    fn hits_in_group<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        lanes: TriangleLanes<'_>,
+        shear: &RayShear<KX, KY, KZ>,
+        base: u32,
+        mut group: u32,
+        mut t_max: f32,
+        mut f: impl FnMut(u32, (f32, f32, f32)) -> Option<f32>,
+    ) {
+        while group != 0 {
+            let top = 31 - group.leading_zeros();
+            let start = top.saturating_sub(LANES as u32 - 1);
+            let in_group = (group >> start) & 0xff;
+            group &= !(0xff << start);
+            let first = (base + start) as usize;
+            let c = self.candidates(lanes, shear, first);
+            let mut todo = (c.pass | c.redo) & in_group;
+            while todo != 0 {
+                let lane = 31 - todo.leading_zeros();
+                todo &= !(1 << lane);
+                let slot = base + start + lane;
+                let hit = if c.redo & (1 << lane) != 0 {
+                    self.test_slot(shear, slot as usize, t_max, 0.0)
+                } else {
+                    let c = c.get(lane as usize);
+                    c.within(t_max).then_some((c.t, c.b1, c.b2))
+                };
+                if let Some(hit) = hit
+                    && hit.0 < t_max
+                {
+                    match f(slot, hit) {
+                        Some(t) => t_max = t,
+                        None => return,
+                    }
+                }
+            }
+        }
+    }
+
+    /// The closest hit among `group`'s triangles before `t_max` (see [`Accel::hits_in_group`]):
+    /// slot, t and barycentrics. On a tie the first visited wins, as in the one-at-a-time test.
+    #[inline(always)]
+    fn closest_in_group<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        lanes: TriangleLanes<'_>,
+        shear: &RayShear<KX, KY, KZ>,
+        base: u32,
+        group: u32,
+        t_max: f32,
+    ) -> Option<(u32, f32, f32, f32)> {
+        let mut best = None;
+        self.hits_in_group(lanes, shear, base, group, t_max, |slot, (t, b1, b2)| {
+            best = Some((slot, t, b1, b2));
+            Some(t)
+        });
+        best
+    }
+
+    /// Whether any of `group`'s triangles is hit before `t_max`.
+    #[inline(always)]
+    fn any_in_group<const KX: usize, const KY: usize, const KZ: usize>(
+        &self,
+        lanes: TriangleLanes<'_>,
+        shear: &RayShear<KX, KY, KZ>,
+        base: u32,
+        group: u32,
+        t_max: f32,
+    ) -> bool {
+        let mut any = false;
+        self.hits_in_group(lanes, shear, base, group, t_max, |_, _| {
+            any = true;
+            None
+        });
+        any
     }
 }
 
@@ -556,6 +886,61 @@ mod tests {
             }
             _ => run(&|slot, t| accel.test_slot(&shear, slot, t, 0.0)),
         }
+    }
+
+    /// The 8-wide triangle test (where the CPU has AVX2) gives the one-at-a-time test's hits
+    /// bit for bit where it matters most: rays through the shared edges and vertices of a
+    /// tessellated, bumpy grid (zero edge functions, which take the scalar double-precision
+    /// fallback; ties between neighbours, which the visiting order decides), with `t_max` cut
+    /// right at and just past the surface.
+    #[test]
+    fn lane_wise_triangle_tests_match_one_at_a_time_on_edges_and_vertices() {
+        let n = 24;
+        let height = |i: usize, j: usize| ((i * 7 + j * 13) % 5) as f32 * 0.01;
+        let v = |i: usize, j: usize| Vec3A::new(i as f32 / n as f32, j as f32 / n as f32, height(i, j));
+        let mut tris = Vec::new();
+        for i in 0..n {
+            for j in 0..n {
+                tris.push([v(i, j), v(i + 1, j), v(i + 1, j + 1)]);
+                tris.push([v(i, j), v(i + 1, j + 1), v(i, j + 1)]);
+            }
+        }
+        let (mut base, mut wide) = (Accel::new(&tris), Accel::new(&tris));
+        base.set_simd_level(SimdLevel::Baseline);
+        if wide.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
+            eprintln!("this CPU has no AVX2: nothing to compare");
+            return;
+        }
+        let mut targets = Vec::new();
+        for t in &tris {
+            for k in 0..3 {
+                targets.extend([t[k], t[k].lerp(t[(k + 1) % 3], 0.5), t[k].lerp(t[(k + 1) % 3], 0.25)]);
+            }
+        }
+        let origins = [Vec3A::new(0.5, 0.5, 2.0), Vec3A::new(-0.3, 0.2, 0.7), Vec3A::new(0.25, 0.75, -1.0)];
+        let (mut hits, mut rays) = (0, 0);
+        for o in origins {
+            for &p in &targets {
+                let d = (p - o).normalize();
+                let at = (p - o).length();
+                for t_max in [f32::INFINITY, at, at * 1.000_001, at * 0.5] {
+                    let want = base.intersect(o, d, t_max);
+                    assert_eq!(bits(wide.intersect(o, d, t_max)), bits(want), "ray {o} to {p}, t_max {t_max}");
+                    assert_eq!(wide.occluded(o, d, t_max), base.occluded(o, d, t_max), "ray {o} to {p}, t_max {t_max}");
+                    hits += usize::from(want.is_some());
+                    rays += 1;
+                }
+            }
+        }
+        // Rays in the plane of the grid's flat triangles (z = 0): edge functions of zero.
+        for k in 0..200 {
+            let (y, angle) = (k as f32 / 200.0, (k % 7) as f32 * 0.1 - 0.3);
+            let (o, d) = (Vec3A::new(-0.5, y, 0.0), Vec3A::new(angle.cos(), angle.sin(), 0.0));
+            let want = base.intersect(o, d, f32::INFINITY);
+            assert_eq!(bits(wide.intersect(o, d, f32::INFINITY)), bits(want), "ray {o} {d}");
+            assert_eq!(wide.occluded(o, d, f32::INFINITY), base.occluded(o, d, f32::INFINITY), "ray {o} {d}");
+        }
+        assert!(hits > rays / 3, "{hits} of {rays} rays hit");
     }
 
     fn bits(h: Option<Hit>) -> Option<(u32, u32, u32, u32)> {

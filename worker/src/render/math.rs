@@ -78,6 +78,21 @@ pub trait Real:
     fn gt(self, o: Self) -> Self::Mask {
         o.lt(self)
     }
+    /// `self <= o`, false where either is NaN.
+    #[inline(always)]
+    fn le(self, o: Self) -> Self::Mask {
+        self.lt(o) | self.eq(o)
+    }
+    /// `self >= o`, false where either is NaN.
+    #[inline(always)]
+    fn ge(self, o: Self) -> Self::Mask {
+        o.lt(self) | self.eq(o)
+    }
+    /// The larger of the two (`o` where `self < o`, else `self`: `f32::max` for numbers).
+    #[inline(always)]
+    fn max(self, o: Self) -> Self {
+        Self::select(self.lt(o), o, self)
+    }
     /// `|x|` (the sign bit cleared).
     #[inline(always)]
     fn abs(self) -> Self {

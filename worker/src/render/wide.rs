@@ -50,6 +50,8 @@ impl SimdLevel {
 /// obvhs' layout (`CwBvhNode::intersect_ray`).
 pub trait NodeTest: Copy {
     fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32;
+    /// The proof of AVX2 where the traversal tests a node's leaf triangles 8 at a time.
+    fn lanes(self) -> Option<Avx2>;
 }
 
 /// The baseline node test (obvhs' SSE2 one: two groups of four children).
@@ -60,6 +62,10 @@ impl NodeTest for Baseline {
     #[inline(always)]
     fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
         node.intersect_ray(ray, oct_inv4)
+    }
+    #[inline(always)]
+    fn lanes(self) -> Option<Avx2> {
+        None
     }
 }
 
@@ -115,6 +121,10 @@ impl NodeTest for Avx2 {
         }
         #[cfg(not(target_arch = "x86_64"))]
         node.intersect_ray(ray, oct_inv4)
+    }
+    #[inline(always)]
+    fn lanes(self) -> Option<Avx2> {
+        Some(self)
     }
 }
 
@@ -228,6 +238,31 @@ impl Avx2 {
 }
 
 #[cfg(target_arch = "x86_64")]
+impl Avx2 {
+    /// [`super::accel::lane_candidates`]: the watertight test of 8 consecutive BVH slots,
+    /// lane-wise, in a function compiled for AVX2.
+    #[inline(always)]
+    pub(super) fn watertight8<const KX: usize, const KY: usize, const KZ: usize>(
+        self,
+        soa: &[Vec<f32>; 9],
+        shear: &super::accel::RayShear<KX, KY, KZ>,
+        first: usize,
+    ) -> super::accel::LaneCandidates {
+        #[target_feature(enable = "avx2")]
+        fn kernel<const KX: usize, const KY: usize, const KZ: usize>(
+            avx2: Avx2,
+            soa: &[Vec<f32>; 9],
+            shear: &super::accel::RayShear<KX, KY, KZ>,
+            first: usize,
+        ) -> super::accel::LaneCandidates {
+            super::accel::lane_candidates(avx2, soa, shear, first)
+        }
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { kernel(self, soa, shear, first) }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
 pub use lanes::{F32x8, I32x8, M32x8};
 
 /// [`super::math::Real`] over 8 AVX2 lanes. Every operation is one AVX/AVX2 instruction doing the
@@ -292,6 +327,15 @@ mod lanes {
         #[inline(always)]
         fn neg(self) -> F32x8 {
             F32x8(unsafe { _mm256_xor_ps(self.0, _mm256_set1_ps(-0.0)) })
+        }
+    }
+
+    impl M32x8 {
+        /// The lanes' truth values as bits 0..8 (lane `i` true sets bit `i`).
+        #[inline(always)]
+        pub fn bits(self) -> u32 {
+            // SAFETY: this value exists, so the CPU has AVX.
+            unsafe { _mm256_movemask_ps(self.0) as u32 }
         }
     }
 
