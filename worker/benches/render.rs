@@ -222,21 +222,7 @@ fn large_scene_figures(quick: bool) {
         return;
     };
     let spp = 64;
-    let mut s = settings(
-        spp,
-        IntegratorSettings::Path {
-            max_depth: 8,
-            rr_depth: 5,
-            mis: MisHeuristic::Power,
-            light_sampling: LightSampling::Area,
-        },
-    );
-    s.environment = Some(pathfarm_common::job::EnvironmentSettings {
-        file: None,
-        color: Some([1.0; 3]),
-        intensity: 1.0,
-        rotation_deg: 0.0,
-    });
+    let s = large_scene_settings(spp);
     let samples = 256.0 * 256.0 * f64::from(spp);
     let (t, cpu, _) = time_render_cpu(&scene, &s);
     let ours = samples / t;
@@ -265,6 +251,27 @@ fn large_scene_figures(quick: bool) {
     }
 }
 
+/// The settings of [`large_scene_figures`]: path tracing at 256 x 256, max depth 8, under a
+/// constant environment of radiance 1.
+fn large_scene_settings(spp: u32) -> RenderSettings {
+    let mut s = settings(
+        spp,
+        IntegratorSettings::Path {
+            max_depth: 8,
+            rr_depth: 5,
+            mis: MisHeuristic::Power,
+            light_sampling: LightSampling::Area,
+        },
+    );
+    s.environment = Some(pathfarm_common::job::EnvironmentSettings {
+        file: None,
+        color: Some([1.0; 3]),
+        intensity: 1.0,
+        rotation_deg: 0.0,
+    });
+    s
+}
+
 /// "x M samples per CPU-second" (the render's throughput per busy core, which the machine's
 /// load disturbs less than wall time), or nothing where it was not measured.
 fn per_cpu_second(samples_per_cpu_s: Option<f64>) -> String {
@@ -288,7 +295,9 @@ fn newest_libllvm() -> Option<PathBuf> {
 
 /// `tiny`: one small path-traced render on one thread, for instruction counts under
 /// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny solid`: with
-/// solid-angle light sampling; `tiny igi` and `tiny bdpt`: the same with those integrators.
+/// solid-angle light sampling; `tiny igi` and `tiny bdpt`: the same with those integrators;
+/// `tiny long`: 16x the pixels (for sampling profilers such as perf); `tiny large`: the
+/// 130k-triangle scene of [`large_scene_figures`] at 16 spp.
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -318,6 +327,22 @@ fn tiny() {
         s = RenderSettings::new(32, 32, 16);
         s.integrator = IntegratorSettings::Bdpt { max_depth: 8, mis: MisHeuristic::Power, rr_depth: 5, strategy: None };
         name = "bdpt";
+    }
+    if std::env::args().any(|a| a == "large") {
+        let path = corpus().join("01_vertex_count_32bit/01_vertex_count_32bit.gltf");
+        let Ok(large) = load_scene(&path, &LoadOptions::default()) else {
+            println!("tiny large: cannot load {}", path.display());
+            return;
+        };
+        let s = large_scene_settings(16);
+        let (t, _) = time_render(&large, &s);
+        println!("tiny: 01_vertex_count_32bit {}x{}x{} path in {t:.3} s", s.width, s.height, s.spp);
+        return;
+    }
+    if std::env::args().any(|a| a == "long") {
+        // For sampling profilers (perf): 16x the pixels, same settings otherwise.
+        s.width *= 4;
+        s.height *= 4;
     }
     let (t, img) = time_render(&scene, &s);
     println!(
