@@ -502,11 +502,12 @@ impl Accel {
     }
 }
 
-/// The outcome of the watertight test for 8 consecutive BVH slots: `pass` and `redo` as lane
-/// bits (`redo`: an edge function is zero, so the lane's triangle must take the scalar test's
-/// double-precision fallback), the lanes' values as arrays.
+/// The outcome of the watertight test for 8 consecutive BVH slots: `hits` and `redo` as lane
+/// bits (`hits`: the ray meets the lane's triangle before the `t_max` it was given; `redo`: an
+/// edge function is zero, so the lane's triangle must take the scalar test's double-precision
+/// fallback, and is not in `hits`), the lanes' values as arrays.
 pub(super) struct LaneCandidates {
-    pass: u32,
+    hits: u32,
     redo: u32,
     det: [f32; LANES],
     t_scaled: [f32; LANES],
@@ -539,6 +540,7 @@ pub(super) fn lane_candidates<const KX: usize, const KY: usize, const KZ: usize>
     soa: &[Vec<f32>; 9],
     shear: &RayShear<KX, KY, KZ>,
     first: usize,
+    t_max: f32,
 ) -> LaneCandidates {
     // No closures: see `Sheared::new`.
     let v = [
@@ -556,8 +558,14 @@ pub(super) fn lane_candidates<const KX: usize, const KY: usize, const KZ: usize>
     let zero = l.splat(0.0);
     let redo = (e[0].eq(zero) | e[1].eq(zero) | e[2].eq(zero)).bits();
     let c = p.candidate(e, l.splat(shear.sz));
+    // `Candidate::within` and `t < t_max` in lanes, for the `t_max` at the group's start: the
+    // lanes that can still hit (the one-at-a-time test's `t_max` only shrinks from there).
+    let t_max = l.splat(t_max);
+    let limit = t_max * c.det;
+    let beyond = (c.det.lt(zero) & c.t_scaled.lt(limit)) | (c.det.gt(zero) & c.t_scaled.gt(limit));
+    let hits = (c.pass & !beyond & c.t.lt(t_max)).bits() & !redo;
     LaneCandidates {
-        pass: c.pass.bits(),
+        hits,
         redo,
         det: c.det.to_array(),
         t_scaled: c.t_scaled.to_array(),
@@ -587,17 +595,18 @@ impl Accel {
         lanes: TriangleLanes<'_>,
         shear: &RayShear<KX, KY, KZ>,
         first: usize,
+        t_max: f32,
     ) -> LaneCandidates {
         #[cfg(target_arch = "x86_64")]
         {
             let _ = self;
-            lanes.avx2.watertight8(lanes.soa, shear, first)
+            lanes.avx2.watertight8(lanes.soa, shear, first, t_max)
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
             let _ = lanes;
             let mut out = LaneCandidates {
-                pass: 0,
+                hits: 0,
                 redo: 0,
                 det: [0.0; LANES],
                 t_scaled: [0.0; LANES],
@@ -614,8 +623,9 @@ impl Accel {
                 );
                 let e = p.edges();
                 let c = p.candidate(e, shear.sz);
-                out.redo |= u32::from(e.contains(&0.0)) << i;
-                out.pass |= u32::from(c.pass) << i;
+                let redo = e.contains(&0.0);
+                out.redo |= u32::from(redo) << i;
+                out.hits |= u32::from(!redo && c.pass && c.within(t_max) && c.t < t_max) << i;
                 (out.det[i], out.t_scaled[i], out.t[i], out.b1[i], out.b2[i]) = (c.det, c.t_scaled, c.t, c.b1, c.b2);
             }
             out
@@ -643,8 +653,8 @@ impl Accel {
             let in_group = (group >> start) & 0xff;
             group &= !(0xff << start);
             let first = (base + start) as usize;
-            let c = self.candidates(lanes, shear, first);
-            let mut todo = (c.pass | c.redo) & in_group;
+            let c = self.candidates(lanes, shear, first, t_max);
+            let mut todo = (c.hits | c.redo) & in_group;
             while todo != 0 {
                 let lane = 31 - todo.leading_zeros();
                 todo &= !(1 << lane);

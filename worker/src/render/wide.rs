@@ -247,18 +247,21 @@ impl Avx2 {
         soa: &[Vec<f32>; 9],
         shear: &super::accel::RayShear<KX, KY, KZ>,
         first: usize,
+        t_max: f32,
     ) -> super::accel::LaneCandidates {
         #[target_feature(enable = "avx2")]
+        #[inline]
         fn kernel<const KX: usize, const KY: usize, const KZ: usize>(
             avx2: Avx2,
             soa: &[Vec<f32>; 9],
             shear: &super::accel::RayShear<KX, KY, KZ>,
             first: usize,
+            t_max: f32,
         ) -> super::accel::LaneCandidates {
-            super::accel::lane_candidates(avx2, soa, shear, first)
+            super::accel::lane_candidates(avx2, soa, shear, first, t_max)
         }
         // SAFETY: `self` proves the CPU has AVX2.
-        unsafe { kernel(self, soa, shear, first) }
+        unsafe { kernel(self, soa, shear, first, t_max) }
     }
 }
 
