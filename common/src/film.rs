@@ -343,11 +343,15 @@ impl PixelAccum {
         let rgb = s.radiance.map(|v| if v.is_finite() { v.clamp(0.0, MAX_SAMPLE_VALUE) } else { 0.0 });
         let lum = luminance(rgb);
         let e = &mut self.exact;
+        // `to_fixed` and `quantize` without their checks: the channels are finite and in
+        // [0, MAX_SAMPLE_VALUE] (or -0) already, so their luminance is finite and not negative
+        // (it may round a little above the maximum, which `min` keeps), and its square is finite
+        // (below 2^39). The same values, for about 30 fewer instructions per sample.
         for (sum, v) in e.rgb.iter_mut().zip(rgb) {
-            *sum = sum.saturating_add(to_fixed(v));
+            *sum = sum.saturating_add(round_to_fixed(f64::from(v) * SCALE));
         }
-        e.lum = e.lum.saturating_add(to_fixed(lum));
-        e.lum_sq = e.lum_sq.saturating_add(quantize(lum * lum, LUM_SQ_SCALE, f64::MAX));
+        e.lum = e.lum.saturating_add(round_to_fixed(f64::from(lum).min(f64::from(MAX_SAMPLE_VALUE)) * SCALE));
+        e.lum_sq = e.lum_sq.saturating_add(round_to_fixed(f64::from(lum * lum) * LUM_SQ_SCALE));
         for c in 0..3 {
             self.albedo[c] += f64::from(s.albedo[c]);
             self.normal[c] += f64::from(s.normal[c]);
@@ -840,6 +844,38 @@ mod tests {
         }
         for x in values {
             check(x);
+        }
+    }
+
+    /// `PixelAccum::add`'s exact sums are `to_fixed` and `quantize` of the clamped channels, as
+    /// before it skipped their checks: for NaN, infinite, negative, -0, tiny, huge and ordinary
+    /// radiance.
+    #[test]
+    fn accumulated_sums_are_the_checked_conversions() {
+        let special = [0.0, -0.0, 1e-30, 0.5, 1.0, 3.7, 1e5, MAX_SAMPLE_VALUE, 1e9, -2.0, f32::NAN, f32::INFINITY];
+        let mut z = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            z ^= z << 13;
+            z ^= z >> 7;
+            z ^= z << 17;
+            z
+        };
+        for k in 0..20_000 {
+            let pick = |r: u64| {
+                if k < 2_000 {
+                    special[(r % special.len() as u64) as usize]
+                } else {
+                    // Any exponent from 2^-30 to 2^25.
+                    f32::from_bits((((r >> 8) & 0x7f_ffff) | (((r >> 40) % 56 + 97) << 23)) as u32)
+                }
+            };
+            let radiance = [pick(next()), pick(next()), pick(next())];
+            let mut a = PixelAccum::default();
+            a.add(&SampleValue { radiance, ..SampleValue::default() });
+            let rgb = radiance.map(|v| if v.is_finite() { v.clamp(0.0, MAX_SAMPLE_VALUE) } else { 0.0 });
+            let lum = luminance(rgb);
+            let want = (rgb.map(to_fixed), to_fixed(lum), quantize(lum * lum, LUM_SQ_SCALE, f64::MAX));
+            assert_eq!((a.exact.rgb, a.exact.lum, a.exact.lum_sq), want, "{radiance:?}");
         }
     }
 
