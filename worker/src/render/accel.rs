@@ -15,7 +15,9 @@
 //! the same tree and breaks ties between equal distances the same way.
 
 use super::math::Real;
-use super::wide::{Avx2, Baseline, NodeTest, SimdLevel};
+#[cfg(target_arch = "x86_64")]
+use super::wide::NODE_EPSILON;
+use super::wide::{Avx2, Baseline, NodeTest, SimdLevel, V3Kernel};
 use glam::{UVec2, Vec3A};
 use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbvh, ray::Ray};
 use std::time::Duration;
@@ -232,6 +234,54 @@ impl Candidate<f32> {
     }
 }
 
+/// [`Accel::intersect_many`] in AVX2.
+struct IntersectMany<'a> {
+    accel: &'a Accel,
+    avx2: Avx2,
+    rays: &'a [RayQuery],
+    hits: &'a mut Vec<Option<Hit>>,
+}
+
+impl V3Kernel for IntersectMany<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn call(self) {
+        let Self { accel, avx2, rays, hits } = self;
+        let mut i = 0;
+        while i < rays.len() {
+            // Coherent rays (a camera's, at the first bounce) go through the BVH as a packet; the
+            // rest one by one. The hits are the same either way.
+            let n = accel.packet_len(&rays[i..]);
+            if n >= MIN_PACKET && accel.trace_packet(avx2, &rays[i..i + n], hits) {
+                i += n;
+                continue;
+            }
+            let r = &rays[i];
+            hits.push(accel.intersect_dispatch(avx2, r.o, r.d, r.t_max, r.time));
+            i += 1;
+        }
+    }
+}
+
+/// [`Accel::occluded_many`] in AVX2.
+struct OccludedMany<'a> {
+    accel: &'a Accel,
+    avx2: Avx2,
+    rays: &'a [RayQuery],
+    blocked: &'a mut Vec<bool>,
+}
+
+impl V3Kernel for OccludedMany<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn call(self) {
+        let Self { accel, avx2, rays, blocked } = self;
+        for r in rays {
+            blocked.push(accel.occluded_dispatch(avx2, r.o, r.d, r.t_max, r.time));
+        }
+    }
+}
+
 /// `tris` as structure of arrays ([`Accel::soa`]).
 fn soa_of(tris: &[[Vec3A; 3]]) -> [Vec<f32>; 9] {
     std::array::from_fn(|k| {
@@ -407,16 +457,46 @@ impl Accel {
         // AVX2 (an adapter's `fold` is a function of its own, compiled for the baseline, which
         // cannot inline the AVX2 node test).
         match self.avx2 {
-            Some(avx2) => avx2.run(|| {
-                for r in rays {
-                    hits.push(self.intersect_dispatch(avx2, r.o, r.d, r.t_max, r.time));
-                }
-            }),
+            Some(avx2) => avx2.run_kernel(IntersectMany { accel: self, avx2, rays, hits }),
             None => {
                 for r in rays {
                     hits.push(self.intersect_dispatch(Baseline, r.o, r.d, r.t_max, r.time));
                 }
             }
+        }
+    }
+
+    /// How many of the first rays of `rays` (at most 8) can go through the BVH as a packet: the
+    /// rays that share the first one's octant and dominant axis (static triangles only).
+    #[inline(always)]
+    fn packet_len(&self, rays: &[RayQuery]) -> usize {
+        if self.tris_close.is_some() {
+            return 0;
+        }
+        let key = |r: &RayQuery| {
+            let d = bvh_direction(r.d);
+            (d.cmplt(Vec3A::ZERO).bitmask(), dominant_axis(r.d))
+        };
+        let Some(first) = rays.first().map(key) else { return 0 };
+        rays.iter().take(PACKET).take_while(|r| key(r) == first).count()
+    }
+
+    /// [`trace_packet`] for the packet's dominant axis; `false` where it did not trace them.
+    #[inline(always)]
+    fn trace_packet(&self, avx2: Avx2, rays: &[RayQuery], hits: &mut Vec<Option<Hit>>) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            match rays.first().map(|r| dominant_axis(r.d)) {
+                Some(0) => avx2.trace_packet::<1, 2, 0>(self, rays, hits),
+                Some(1) => avx2.trace_packet::<2, 0, 1>(self, rays, hits),
+                Some(_) => avx2.trace_packet::<0, 1, 2>(self, rays, hits),
+                None => true,
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (avx2, rays, hits);
+            false
         }
     }
 
@@ -426,11 +506,7 @@ impl Accel {
         blocked.clear();
         // Plain loops: see `intersect_many`.
         match self.avx2 {
-            Some(avx2) => avx2.run(|| {
-                for r in rays {
-                    blocked.push(self.occluded_dispatch(avx2, r.o, r.d, r.t_max, r.time));
-                }
-            }),
+            Some(avx2) => avx2.run_kernel(OccludedMany { accel: self, avx2, rays, blocked }),
             None => {
                 for r in rays {
                     blocked.push(self.occluded_dispatch(Baseline, r.o, r.d, r.t_max, r.time));
@@ -715,6 +791,259 @@ impl Accel {
     }
 }
 
+/// Rays per packet of the coherent closest-hit traversal.
+const PACKET: usize = 8;
+
+/// The fewest coherent rays traced as a packet.
+const MIN_PACKET: usize = 4;
+
+/// `a > b ? a : b`, `_mm256_max_ps`' rule (its NaN and signed-zero cases included): the node
+/// test in lanes takes its maxima as the single-ray AVX2 node test does.
+#[inline(always)]
+fn max_ps<R: Real>(a: R, b: R) -> R {
+    R::select(b.lt(a), a, b)
+}
+
+/// `a < b ? a : b`, `_mm256_min_ps`' rule.
+#[inline(always)]
+fn min_ps<R: Real>(a: R, b: R) -> R {
+    R::select(a.lt(b), a, b)
+}
+
+/// A packet's rays in lanes: what obvhs' node test and the watertight test read of each ray.
+#[cfg(target_arch = "x86_64")]
+struct PacketRays<const KX: usize, const KY: usize, const KZ: usize> {
+    /// obvhs' ray origin and inverse direction, per axis.
+    origin: [super::wide::F32x8; 3],
+    inv_direction: [super::wide::F32x8; 3],
+    /// The watertight test's origin (in (KX, KY, KZ) order) and shear.
+    shear_o: [super::wide::F32x8; 3],
+    shear_s: [super::wide::F32x8; 2],
+    shear_sz: super::wide::F32x8,
+    /// Each ray's scalar shear (for the double-precision fallback).
+    shears: [RayShear<KX, KY, KZ>; PACKET],
+    /// The direction's sign per axis (the same in every lane: one octant).
+    negative: [bool; 3],
+    oct_inv4: u32,
+}
+
+/// The closest hits of up to 8 rays that share their octant and dominant axis (`KZ`), traced
+/// together through the BVH (static triangles): each node's children are tested against all
+/// the packet's rays that reached the node, in lanes, and each leaf triangle against the rays
+/// that hit its leaf. Every ray visits exactly the nodes, and tests exactly the triangles in
+/// exactly the order, of its single-ray traversal (nodes in the same priority order, each
+/// child's box tested with the ray's `t_max` when its parent is visited, a node's leaf
+/// triangles before its inner children, highest slot first), with the same f32 operations in
+/// its lane: so its hit is the single-ray hit, bit for bit. Returns `false` (and leaves `out`
+/// alone) where the packet's stack would overflow; the caller then traces the rays one by one.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
+    avx2: Avx2,
+    accel: &Accel,
+    rays: &[RayQuery],
+    out: &mut Vec<Option<Hit>>,
+) -> bool {
+    let Some(bvh) = accel.bvh.as_ref() else {
+        out.extend(rays.iter().map(|_| None));
+        return true;
+    };
+    let n = rays.len().min(PACKET);
+    let active = (1u32 << n) - 1;
+    // Lanes past `n` repeat the first ray (their results are dropped).
+    let mut lane_rays = [rays[0]; PACKET];
+    lane_rays[..n].copy_from_slice(&rays[..n]);
+    let obvhs_rays = lane_rays.map(|r| Ray::new(r.o, bvh_direction(r.d), 0.0, r.t_max));
+    let shears = lane_rays.map(|r| RayShear::<KX, KY, KZ>::new(r.o, r.d));
+    // The lanes' values as arrays first: lane values are made outside closures (see
+    // `Sheared::new`).
+    let mut v = [[0.0f32; PACKET]; 12];
+    for i in 0..PACKET {
+        let (r, s) = (&obvhs_rays[i], &shears[i]);
+        for a in 0..3 {
+            v[a][i] = r.origin[a];
+            v[3 + a][i] = r.inv_direction[a];
+        }
+        (v[6][i], v[7][i], v[8][i]) = (s.o[KX], s.o[KY], s.o[KZ]);
+        (v[9][i], v[10][i], v[11][i]) = (s.sx, s.sy, s.sz);
+    }
+    let p = PacketRays {
+        origin: [avx2.f32x8(&v[0]), avx2.f32x8(&v[1]), avx2.f32x8(&v[2])],
+        inv_direction: [avx2.f32x8(&v[3]), avx2.f32x8(&v[4]), avx2.f32x8(&v[5])],
+        shear_o: [avx2.f32x8(&v[6]), avx2.f32x8(&v[7]), avx2.f32x8(&v[8])],
+        shear_s: [avx2.f32x8(&v[9]), avx2.f32x8(&v[10])],
+        shear_sz: avx2.f32x8(&v[11]),
+        shears,
+        negative: [0, 1, 2].map(|a| obvhs_rays[0].direction[a] < 0.0),
+        oct_inv4: bvh.new_traversal(obvhs_rays[0].direction).oct_inv4,
+    };
+    let mut t_max = lane_rays.map(|r| r.t_max);
+    let mut best: [Option<(u32, f32, f32)>; PACKET] = [None; PACKET];
+    if !packet_traverse(avx2, accel, bvh, &p, active, &mut t_max, &mut best) {
+        return false;
+    }
+    for i in 0..n {
+        out.push(best[i].map(|(slot, b1, b2)| Hit { t: t_max[i], prim: accel.prim_ids[slot as usize], b1, b2 }));
+    }
+    true
+}
+
+/// Entries of a packet's traversal stack: a node and the packet's rays that visit it.
+const PACKET_STACK: usize = 192;
+
+/// The traversal of [`trace_packet`]: updates each lane's `t_max` and best hit (slot and
+/// barycentrics). No closures inside (see `Sheared::new`).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
+    avx2: Avx2,
+    accel: &Accel,
+    bvh: &CwBvh,
+    p: &PacketRays<KX, KY, KZ>,
+    active: u32,
+    t_max: &mut [f32; PACKET],
+    best: &mut [Option<(u32, f32, f32)>; PACKET],
+) -> bool {
+    let l = p.shear_sz;
+    let oct = p.oct_inv4 & 0x7;
+    let mut stack = [(0u32, 0u32); PACKET_STACK];
+    // The root is visited by every ray (obvhs tests no box for it).
+    stack[0] = (0, active);
+    let mut len = 1;
+    while len > 0 {
+        len -= 1;
+        let (index, rays) = stack[len];
+        let Some(node) = bvh.nodes.get(index as usize) else { continue };
+        let mut tmax_lanes = avx2.f32x8(t_max);
+        let extent = node.compute_extent();
+        let node_p = Vec3A::from(node.p);
+        let mut dir_inv = [l; 3];
+        let mut origin = [l; 3];
+        for a in 0..3 {
+            dir_inv[a] = l.splat(extent[a]) * p.inv_direction[a];
+            origin[a] = (l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a];
+        }
+        let bounds = [
+            (&node.child_min_x, &node.child_max_x),
+            (&node.child_min_y, &node.child_max_y),
+            (&node.child_min_z, &node.child_max_z),
+        ];
+        // Rays per leaf triangle (by offset from the node's first primitive) and inner children
+        // (priority, node index, rays).
+        let mut prim_rays = [0u8; 24];
+        let mut inner = [(0u32, 0u32, 0u32); 8];
+        let mut inner_len = 0;
+        for child in 0..8 {
+            let meta = node.child_meta[child];
+            if meta == 0 {
+                continue;
+            }
+            let mut near = [l; 3];
+            let mut far = [l; 3];
+            for a in 0..3 {
+                let (lo, hi) = (l.splat(f32::from(bounds[a].0[child])), l.splat(f32::from(bounds[a].1[child])));
+                let (n, f) = if p.negative[a] { (hi, lo) } else { (lo, hi) };
+                near[a] = n * dir_inv[a] + origin[a];
+                far[a] = f * dir_inv[a] + origin[a];
+            }
+            let tmin = max_ps(max_ps(near[0], max_ps(near[1], near[2])), l.splat(NODE_EPSILON));
+            let tmax = min_ps(min_ps(far[0], min_ps(far[1], far[2])), tmax_lanes);
+            let hit = tmin.le(tmax).bits() & rays;
+            if hit == 0 {
+                continue;
+            }
+            if node.imask & (1 << child) == 0 {
+                let first = usize::from(meta & 0b1_1111);
+                for k in 0..(meta >> 5).count_ones() as usize {
+                    if let Some(r) = prim_rays.get_mut(first + k) {
+                        *r |= hit as u8;
+                    }
+                }
+            } else {
+                let slot = u32::from(meta & 0b1_1111).wrapping_sub(24) & 0x7;
+                let below = u32::from(node.imask) & ((1 << slot) - 1);
+                inner[inner_len] = (slot ^ oct, node.child_base_idx + below.count_ones(), hit);
+                inner_len += 1;
+            }
+        }
+        // The node's leaf triangles, highest slot first.
+        for offset in (0..24).rev() {
+            let rays = u32::from(prim_rays[offset]);
+            if rays == 0 {
+                continue;
+            }
+            let slot = node.primitive_base_idx + offset as u32;
+            if packet_triangle(avx2, accel, p, slot, rays, tmax_lanes, t_max, best) {
+                tmax_lanes = avx2.f32x8(t_max);
+            }
+        }
+        // Inner children: the highest priority is visited next (pushed last).
+        inner[..inner_len].sort_unstable_by_key(|c| c.0);
+        if len + inner_len > PACKET_STACK {
+            return false;
+        }
+        for &(_, child, rays) in &inner[..inner_len] {
+            stack[len] = (child, rays);
+            len += 1;
+        }
+    }
+    true
+}
+
+/// The watertight test of the triangle in `slot` against the packet's `rays` (lane bits): each
+/// hit before its lane's `t_max` becomes the lane's best. Returns whether any lane changed.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
+    avx2: Avx2,
+    accel: &Accel,
+    p: &PacketRays<KX, KY, KZ>,
+    slot: u32,
+    rays: u32,
+    tmax_lanes: super::wide::F32x8,
+    t_max: &mut [f32; PACKET],
+    best: &mut [Option<(u32, f32, f32)>; PACKET],
+) -> bool {
+    let _ = avx2;
+    let Some(v) = accel.tris.get(slot as usize) else { return false };
+    let l = p.shear_sz;
+    let splat = [
+        [l.splat(v[0][KX]), l.splat(v[0][KY]), l.splat(v[0][KZ])],
+        [l.splat(v[1][KX]), l.splat(v[1][KY]), l.splat(v[1][KZ])],
+        [l.splat(v[2][KX]), l.splat(v[2][KY]), l.splat(v[2][KZ])],
+    ];
+    let s = Sheared::new(p.shear_o, p.shear_s, splat);
+    let e = s.edges();
+    let zero = l.splat(0.0);
+    let redo = (e[0].eq(zero) | e[1].eq(zero) | e[2].eq(zero)).bits() & rays;
+    let c = s.candidate(e, p.shear_sz);
+    let limit = tmax_lanes * c.det;
+    let beyond = (c.det.lt(zero) & c.t_scaled.lt(limit)) | (c.det.gt(zero) & c.t_scaled.gt(limit));
+    let hits = (c.pass & !beyond & c.t.lt(tmax_lanes)).bits() & rays & !redo;
+    if hits | redo == 0 {
+        return false;
+    }
+    let (t, b1, b2) = (c.t.to_array(), c.b1.to_array(), c.b2.to_array());
+    let mut todo = hits | redo;
+    while todo != 0 {
+        let lane = todo.trailing_zeros() as usize;
+        todo &= todo - 1;
+        let hit = if redo & (1 << lane) != 0 {
+            accel.test_slot(&p.shears[lane], slot as usize, t_max[lane], 0.0)
+        } else {
+            Some((t[lane], b1[lane], b2[lane]))
+        };
+        if let Some((t, b1, b2)) = hit
+            && t < t_max[lane]
+        {
+            t_max[lane] = t;
+            best[lane] = Some((slot, b1, b2));
+        }
+    }
+    true
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -951,6 +1280,98 @@ mod tests {
             assert_eq!(wide.occluded(o, d, f32::INFINITY), base.occluded(o, d, f32::INFINITY), "ray {o} {d}");
         }
         assert!(hits > rays / 3, "{hits} of {rays} rays hit");
+    }
+
+    /// Coherent rays traced as packets (`intersect_many`) get the single-ray hits bit for bit:
+    /// camera-like bundles through a soup of triangles and through the vertices and edges of a
+    /// bumpy grid (ties and zero edge functions), with finite and infinite `t_max`, full and
+    /// partial packets, and bundles that break up (mixed octants).
+    #[test]
+    fn packets_of_coherent_rays_get_the_single_ray_hits() {
+        use crate::render::wide::unit;
+        let n = 16;
+        let height = |i: usize, j: usize| ((i * 7 + j * 13) % 5) as f32 * 0.01;
+        let v = |i: usize, j: usize| Vec3A::new(i as f32 / n as f32, j as f32 / n as f32, height(i, j));
+        let mut tris = soup(2000, 7);
+        for i in 0..n {
+            for j in 0..n {
+                tris.push([v(i, j), v(i + 1, j), v(i + 1, j + 1)]);
+                tris.push([v(i, j), v(i + 1, j + 1), v(i, j + 1)]);
+            }
+        }
+        let mut accel = Accel::new(&tris);
+        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
+            eprintln!("this CPU has no AVX2: no packets to compare");
+            return;
+        }
+        let mut batches = Vec::new();
+        for b in 0..400u64 {
+            let r = |k: u64| unit(b * 64 + k) * 2.0 - 1.0;
+            let o = Vec3A::new(r(0), r(1), r(2)) * 3.0;
+            let center = Vec3A::new(r(3), r(4), r(5));
+            let spread = [0.0, 1e-3, 0.05, 0.5][(b % 4) as usize];
+            let len = 1 + (b % 11) as usize * 3;
+            batches.push(
+                (0..len as u64)
+                    .map(|k| {
+                        let j = |m: u64| (unit(b * 4096 + k * 8 + m) - 0.5) * spread;
+                        let t_max = if k % 3 == 0 { 2.0 + unit(b * 4096 + k * 8 + 7) } else { f32::INFINITY };
+                        RayQuery { o, d: center + Vec3A::new(j(0), j(1), j(2)), t_max, time: 0.0 }
+                    })
+                    .collect::<Vec<_>>(),
+            );
+        }
+        // Bundles from one point through the grid's vertices and edge midpoints, row by row.
+        for o in [Vec3A::new(0.5, 0.5, 2.0), Vec3A::new(0.3, 0.6, -1.5)] {
+            for i in 0..=n {
+                batches.push(
+                    (0..=n)
+                        .flat_map(|j| {
+                            let p = v(i, j);
+                            let q = v(i.min(n - 1) + 1, j).lerp(p, 0.5);
+                            [p - o, q - o]
+                        })
+                        .map(|d| RayQuery { o, d, t_max: f32::INFINITY, time: 0.0 })
+                        .collect(),
+                );
+            }
+        }
+        let (mut hits, mut total) = (0, 0);
+        let mut got = Vec::new();
+        for rays in &batches {
+            accel.intersect_many(rays, &mut got);
+            assert_eq!(got.len(), rays.len());
+            for (r, h) in rays.iter().zip(&got) {
+                let want = accel.intersect_at(r.o, r.d, r.t_max, r.time);
+                assert_eq!(bits(*h), bits(want), "ray {} {} {}", r.o, r.d, r.t_max);
+                hits += usize::from(want.is_some());
+                total += 1;
+            }
+        }
+        assert!(hits > total / 4 && hits < total, "{hits} of {total} rays hit");
+        // A fine flat grid alone (a deep tree): rays through its vertices, which 6 triangles in
+        // different subtrees share, so the order of the visit decides every tie.
+        let m = 64;
+        let w = |i: usize, j: usize| Vec3A::new(i as f32 / m as f32, j as f32 / m as f32, 0.0);
+        let mut grid = Vec::new();
+        for i in 0..m {
+            for j in 0..m {
+                grid.push([w(i, j), w(i + 1, j), w(i + 1, j + 1)]);
+                grid.push([w(i, j), w(i + 1, j + 1), w(i, j + 1)]);
+            }
+        }
+        let mut accel = Accel::new(&grid);
+        accel.set_simd_level(SimdLevel::Avx2);
+        for o in [Vec3A::new(0.5, 0.5, 1.0), Vec3A::new(0.1, 0.8, 0.3)] {
+            for i in 0..=m {
+                let rays: Vec<_> =
+                    (0..=m).map(|j| RayQuery { o, d: w(i, j) - o, t_max: f32::INFINITY, time: 0.0 }).collect();
+                accel.intersect_many(&rays, &mut got);
+                for (r, h) in rays.iter().zip(&got) {
+                    assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {}", r.o, r.d);
+                }
+            }
+        }
     }
 
     fn bits(h: Option<Hit>) -> Option<(u32, u32, u32, u32)> {

@@ -111,6 +111,33 @@ impl Avx2 {
     }
 }
 
+/// Work to run compiled for x86-64-v3 ([`Avx2::run_kernel`]). Its `call` must be
+/// `#[inline(always)]`: then it is compiled into the v3 function whatever its size (a closure
+/// given to [`Avx2::run`] is inlined only while the optimizer finds it small enough, and runs
+/// compiled for the baseline when it is not).
+pub trait V3Kernel {
+    type Output;
+    fn call(self) -> Self::Output;
+}
+
+impl Avx2 {
+    /// Runs `kernel` inside a function compiled for x86-64-v3 (see [`V3Kernel`]).
+    #[inline(always)]
+    pub fn run_kernel<K: V3Kernel>(self, kernel: K) -> K::Output {
+        #[cfg(target_arch = "x86_64")]
+        {
+            #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+            fn v3<K: V3Kernel>(kernel: K) -> K::Output {
+                kernel.call()
+            }
+            // SAFETY: `self` exists only where `Avx2::new` found every enabled feature.
+            unsafe { v3(kernel) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        kernel.call()
+    }
+}
+
 impl NodeTest for Avx2 {
     #[inline(always)]
     fn hits(self, node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
@@ -262,6 +289,31 @@ impl Avx2 {
         }
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe { kernel(self, soa, shear, first, t_max) }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Avx2 {
+    /// [`super::accel::trace_packet`]: the closest hits of a packet of up to 8 coherent rays,
+    /// in a function compiled for AVX2.
+    #[inline(always)]
+    pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
+        self,
+        accel: &super::accel::Accel,
+        rays: &[super::accel::RayQuery],
+        out: &mut Vec<Option<super::accel::Hit>>,
+    ) -> bool {
+        #[target_feature(enable = "avx2")]
+        fn kernel<const KX: usize, const KY: usize, const KZ: usize>(
+            avx2: Avx2,
+            accel: &super::accel::Accel,
+            rays: &[super::accel::RayQuery],
+            out: &mut Vec<Option<super::accel::Hit>>,
+        ) -> bool {
+            super::accel::trace_packet::<KX, KY, KZ>(avx2, accel, rays, out)
+        }
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { kernel::<KX, KY, KZ>(self, accel, rays, out) }
     }
 }
 
@@ -480,7 +532,7 @@ fn sobol_x8(rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32
 
 /// obvhs' node-test epsilon (`cwbvh::node::EPSILON`, crate-private there): the smallest entry
 /// distance of a child box.
-const NODE_EPSILON: f32 = 0.0001;
+pub(super) const NODE_EPSILON: f32 = 0.0001;
 
 /// The 8 quantized child bounds `v` as f32 (exact: they are bytes).
 #[cfg(target_arch = "x86_64")]
