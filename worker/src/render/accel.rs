@@ -889,7 +889,7 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
 }
 
 /// Entries of a packet's traversal stack: a node and the packet's rays that visit it.
-const PACKET_STACK: usize = 192;
+const PACKET_STACK: usize = 96;
 
 /// The traversal of [`trace_packet`]: updates each lane's `t_max` and best hit (slot and
 /// barycentrics). No closures inside (see `Sheared::new`).
@@ -923,14 +923,15 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
             dir_inv[a] = l.splat(extent[a]) * p.inv_direction[a];
             origin[a] = (l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a];
         }
-        let bounds = [
-            (&node.child_min_x, &node.child_max_x),
-            (&node.child_min_y, &node.child_max_y),
-            (&node.child_min_z, &node.child_max_z),
+        let q = [
+            (avx2.bytes_f32x8(&node.child_min_x), avx2.bytes_f32x8(&node.child_max_x)),
+            (avx2.bytes_f32x8(&node.child_min_y), avx2.bytes_f32x8(&node.child_max_y)),
+            (avx2.bytes_f32x8(&node.child_min_z), avx2.bytes_f32x8(&node.child_max_z)),
         ];
         // Rays per leaf triangle (by offset from the node's first primitive) and inner children
         // (priority, node index, rays).
         let mut prim_rays = [0u8; 24];
+        let mut prims = 0u32;
         let mut inner = [(0u32, 0u32, 0u32); 8];
         let mut inner_len = 0;
         for child in 0..8 {
@@ -941,7 +942,7 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
             let mut near = [l; 3];
             let mut far = [l; 3];
             for a in 0..3 {
-                let (lo, hi) = (l.splat(f32::from(bounds[a].0[child])), l.splat(f32::from(bounds[a].1[child])));
+                let (lo, hi) = (q[a].0.broadcast(child as u32), q[a].1.broadcast(child as u32));
                 let (n, f) = if p.negative[a] { (hi, lo) } else { (lo, hi) };
                 near[a] = n * dir_inv[a] + origin[a];
                 far[a] = f * dir_inv[a] + origin[a];
@@ -957,6 +958,7 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
                 for k in 0..(meta >> 5).count_ones() as usize {
                     if let Some(r) = prim_rays.get_mut(first + k) {
                         *r |= hit as u8;
+                        prims |= 1 << (first + k);
                     }
                 }
             } else {
@@ -967,11 +969,10 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
             }
         }
         // The node's leaf triangles, highest slot first.
-        for offset in (0..24).rev() {
+        while prims != 0 {
+            let offset = 31 - prims.leading_zeros() as usize;
+            prims &= !(1 << offset);
             let rays = u32::from(prim_rays[offset]);
-            if rays == 0 {
-                continue;
-            }
             let slot = node.primitive_base_idx + offset as u32;
             if packet_triangle(avx2, accel, p, slot, rays, tmax_lanes, t_max, best) {
                 tmax_lanes = avx2.f32x8(t_max);

@@ -189,6 +189,14 @@ impl Avx2 {
 }
 
 impl Avx2 {
+    /// The 8 bytes of `v` as 8 lanes of `f32` (exact).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn bytes_f32x8(self, v: &[u8; 8]) -> F32x8 {
+        // SAFETY: `self` proves the CPU has AVX2.
+        F32x8(unsafe { bytes_to_f32x8(v) })
+    }
+
     /// 8 lanes of `f32` from `v` (the one way to make an [`F32x8`]: its values exist only where
     /// AVX2 does).
     #[cfg(target_arch = "x86_64")]
@@ -348,6 +356,13 @@ mod lanes {
             // SAFETY: this value exists, so the CPU has AVX; an unaligned store of 8 f32.
             unsafe { _mm256_storeu_ps(out.as_mut_ptr(), self.0) };
             out
+        }
+
+        /// Lane `i` (below 8) in every lane.
+        #[inline(always)]
+        pub fn broadcast(self, i: u32) -> F32x8 {
+            // SAFETY: this value exists, so the CPU has AVX2.
+            F32x8(unsafe { _mm256_permutevar8x32_ps(self.0, _mm256_set1_epi32(i as i32)) })
         }
     }
 
