@@ -25,6 +25,7 @@
 use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::job::{IntegratorSettings, LightSampling, MisHeuristic, RenderSettings};
 use pathfarm_common::scene::{LoadOptions, load_scene};
+use pathfarm_worker::render::accel::RayQuery;
 use pathfarm_worker::render::camera::Camera;
 use pathfarm_worker::render::geometry::Frame;
 use pathfarm_worker::render::scene::RenderScene;
@@ -99,6 +100,40 @@ fn bvh_figures() {
         f64::from(w * h) / primary / 1e6,
         hits.len(),
         w * h
+    );
+    // A pixel's 8 camera rays (jittered), one by one and as batches of 256 (the wavefront's
+    // query, where a pixel's rays go through the BVH as a packet).
+    let (w8, h8) = (256u32, 256u32);
+    let cam8 = Camera::framing(scene.bounds(), w8, h8);
+    let mut rays = Vec::with_capacity((w8 * h8 * 8) as usize);
+    for y in 0..h8 {
+        for x in 0..w8 {
+            for k in 0..8u32 {
+                let u = Vec2::new((k % 4) as f32 * 0.25 + 0.125, (k / 4) as f32 * 0.5 + 0.25);
+                let r = cam8.generate_ray(UVec2::new(x, y), u);
+                rays.push(RayQuery { o: r.o, d: r.d, t_max: f32::INFINITY, time: 0.0 });
+            }
+        }
+    }
+    let t = Instant::now();
+    let mut one_hits = 0usize;
+    for r in &rays {
+        one_hits += usize::from(rs.intersect(r.o, r.d, r.t_max).is_some());
+    }
+    let one = t.elapsed().as_secs_f64();
+    let (mut hit_buf, mut surfaces) = (Vec::new(), Vec::new());
+    let t = Instant::now();
+    let mut batch_hits = 0usize;
+    for batch in rays.chunks(256) {
+        rs.intersect_many(batch, &mut hit_buf, &mut surfaces);
+        batch_hits += surfaces.iter().filter(|s| s.is_some()).count();
+    }
+    let batched = t.elapsed().as_secs_f64();
+    assert_eq!(one_hits, batch_hits);
+    println!(
+        "bvh: primary rays, 8 per pixel: {:.2} Mrays/s one by one, {:.2} Mrays/s in batches (packets) (1 thread)",
+        rays.len() as f64 / one / 1e6,
+        rays.len() as f64 / batched / 1e6
     );
     let t2 = Instant::now();
     let mut n = 0u64;
