@@ -831,7 +831,7 @@ fn min_ps<R: Real>(a: R, b: R) -> R {
 
 /// A packet's rays in lanes: what obvhs' node test and the watertight test read of each ray.
 #[cfg(target_arch = "x86_64")]
-struct PacketRays<const KX: usize, const KY: usize, const KZ: usize> {
+struct PacketRays<'a, const KX: usize, const KY: usize, const KZ: usize> {
     /// obvhs' ray origin and inverse direction, per axis.
     origin: [super::wide::F32x8; 3],
     inv_direction: [super::wide::F32x8; 3],
@@ -839,8 +839,9 @@ struct PacketRays<const KX: usize, const KY: usize, const KZ: usize> {
     shear_o: [super::wide::F32x8; 3],
     shear_s: [super::wide::F32x8; 2],
     shear_sz: super::wide::F32x8,
-    /// The rays (each one's scalar shear is made from it for the double-precision fallback).
-    rays: [RayQuery; PACKET],
+    /// The rays, one per lane up to their number (each one's scalar shear is made from it for
+    /// the double-precision fallback).
+    rays: &'a [RayQuery],
     /// The direction's sign per axis (the same in every lane: one octant).
     negative: [bool; 3],
     oct_inv4: u32,
@@ -867,20 +868,20 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
         hits.extend(rays.iter().map(|_| None));
         return true;
     };
+    let Some(ray0) = rays.first() else { return true };
     let n = rays.len().min(PACKET);
     let active = (1u32 << n) - 1;
     // Lanes past `n` repeat the first ray (their results are dropped). The rays' values as
     // arrays (origin, direction), then as lanes; no closures (see `Sheared::new`).
-    let mut lane_rays = [rays[0]; PACKET];
-    lane_rays[..n].copy_from_slice(&rays[..n]);
     let mut v = [[0.0f32; PACKET]; 6];
     let mut t_max = [0.0f32; PACKET];
     for i in 0..PACKET {
+        let r = rays.get(i).unwrap_or(ray0);
         for a in 0..3 {
-            v[a][i] = lane_rays[i].o[a];
-            v[3 + a][i] = lane_rays[i].d[a];
+            v[a][i] = r.o[a];
+            v[3 + a][i] = r.d[a];
         }
-        t_max[i] = lane_rays[i].t_max;
+        t_max[i] = r.t_max;
     }
     let o = [avx2.f32x8(&v[0]), avx2.f32x8(&v[1]), avx2.f32x8(&v[2])];
     let d = [avx2.f32x8(&v[3]), avx2.f32x8(&v[4]), avx2.f32x8(&v[5])];
@@ -896,14 +897,14 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
     }
     // `RayShear::new(o, d)`.
     let (dx, dy, dz) = (d[KX], d[KY], d[KZ]);
-    let first = lane_rays[0].d + Vec3A::ZERO;
+    let first = ray0.d + Vec3A::ZERO;
     let p = PacketRays::<KX, KY, KZ> {
         origin: o,
         inv_direction,
         shear_o: [o[KX], o[KY], o[KZ]],
         shear_s: [-dx / dz, -dy / dz],
         shear_sz: zero.splat(1.0) / dz,
-        rays: lane_rays,
+        rays,
         negative: [first.x < 0.0, first.y < 0.0, first.z < 0.0],
         // obvhs' `ray_get_octant_inv4`, low byte.
         oct_inv4: u32::from(!(first.x < 0.0)) << 2 | u32::from(!(first.y < 0.0)) << 1 | u32::from(!(first.z < 0.0)),
@@ -929,7 +930,7 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
     avx2: Avx2,
     accel: &Accel,
     bvh: &CwBvh,
-    p: &PacketRays<KX, KY, KZ>,
+    p: &PacketRays<'_, KX, KY, KZ>,
     active: u32,
     t_max: &mut [f32; PACKET],
     best: &mut [Option<(u32, f32, f32)>; PACKET],
@@ -1030,7 +1031,7 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
 fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
     avx2: Avx2,
     accel: &Accel,
-    p: &PacketRays<KX, KY, KZ>,
+    p: &PacketRays<'_, KX, KY, KZ>,
     slot: u32,
     rays: u32,
     tmax_lanes: super::wide::F32x8,
@@ -1063,8 +1064,11 @@ fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
         let lane = todo.trailing_zeros() as usize;
         todo &= todo - 1;
         let hit = if redo & (1 << lane) != 0 {
-            let r = &p.rays[lane];
-            accel.test_slot(&RayShear::<KX, KY, KZ>::new(r.o, r.d), slot as usize, t_max[lane], 0.0)
+            // A lane in `rays` has a ray of its own.
+            match p.rays.get(lane) {
+                Some(r) => accel.test_slot(&RayShear::<KX, KY, KZ>::new(r.o, r.d), slot as usize, t_max[lane], 0.0),
+                None => None,
+            }
         } else {
             Some((t[lane], b1[lane], b2[lane]))
         };
