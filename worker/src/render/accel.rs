@@ -5,7 +5,7 @@
 //! as in pbrt-v4): rays through shared edges and vertices of a closed mesh never slip through.
 //! Where the CPU has AVX2, the traversal tests a node's leaf triangles 8 at a time (its leaves'
 //! triangles are consecutive BVH slots, stored also as structure of arrays): the same f32
-//! operations in every lane as the one-at-a-time test ([`Sheared`] is written once, for `f32`
+//! operations in every lane as the one-at-a-time test (`Sheared` is written once, for `f32`
 //! and for lanes), and the lanes' hits are taken in the one-at-a-time order with the `t_max`
 //! then in force, so hits stay bit-identical. Measured with the bench's `tiny`: the closest-hit
 //! and shadow queries use about 1.3 groups of 8 lanes for 3.4 triangles per ray on the Cornell
@@ -818,12 +818,14 @@ const MIN_PACKET: usize = 4;
 
 /// `a > b ? a : b`, `_mm256_max_ps`' rule (its NaN and signed-zero cases included): the node
 /// test in lanes takes its maxima as the single-ray AVX2 node test does.
+#[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn max_ps<R: Real>(a: R, b: R) -> R {
     R::select(b.lt(a), a, b)
 }
 
 /// `a < b ? a : b`, `_mm256_min_ps`' rule.
+#[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn min_ps<R: Real>(a: R, b: R) -> R {
     R::select(a.lt(b), a, b)
@@ -920,6 +922,7 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
 }
 
 /// Entries of a packet's traversal stack: a node and the packet's rays that visit it.
+#[cfg(target_arch = "x86_64")]
 const PACKET_STACK: usize = 96;
 
 /// The traversal of [`trace_packet`]: updates each lane's `t_max` and best hit (slot and
