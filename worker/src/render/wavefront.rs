@@ -15,7 +15,8 @@
 //! Measured on the Cornell box (area light sampling, max depth 8): 11.5k instructions per
 //! sample against 12.2k one path at a time (callgrind, the bench's `tiny`), and about 1.2x the
 //! samples per CPU-second: the stages run long loops over warm code and data. The lane-wise
-//! camera and diffuse stages (with `render::math`) took it to 10.8k.
+//! camera and diffuse stages (with `render::math`) took it to 10.8k; the lane-wise triangle
+//! tests and packets (`accel`) trade it back up to 11.3k for less time.
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
