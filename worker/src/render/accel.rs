@@ -1427,6 +1427,31 @@ mod tests {
         }
     }
 
+    /// Packets of the awkward rays (axis-aligned with -0 and +0 components, components of
+    /// 1e-30, scales of 1e-20 and 1e20, NaN, zero and infinite directions, `t_max` of 0, finite
+    /// and infinite), each ray 8 times with its neighbours' small changes: the single-ray hits.
+    #[test]
+    fn packets_of_awkward_rays_get_the_single_ray_hits() {
+        let mut accel = Accel::new(&soup(3000, 3));
+        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
+            return;
+        }
+        let mut base = crate::render::wide::test_rays(600);
+        base.push((Vec3A::ZERO, Vec3A::new(f32::NAN, 0.0, 1.0), f32::INFINITY));
+        base.push((Vec3A::ZERO, Vec3A::ZERO, f32::INFINITY));
+        base.push((Vec3A::ZERO, Vec3A::new(0.0, f32::INFINITY, 0.1), f32::INFINITY));
+        base.push((Vec3A::new(0.1, 0.2, 5.0), -Vec3A::Z, 0.0));
+        let mut got = Vec::new();
+        for (o, d, t_max) in base {
+            let rays: Vec<RayQuery> =
+                (0..8).map(|k| RayQuery { o: o + Vec3A::splat(k as f32 * 1e-4), d, t_max, time: 0.0 }).collect();
+            accel.intersect_many(&rays, &mut got);
+            for (r, h) in rays.iter().zip(&got) {
+                assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {} {}", r.o, r.d, r.t_max);
+            }
+        }
+    }
+
     fn bits(h: Option<Hit>) -> Option<(u32, u32, u32, u32)> {
         h.map(|h| (h.t.to_bits(), h.prim, h.b1.to_bits(), h.b2.to_bits()))
     }
