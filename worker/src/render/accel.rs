@@ -122,7 +122,7 @@ impl<const KX: usize, const KY: usize, const KZ: usize> RayShear<KX, KY, KZ> {
             Sheared::new([self.o[KX], self.o[KY], self.o[KZ]], [self.sx, self.sy], v.map(|v| [v[KX], v[KY], v[KZ]]));
         let mut e = p.edges();
         // Fall back to double precision on an edge, so shared edges are decided consistently.
-        if e[0] == 0.0 || e[1] == 0.0 || e[2] == 0.0 {
+        if any_zero(e) {
             e = p.edges_f64();
         }
         // Most triangles fail here: leave before the rest (`candidate` checks it again).
@@ -233,13 +233,28 @@ impl Sheared<f32> {
     }
 }
 
-impl Candidate<f32> {
+impl<R: Real> Candidate<R> {
     /// The test's last part: the hit lies before `t_max` (on the scaled distance, as the
     /// watertight test compares it).
     #[inline(always)]
-    fn within(&self, t_max: f32) -> bool {
-        !((self.det < 0.0 && self.t_scaled < t_max * self.det) || (self.det > 0.0 && self.t_scaled > t_max * self.det))
+    fn within(&self, t_max: R) -> R::Mask {
+        let (zero, limit) = (t_max.splat(0.0), t_max * self.det);
+        !((self.det.lt(zero) & self.t_scaled.lt(limit)) | (self.det.gt(zero) & self.t_scaled.gt(limit)))
     }
+
+    /// Where the whole test passes before `t_max`, and `t < t_max`: a hit the one-at-a-time
+    /// test takes while its `t_max` is this one.
+    #[inline(always)]
+    fn hits_before(&self, t_max: R) -> R::Mask {
+        self.pass & self.within(t_max) & self.t.lt(t_max)
+    }
+}
+
+/// Where an edge function is zero: the test's double-precision fallback decides there.
+#[inline(always)]
+fn any_zero<R: Real>(e: [R; 3]) -> R::Mask {
+    let zero = e[0].splat(0.0);
+    e[0].eq(zero) | e[1].eq(zero) | e[2].eq(zero)
 }
 
 /// [`Accel::intersect_many`] in AVX2.
@@ -658,15 +673,11 @@ pub(super) fn lane_candidates<const KX: usize, const KY: usize, const KZ: usize>
         v,
     );
     let e = p.edges();
-    let zero = l.splat(0.0);
-    let redo = (e[0].eq(zero) | e[1].eq(zero) | e[2].eq(zero)).bits();
+    let redo = any_zero(e).bits();
     let c = p.candidate(e, l.splat(shear.sz));
-    // `Candidate::within` and `t < t_max` in lanes, for the `t_max` at the group's start: the
-    // lanes that can still hit (the one-at-a-time test's `t_max` only shrinks from there).
-    let t_max = l.splat(t_max);
-    let limit = t_max * c.det;
-    let beyond = (c.det.lt(zero) & c.t_scaled.lt(limit)) | (c.det.gt(zero) & c.t_scaled.gt(limit));
-    let hits = (c.pass & !beyond & c.t.lt(t_max)).bits() & !redo;
+    // The hits before the `t_max` at the group's start: the lanes that can still hit (the
+    // one-at-a-time test's `t_max` only shrinks from there).
+    let hits = c.hits_before(l.splat(t_max)).bits() & !redo;
     LaneCandidates {
         hits,
         redo,
@@ -726,9 +737,9 @@ impl Accel {
                 );
                 let e = p.edges();
                 let c = p.candidate(e, shear.sz);
-                let redo = e.contains(&0.0);
+                let redo = any_zero(e);
                 out.redo |= u32::from(redo) << i;
-                out.hits |= u32::from(!redo && c.pass && c.within(t_max) && c.t < t_max) << i;
+                out.hits |= u32::from(!redo && c.hits_before(t_max)) << i;
                 (out.det[i], out.t_scaled[i], out.t[i], out.b1[i], out.b2[i]) = (c.det, c.t_scaled, c.t, c.b1, c.b2);
             }
             out
@@ -1059,12 +1070,9 @@ fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
     ];
     let s = Sheared::new(p.shear_o, p.shear_s, splat);
     let e = s.edges();
-    let zero = l.splat(0.0);
-    let redo = (e[0].eq(zero) | e[1].eq(zero) | e[2].eq(zero)).bits() & rays;
+    let redo = any_zero(e).bits() & rays;
     let c = s.candidate(e, p.shear_sz);
-    let limit = tmax_lanes * c.det;
-    let beyond = (c.det.lt(zero) & c.t_scaled.lt(limit)) | (c.det.gt(zero) & c.t_scaled.gt(limit));
-    let hits = (c.pass & !beyond & c.t.lt(tmax_lanes)).bits() & rays & !redo;
+    let hits = c.hits_before(tmax_lanes).bits() & rays & !redo;
     if hits | redo == 0 {
         return 0;
     }
