@@ -321,7 +321,7 @@ impl Renderer {
         UnitResult { accum, splats }
     }
 
-    fn render_tile<S: Sampler>(
+    fn render_tile<S: Sampler + Clone>(
         &self,
         tile: TileRect,
         pass: Pass,
@@ -432,7 +432,7 @@ impl Renderer {
     /// (pixel by pixel, each pixel's in sample order) in batches, each pixel's values folded in
     /// sample order as the scalar loop folds them.
     #[allow(clippy::too_many_arguments)]
-    fn path_row_wavefront<S: Sampler>(
+    fn path_row_wavefront<S: Sampler + Clone>(
         &self,
         wf: &mut Wavefront<S>,
         tile: TileRect,

@@ -338,7 +338,9 @@ impl Sampler for IndependentSampler {
 #[derive(Clone, Debug)]
 pub struct SobolSampler {
     seed: u64,
-    /// Hash of (seed, pixel).
+    /// The pixel of the current sample, and the hash of (seed, pixel): computed once per pixel
+    /// (its samples follow one another), not once per sample.
+    pixel: UVec2,
     pixel_hash: u64,
     index: u32,
     dim: u32,
@@ -346,9 +348,12 @@ pub struct SobolSampler {
 
 impl SobolSampler {
     pub fn new(seed: u64) -> Self {
-        let mut s = Self { seed, pixel_hash: 0, index: 0, dim: 0 };
-        s.start_pixel_sample(UVec2::ZERO, 0, 0);
-        s
+        Self { seed, pixel: UVec2::ZERO, pixel_hash: Self::pixel_hash(seed, UVec2::ZERO), index: 0, dim: 0 }
+    }
+
+    #[inline]
+    fn pixel_hash(seed: u64, pixel: UVec2) -> u64 {
+        hash_u64(&[seed, u64::from(pixel.x), u64::from(pixel.y)])
     }
 
     /// The seeds of the request at the current dimension; `tag` separates 1D from 2D requests.
@@ -368,7 +373,10 @@ impl SobolSampler {
 
 impl Sampler for SobolSampler {
     fn start_pixel_sample(&mut self, pixel: UVec2, index: u32, dim: u32) {
-        self.pixel_hash = hash_u64(&[self.seed, u64::from(pixel.x), u64::from(pixel.y)]);
+        if pixel != self.pixel {
+            self.pixel = pixel;
+            self.pixel_hash = Self::pixel_hash(self.seed, pixel);
+        }
         self.index = index;
         self.dim = dim;
     }

@@ -156,7 +156,7 @@ impl<S: Sampler> Default for Wavefront<S> {
     }
 }
 
-impl<S: Sampler> Wavefront<S> {
+impl<S: Sampler + Clone> Wavefront<S> {
     /// Traces one camera sample per entry of `samples` (pixel, sample index) and appends each
     /// one's value to `out`, in order. `camera` is the camera stage: a fresh sampler positioned
     /// at the sample (`start_pixel_sample(pixel, index, 0)`), what the camera draws from it, the
@@ -183,19 +183,22 @@ impl<S: Sampler> Wavefront<S> {
         let lanes = (level == SimdLevel::Avx2 && camera.shutter.is_none() && camera.camera.is_pinhole())
             .then(Avx2::new)
             .flatten();
+        // Each path's sampler is a copy of one positioned at its sample: a pixel's samples follow
+        // one another, and a sampler keeps what depends on the pixel alone (Sobol's pixel hash)
+        // from one sample to the next (the same state as a fresh sampler positioned there).
+        let mut proto = (camera.new_sampler)();
         let Some(avx2) = lanes else {
             self.paths.extend(samples.iter().map(|&(pixel, index)| {
-                let (sampler, ray, time) =
-                    camera_sample((camera.new_sampler)(), pixel, index, camera.camera, camera.shutter);
+                proto.start_pixel_sample(pixel, index, 0);
+                let (sampler, ray, time) = camera_sample(proto.clone(), pixel, index, camera.camera, camera.shutter);
                 PathState::new(sampler, ray, time)
             }));
             return;
         };
         let origin = camera.camera.position();
         self.paths.extend(samples.iter().map(|&(pixel, index)| {
-            let mut sampler = (camera.new_sampler)();
-            sampler.start_pixel_sample(pixel, index, 0);
-            PathState::new(sampler, Ray::new(origin, Vec3A::Z), 0.0)
+            proto.start_pixel_sample(pixel, index, 0);
+            PathState::new(proto.clone(), Ray::new(origin, Vec3A::Z), 0.0)
         }));
         self.pixel_us.clear();
         S::pixel_2d_many(self.paths.iter_mut().map(|p| &mut p.sampler), level, &mut self.pixel_us);
