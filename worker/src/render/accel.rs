@@ -23,9 +23,9 @@
 //! the same tree and breaks ties between equal distances the same way.
 
 use super::math::Real;
-use super::wide::{Avx2, Baseline, NodeTest, SimdLevel, V3Kernel};
 #[cfg(target_arch = "x86_64")]
-use super::wide::{F32x8, NODE_EPSILON};
+use super::wide::F32x8;
+use super::wide::{Avx2, Baseline, NodeTest, SimdLevel, V3Kernel};
 use glam::{UVec2, Vec3A};
 use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::builder::build_cwbvh, ray::Ray};
 use std::time::Duration;
@@ -835,21 +835,6 @@ const PACKET: usize = 8;
 /// The fewest coherent rays traced as a packet.
 const MIN_PACKET: usize = 4;
 
-/// `a > b ? a : b`, `_mm256_max_ps`' rule (its NaN and signed-zero cases included): the node
-/// test in lanes takes its maxima as the single-ray AVX2 node test does.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-fn max_ps<R: Real>(a: R, b: R) -> R {
-    R::select(b.lt(a), a, b)
-}
-
-/// `a < b ? a : b`, `_mm256_min_ps`' rule.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-fn min_ps<R: Real>(a: R, b: R) -> R {
-    R::select(a.lt(b), a, b)
-}
-
 /// A packet's rays in lanes: what obvhs' node test and the watertight test read of each ray.
 #[cfg(target_arch = "x86_64")]
 struct PacketRays<'a, const KX: usize, const KY: usize, const KZ: usize> {
@@ -940,6 +925,20 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
     true
 }
 
+/// Transposes the 8 x 8 bit matrix whose row `r` is byte `r` of `x` (column `c`: bit `c` of the
+/// byte): byte `c` of the result holds bit `c` of every row, row `r` as bit `r` (Hacker's
+/// Delight's `transpose8`, three rounds of block swaps).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn transpose_bits8(mut x: u64) -> u64 {
+    let t = (x ^ (x >> 7)) & 0x00AA_00AA_00AA_00AA;
+    x ^= t ^ (t << 7);
+    let t = (x ^ (x >> 14)) & 0x0000_CCCC_0000_CCCC;
+    x ^= t ^ (t << 14);
+    let t = (x ^ (x >> 28)) & 0x0000_0000_F0F0_F0F0;
+    x ^ t ^ (t << 28)
+}
+
 /// Entries of a packet's traversal stack: a node and the packet's rays that visit it.
 #[cfg(target_arch = "x86_64")]
 const PACKET_STACK: usize = 96;
@@ -970,17 +969,37 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
         let mut tmax_lanes = avx2.f32x8(t_max);
         let extent = node.compute_extent();
         let node_p = Vec3A::from(node.p);
-        let mut dir_inv = [l; 3];
-        let mut origin = [l; 3];
+        // Each ray's `extent * inv_direction` and `(p - origin) * inv_direction`, as the
+        // single-ray node test makes them, computed in lanes.
+        let mut dir_inv = [[0.0f32; PACKET]; 3];
+        let mut origin = [[0.0f32; PACKET]; 3];
         for a in 0..3 {
-            dir_inv[a] = l.splat(extent[a]) * p.inv_direction[a];
-            origin[a] = (l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a];
+            dir_inv[a] = (l.splat(extent[a]) * p.inv_direction[a]).to_array();
+            origin[a] = ((l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a]).to_array();
         }
         let q = [
             (avx2.bytes_f32x8(&node.child_min_x), avx2.bytes_f32x8(&node.child_max_x)),
             (avx2.bytes_f32x8(&node.child_min_y), avx2.bytes_f32x8(&node.child_max_y)),
             (avx2.bytes_f32x8(&node.child_min_z), avx2.bytes_f32x8(&node.child_max_z)),
         ];
+        let mut near = [l; 3];
+        let mut far = [l; 3];
+        for a in 0..3 {
+            (near[a], far[a]) = if p.negative[a] { (q[a].1, q[a].0) } else { (q[a].0, q[a].1) };
+        }
+        // The single-ray node test for each ray that reached the node (its 8 children in lanes,
+        // the same bits): row `r` (byte `r`) holds the children ray `r` hits; transposed, byte
+        // `c` holds the rays that hit child `c`.
+        let mut rows = 0u64;
+        let mut todo = rays & 0xff;
+        while todo != 0 {
+            let r = todo.trailing_zeros() as usize & (PACKET - 1);
+            todo &= todo - 1;
+            let d = [dir_inv[0][r], dir_inv[1][r], dir_inv[2][r]];
+            let o = [origin[0][r], origin[1][r], origin[2][r]];
+            rows |= u64::from(avx2.child_box_hits(&near, &far, d, o, t_max[r])) << (8 * r);
+        }
+        let by_child = transpose_bits8(rows);
         // Rays per leaf triangle (by offset from the node's first primitive) and inner children
         // (priority, node index, rays).
         let mut prim_rays = [0u8; 24];
@@ -992,17 +1011,7 @@ fn packet_traverse<const KX: usize, const KY: usize, const KZ: usize>(
             if meta == 0 {
                 continue;
             }
-            let mut near = [l; 3];
-            let mut far = [l; 3];
-            for a in 0..3 {
-                let (lo, hi) = (q[a].0.broadcast(child as u32), q[a].1.broadcast(child as u32));
-                let (n, f) = if p.negative[a] { (hi, lo) } else { (lo, hi) };
-                near[a] = n * dir_inv[a] + origin[a];
-                far[a] = f * dir_inv[a] + origin[a];
-            }
-            let tmin = max_ps(max_ps(near[0], max_ps(near[1], near[2])), l.splat(NODE_EPSILON));
-            let tmax = min_ps(min_ps(far[0], min_ps(far[1], far[2])), tmax_lanes);
-            let hit = tmin.le(tmax).bits() & rays;
+            let hit = (by_child >> (8 * child)) as u32 & 0xff;
             if hit == 0 {
                 continue;
             }
@@ -1107,6 +1116,19 @@ mod tests {
     use super::*;
 
     /// A closed cube [-1, 1]^3 of 12 triangles.
+    /// `transpose_bits8` moves bit `c` of byte `r` to bit `r` of byte `c`, for every bit.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn bit_matrix_transpose_moves_each_bit() {
+        for r in 0..8 {
+            for c in 0..8 {
+                assert_eq!(transpose_bits8(1 << (8 * r + c)), 1 << (8 * c + r), "row {r} column {c}");
+            }
+        }
+        let x = 0x0123_4567_89ab_cdefu64;
+        assert_eq!(transpose_bits8(transpose_bits8(x)), x);
+    }
+
     fn cube() -> Vec<[Vec3A; 3]> {
         let v = |x: f32, y: f32, z: f32| Vec3A::new(x, y, z);
         let c = [

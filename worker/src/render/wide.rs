@@ -326,6 +326,25 @@ impl Avx2 {
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe { kernel::<KX, KY, KZ>(self, accel, rays, hits) }
     }
+
+    /// The single-ray node test's box test of a node's 8 children (`near`, `far`: their planes
+    /// per axis, swapped for the ray's direction signs) against one ray of a packet, from its
+    /// `extent * inv_direction`, `(p - origin) * inv_direction` and `t_max`. Bit `c`: the box of
+    /// child slot `c` is hit.
+    #[inline(always)]
+    pub(super) fn child_box_hits(
+        self,
+        near: &[F32x8; 3],
+        far: &[F32x8; 3],
+        dir_inv: [f32; 3],
+        origin: [f32; 3],
+        t_max: f32,
+    ) -> u32 {
+        let near = [near[0].0, near[1].0, near[2].0];
+        let far = [far[0].0, far[1].0, far[2].0];
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { child_box_hits_avx2(&near, &far, dir_inv, origin, t_max) }
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -550,7 +569,8 @@ fn sobol_x8(rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32
 
 /// obvhs' node-test epsilon (`cwbvh::node::EPSILON`, crate-private there): the smallest entry
 /// distance of a child box.
-pub(super) const NODE_EPSILON: f32 = 0.0001;
+#[cfg(target_arch = "x86_64")]
+const NODE_EPSILON: f32 = 0.0001;
 
 /// The 8 quantized child bounds `v` as f32 (exact: they are bytes).
 #[cfg(target_arch = "x86_64")]
@@ -568,25 +588,19 @@ fn bytes_to_f32x8(v: &[u8; 8]) -> std::arch::x86_64::__m256 {
 #[target_feature(enable = "avx2")]
 #[inline]
 fn node_hits_avx2(node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
-    use std::arch::x86_64::*;
     let dir_inv = node.compute_extent() * ray.inv_direction;
     let origin = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
     let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
-    let axis = |lo: &[u8; 8], hi: &[u8; 8], negative: bool, dir_inv: f32, origin: f32| {
+    let axis = |lo: &[u8; 8], hi: &[u8; 8], negative: bool| {
         let (lo, hi) = (bytes_to_f32x8(lo), bytes_to_f32x8(hi));
-        let (near, far) = if negative { (hi, lo) } else { (lo, hi) };
-        let (d, o) = (_mm256_set1_ps(dir_inv), _mm256_set1_ps(origin));
-        (_mm256_add_ps(_mm256_mul_ps(near, d), o), _mm256_add_ps(_mm256_mul_ps(far, d), o))
+        if negative { (hi, lo) } else { (lo, hi) }
     };
-    let (tmin_x, tmax_x) = axis(&node.child_min_x, &node.child_max_x, ray.direction.x < 0.0, dir_inv.x, origin.x);
-    let (tmin_y, tmax_y) = axis(&node.child_min_y, &node.child_max_y, ray.direction.y < 0.0, dir_inv.y, origin.y);
-    let (tmin_z, tmax_z) = axis(&node.child_min_z, &node.child_max_z, ray.direction.z < 0.0, dir_inv.z, origin.z);
-    let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
-    let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
-    let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
-    let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(ray.tmax));
-    // `_CMP_LE_OQ` is `cmpleps`' predicate without the signal: false on NaN like it.
-    let mut mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tmin, tmax)) as u32;
+    let (near_x, far_x) = axis(&node.child_min_x, &node.child_max_x, ray.direction.x < 0.0);
+    let (near_y, far_y) = axis(&node.child_min_y, &node.child_max_y, ray.direction.y < 0.0);
+    let (near_z, far_z) = axis(&node.child_min_z, &node.child_max_z, ray.direction.z < 0.0);
+    let near = [near_x, near_y, near_z];
+    let far = [far_x, far_y, far_z];
+    let mut mask = child_box_hits_avx2(&near, &far, dir_inv.to_array(), origin.to_array(), ray.tmax);
     let mut hit_mask = 0;
     while mask != 0 {
         let child = mask.trailing_zeros();
@@ -595,6 +609,37 @@ fn node_hits_avx2(node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
         hit_mask |= byte(child_bits8) << byte(bit_index8);
     }
     hit_mask
+}
+
+/// The box test of a node's 8 children against one ray, from the children's near and far
+/// quantized planes per axis (already swapped where the ray's direction is negative), the
+/// node's `extent * inv_direction` and `(p - origin) * inv_direction`: per axis `q * dir_inv +
+/// origin` (multiply, then add), the max/min order of obvhs' test and its `<=`. Bit `c`: the
+/// box of child slot `c` is hit. The single-ray node test and the packets' both use it.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn child_box_hits_avx2(
+    near: &[std::arch::x86_64::__m256; 3],
+    far: &[std::arch::x86_64::__m256; 3],
+    dir_inv: [f32; 3],
+    origin: [f32; 3],
+    t_max: f32,
+) -> u32 {
+    use std::arch::x86_64::*;
+    let axis = |a: usize| {
+        let (d, o) = (_mm256_set1_ps(dir_inv[a]), _mm256_set1_ps(origin[a]));
+        (_mm256_add_ps(_mm256_mul_ps(near[a], d), o), _mm256_add_ps(_mm256_mul_ps(far[a], d), o))
+    };
+    let (tmin_x, tmax_x) = axis(0);
+    let (tmin_y, tmax_y) = axis(1);
+    let (tmin_z, tmax_z) = axis(2);
+    let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
+    let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
+    let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
+    let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(t_max));
+    // `_CMP_LE_OQ` is `cmpleps`' predicate without the signal: false on NaN like it.
+    _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tmin, tmax)) as u32
 }
 
 #[cfg(test)]
