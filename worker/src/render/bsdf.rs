@@ -305,7 +305,7 @@ impl Bxdf {
 
     /// [`Bxdf::sample_f`] with a cosine-hemisphere direction computed ahead for the diffuse
     /// lobes (used where it was computed for `u`).
-    #[inline]
+    #[inline(always)]
     pub fn sample_f_ahead(&self, wo: Vec3A, uc: f32, u: Vec2, ahead: Option<&CosineSample>) -> Option<BsdfSample> {
         if !(wo.z != 0.0) {
             return None;

@@ -88,13 +88,23 @@ impl<S> PathState<S> {
             out: SampleValue::default(),
         }
     }
-}
 
-/// 8 lanes: `f(i)` for the first `n`, 0 for the rest (a short chunk's missing lanes compute
-/// something harmless, and are dropped).
-#[inline(always)]
-fn lanes8(n: usize, f: impl Fn(usize) -> f32) -> [f32; 8] {
-    std::array::from_fn(|i| if i < n { f(i) } else { 0.0 })
+    /// Makes this path [`PathState::new`]'s, field by field in place (a new value would be
+    /// built apart and copied: about 30 instructions a path).
+    #[inline(always)]
+    fn reset(&mut self, sampler: S, ray: Ray, time: f32) {
+        self.sampler = sampler;
+        self.ray = ray;
+        self.time = time;
+        self.l = Vec3A::ZERO;
+        self.beta = Vec3A::ONE;
+        self.eta_scale = 1.0;
+        self.specular_bounce = true;
+        self.prev_bsdf_pdf = 0.0;
+        self.prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
+        self.depth = 0;
+        self.out = SampleValue::default();
+    }
 }
 
 /// The camera stage of the wavefront (see [`Wavefront::trace`]): fresh samplers, the camera,
@@ -171,15 +181,17 @@ impl<S: Sampler + Clone> Wavefront<S> {
     ) {
         for chunk in samples.chunks(BATCH) {
             self.trace_batch(scene, params, chunk, camera);
-            out.extend(self.paths.drain(..).map(|p| p.out));
+            out.extend(self.paths.iter().map(|p| p.out));
         }
     }
 
     /// The camera stage: one path per sample. A pinhole camera without motion blur draws the
     /// batch's pixel offsets and makes its rays 8 lanes at a time where the CPU has AVX2 (the
     /// scalar bits); other cameras one path at a time ([`camera_sample`]).
+    // Out of line: once per batch, and the stages' code stays apart (the optimizer's choices
+    // in the bounce loop do not move with it).
+    #[inline(never)]
     fn start_paths(&mut self, samples: &[(UVec2, u32)], camera: &CameraStage<'_, impl Fn() -> S>, level: SimdLevel) {
-        self.paths.clear();
         let lanes = (level == SimdLevel::Avx2 && camera.shutter.is_none() && camera.camera.is_pinhole())
             .then(Avx2::new)
             .flatten();
@@ -187,26 +199,33 @@ impl<S: Sampler + Clone> Wavefront<S> {
         // one another, and a sampler keeps what depends on the pixel alone (Sobol's pixel hash)
         // from one sample to the next (the same state as a fresh sampler positioned there).
         let mut proto = (camera.new_sampler)();
+        // The batch's paths are those of the last batch, reset in place.
+        self.paths.truncate(samples.len());
+        while self.paths.len() < samples.len() {
+            self.paths.push(PathState::new(proto.clone(), Ray::new(Vec3A::ZERO, Vec3A::Z), 0.0));
+        }
         let Some(avx2) = lanes else {
-            self.paths.extend(samples.iter().map(|&(pixel, index)| {
+            for (p, &(pixel, index)) in self.paths.iter_mut().zip(samples) {
                 proto.start_pixel_sample(pixel, index, 0);
                 let (sampler, ray, time) = camera_sample(proto.clone(), pixel, index, camera.camera, camera.shutter);
-                PathState::new(sampler, ray, time)
-            }));
+                p.reset(sampler, ray, time);
+            }
             return;
         };
         let origin = camera.camera.position();
-        self.paths.extend(samples.iter().map(|&(pixel, index)| {
+        for (p, &(pixel, index)) in self.paths.iter_mut().zip(samples) {
             proto.start_pixel_sample(pixel, index, 0);
-            PathState::new(proto.clone(), Ray::new(origin, Vec3A::Z), 0.0)
-        }));
+            p.reset(proto.clone(), Ray::new(origin, Vec3A::Z), 0.0);
+        }
         self.pixel_us.clear();
         S::pixel_2d_many(self.paths.iter_mut().map(|p| &mut p.sampler), level, &mut self.pixel_us);
         let chunks = self.paths.chunks_mut(8).zip(self.pixel_us.chunks(8)).zip(samples.chunks(8));
         for ((paths, us), samples) in chunks {
-            let n = us.len();
-            let (px, py) = (lanes8(n, |i| samples[i].0.x as f32), lanes8(n, |i| samples[i].0.y as f32));
-            let (ux, uy) = (lanes8(n, |i| us[i].x), lanes8(n, |i| us[i].y));
+            // A short chunk's missing lanes compute something harmless, and are dropped.
+            let [mut px, mut py, mut ux, mut uy] = [[0.0f32; 8]; 4];
+            for (i, (&(pixel, _), u)) in samples.iter().zip(us).enumerate().take(8) {
+                (px[i], py[i], ux[i], uy[i]) = (pixel.x as f32, pixel.y as f32, u.x, u.y);
+            }
             let [x, y, z] = avx2
                 .pinhole_directions(camera.camera, [&px, &py], [&ux, &uy])
                 .expect("a pinhole camera (checked above)");
