@@ -332,7 +332,7 @@ fn newest_libllvm() -> Option<PathBuf> {
 /// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny solid`: with
 /// solid-angle light sampling; `tiny igi` and `tiny bdpt`: the same with those integrators;
 /// `tiny long`: 16x the pixels (for sampling profilers such as perf); `tiny large`: the
-/// 130k-triangle scene of [`large_scene_figures`] at 16 spp.
+/// 130k-triangle scene of [`large_scene_figures`] at 16 spp (`tiny large long`: 256 spp).
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -369,7 +369,9 @@ fn tiny() {
             println!("tiny large: cannot load {}", path.display());
             return;
         };
-        let s = large_scene_settings(16);
+        // `tiny large long`: 16x the samples (for sampling profilers).
+        let long = std::env::args().any(|a| a == "long");
+        let s = large_scene_settings(if long { 256 } else { 16 });
         let (t, _) = time_render(&large, &s);
         println!("tiny: 01_vertex_count_32bit {}x{}x{} path in {t:.3} s", s.width, s.height, s.spp);
         return;
