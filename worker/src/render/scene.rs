@@ -346,7 +346,15 @@ impl RenderScene {
             return;
         }
         self.accel.intersect_many(rays, hits);
-        out.extend(hits.iter().zip(rays).map(|(h, r)| h.as_ref().map(|h| self.surface(h, r.time))));
+        // A miss pushes `None` by itself: a mapped `Option` would be built apart and copied
+        // whole (about 150 bytes, a `memcpy` call per ray).
+        out.reserve(rays.len());
+        for (h, r) in hits.iter().zip(rays) {
+            match h {
+                Some(h) => out.push(Some(self.surface(h, r.time))),
+                None => out.push(None),
+            }
+        }
     }
 
     /// Whether each ray of a batch is blocked by something present (alpha considered), in order:
