@@ -68,6 +68,9 @@ pub struct Accel {
     /// consecutive slots (a node's leaves) load as lanes for the 8-wide triangle test. `None`
     /// with motion blur (moving triangles are tested one at a time).
     soa: Option<Box<[Vec<f32>; 9]>>,
+    /// The union of the root's children's quantized boxes (per axis: lowest min, highest max;
+    /// `None` where the root has no child): a packet tests it first (see `trace_packet`).
+    root_union: Option<[[f32; 2]; 3]>,
 }
 
 /// What the 8-wide triangle test needs: the proof of AVX2 and the triangles as lanes.
@@ -322,6 +325,24 @@ fn soa_of(tris: &[[Vec3A; 3]]) -> [Vec<f32>; 9] {
 /// The direction given to obvhs: negative zeros made positive (`-0.0 + 0.0 = +0.0`, every other
 /// value unchanged). obvhs orders a node's slabs by `d < 0.0` (false for -0.0) but inverts -0.0
 /// to a large negative number, so a ray with a -0.0 component (an orthographic camera's
+/// The union of a node's children's quantized boxes: per axis the lowest `child_min` and the
+/// highest `child_max` over its children (as f32, exact); `None` without children.
+fn quantized_union(node: &obvhs::cwbvh::node::CwBvhNode) -> Option<[[f32; 2]; 3]> {
+    let children = (0..8).filter(|&c| node.child_meta[c] != 0);
+    let planes = [
+        (&node.child_min_x, &node.child_max_x),
+        (&node.child_min_y, &node.child_max_y),
+        (&node.child_min_z, &node.child_max_z),
+    ];
+    let mut union = [[0.0f32; 2]; 3];
+    for (u, (lo, hi)) in union.iter_mut().zip(planes) {
+        let min = children.clone().map(|c| lo[c]).min()?;
+        let max = children.clone().map(|c| hi[c]).max()?;
+        *u = [f32::from(min), f32::from(max)];
+    }
+    Some(union)
+}
+
 /// axis-aligned rays) had swapped slabs and missed everything.
 #[inline(always)]
 fn bvh_direction(d: Vec3A) -> Vec3A {
@@ -349,6 +370,7 @@ impl Accel {
                 tris_close: None,
                 avx2: Avx2::new(),
                 soa: None,
+                root_union: None,
             };
         }
         // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
@@ -374,7 +396,8 @@ impl Accel {
         let tris_close =
             close.map(|_| prim_ids.iter().map(|&i| close_of(i as usize).unwrap_or(tris[i as usize])).collect());
         let soa = tris_close.is_none().then(|| Box::new(soa_of(&ordered)));
-        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new(), soa }
+        let root_union = bvh.nodes.first().and_then(quantized_union);
+        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new(), soa, root_union }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -901,9 +924,33 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
         inv_direction[a] =
             F32x8::select(x.abs().le(zero.splat(f32::EPSILON)), signum / zero.splat(f32::EPSILON), zero.splat(1.0) / x);
     }
+    let first = ray0.d + Vec3A::ZERO;
+    let negative = [first.x < 0.0, first.y < 0.0, first.z < 0.0];
+    // Rays that miss the union of the root's children's boxes miss every child: with the node
+    // test's operations (`q * dir_inv + origin`, the same max/min, `<=`) on the union's planes,
+    // and IEEE rounding monotone, the union's interval holds each child's for every ray. Most
+    // camera packets of a small object miss it all: they end here, without the rest of the
+    // setup or the root's test per ray, with the same (no) hits.
+    if let (Some(root), Some(union)) = (bvh.nodes.first(), accel.root_union) {
+        let extent = root.compute_extent();
+        let root_p = Vec3A::from(root.p);
+        let mut near = [zero; 3];
+        let mut far = [zero; 3];
+        for a in 0..3 {
+            let dir_inv = zero.splat(extent[a]) * inv_direction[a];
+            let origin = (zero.splat(root_p[a]) - o[a]) * inv_direction[a];
+            let [lo, hi] = union[a];
+            let (n, f) = if negative[a] { (hi, lo) } else { (lo, hi) };
+            near[a] = zero.splat(n) * dir_inv + origin;
+            far[a] = zero.splat(f) * dir_inv + origin;
+        }
+        if avx2.box_hits(&near, &far, avx2.f32x8(&t_max)) & active == 0 {
+            hits.extend(rays.iter().take(n).map(|_| None));
+            return true;
+        }
+    }
     // `RayShear::new(o, d)`.
     let (dx, dy, dz) = (d[KX], d[KY], d[KZ]);
-    let first = ray0.d + Vec3A::ZERO;
     let p = PacketRays::<KX, KY, KZ> {
         origin: o,
         inv_direction,
@@ -911,7 +958,7 @@ pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
         shear_s: [-dx / dz, -dy / dz],
         shear_sz: zero.splat(1.0) / dz,
         rays,
-        negative: [first.x < 0.0, first.y < 0.0, first.z < 0.0],
+        negative,
         // obvhs' `ray_get_octant_inv4`, low byte.
         oct_inv4: u32::from(!(first.x < 0.0)) << 2 | u32::from(!(first.y < 0.0)) << 1 | u32::from(!(first.z < 0.0)),
     };
@@ -1455,6 +1502,62 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Packets of a small object's camera rays that miss it, graze it or hit it: packets whose
+    /// rays all miss the union of the root's children's boxes end before the traversal (see
+    /// `trace_packet`). Rays aimed at the corners and edges of the object's bounds, a few ulps
+    /// inside and outside, from near and from far (1e4 times the object's size), get the
+    /// single-ray hits.
+    #[test]
+    fn packets_that_miss_the_root_get_the_single_ray_hits() {
+        let cube = cube();
+        let mut accel = Accel::new(&cube);
+        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
+            eprintln!("this CPU has no AVX2: no packets to compare");
+            return;
+        }
+        let (lo, hi) = cube
+            .iter()
+            .flatten()
+            .fold((Vec3A::splat(f32::MAX), Vec3A::splat(f32::MIN)), |(lo, hi), v| (lo.min(*v), hi.max(*v)));
+        let nudge = |x: f32, k: i32| f32::from_bits((x.to_bits() as i32 + k) as u32);
+        let (mut hits, mut misses, mut total) = (0, 0, 0);
+        let mut got = Vec::new();
+        for o in [Vec3A::new(0.3, -4.0, 0.7), Vec3A::new(-3.0, 2.5, 6.0), Vec3A::new(2e4, 1e4, -3e4)] {
+            for corner in 0..8 {
+                let c = Vec3A::new(
+                    if corner & 1 == 0 { lo.x } else { hi.x },
+                    if corner & 2 == 0 { lo.y } else { hi.y },
+                    if corner & 4 == 0 { lo.z } else { hi.z },
+                );
+                let mid = (c + (lo + hi) * 0.5) * 0.5;
+                for target in [c, mid, Vec3A::new(c.x, mid.y, c.z), Vec3A::new(mid.x, c.y, c.z)] {
+                    // 8 rays a packet: the target nudged by -4..4 ulps per axis (and far off).
+                    for step in [1, 64, 1 << 12, 1 << 20] {
+                        let rays: Vec<RayQuery> = (0..8)
+                            .map(|k: i32| {
+                                let p = Vec3A::new(
+                                    nudge(target.x, (k - 4) * step),
+                                    nudge(target.y, (3 - k) * step),
+                                    nudge(target.z, (k % 3 - 1) * step),
+                                );
+                                RayQuery { o, d: p - o, t_max: f32::INFINITY, time: 0.0 }
+                            })
+                            .collect();
+                        accel.intersect_many(&rays, &mut got);
+                        for (r, h) in rays.iter().zip(&got) {
+                            let want = accel.intersect_at(r.o, r.d, r.t_max, r.time);
+                            assert_eq!(bits(*h), bits(want), "ray {} {}", r.o, r.d);
+                            hits += usize::from(want.is_some());
+                            misses += usize::from(want.is_none());
+                            total += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(hits > total / 10 && misses > total / 10, "{hits} hits and {misses} misses of {total} rays");
     }
 
     /// Packets of the awkward rays (axis-aligned with -0 and +0 components, components of

@@ -327,6 +327,18 @@ impl Avx2 {
         unsafe { kernel::<KX, KY, KZ>(self, accel, rays, hits) }
     }
 
+    /// A box's interval test for 8 rays in lanes, from each ray's entry and exit distances of
+    /// its near and far planes per axis (`q * dir_inv + origin`, made as the node test makes
+    /// them): the node test's max/min order, its entry epsilon and `<=` against `t_max`. Bit
+    /// `i`: ray `i` meets the box.
+    #[inline(always)]
+    pub(super) fn box_hits(self, near: &[F32x8; 3], far: &[F32x8; 3], t_max: F32x8) -> u32 {
+        let near = [near[0].0, near[1].0, near[2].0];
+        let far = [far[0].0, far[1].0, far[2].0];
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { interval_hits_avx2(&near, &far, t_max.0) }
+    }
+
     /// The single-ray node test's box test of a node's 8 children (`near`, `far`: their planes
     /// per axis, swapped for the ray's direction signs) against one ray of a packet, from its
     /// `extent * inv_direction`, `(p - origin) * inv_direction` and `t_max`. Bit `c`: the box of
@@ -634,10 +646,24 @@ fn child_box_hits_avx2(
     let (tmin_x, tmax_x) = axis(0);
     let (tmin_y, tmax_y) = axis(1);
     let (tmin_z, tmax_z) = axis(2);
-    let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
-    let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
+    interval_hits_avx2(&[tmin_x, tmin_y, tmin_z], &[tmax_x, tmax_y, tmax_z], _mm256_set1_ps(t_max))
+}
+
+/// The node test's last part, lane-wise: from the entry and exit distances per axis, where
+/// `max(entries, epsilon) <= min(exits, t_max)`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn interval_hits_avx2(
+    near: &[std::arch::x86_64::__m256; 3],
+    far: &[std::arch::x86_64::__m256; 3],
+    t_max: std::arch::x86_64::__m256,
+) -> u32 {
+    use std::arch::x86_64::*;
+    let tmin = _mm256_max_ps(near[0], _mm256_max_ps(near[1], near[2]));
+    let tmax = _mm256_min_ps(far[0], _mm256_min_ps(far[1], far[2]));
     let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
-    let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(t_max));
+    let tmax = _mm256_min_ps(tmax, t_max);
     // `_CMP_LE_OQ` is `cmpleps`' predicate without the signal: false on NaN like it.
     _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tmin, tmax)) as u32
 }
