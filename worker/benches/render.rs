@@ -16,7 +16,8 @@
 //!    ratios, of wall-clock throughput and of throughput per CPU-second (all threads' CPU time:
 //!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
 //!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
-//!    and of Mitsuba's.
+//!    and of Mitsuba's. Each timing, ours and Mitsuba's, is the median of several renders (3 of
+//!    the Cornell box, 7 of the 130k scene).
 //! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
 //!    Mitsuba's throughput on the same view when installed.
 
@@ -186,6 +187,29 @@ fn time_render_cpu(
     (wall, c.zip(cpu_seconds()).map(|(a, b)| b - a), film.resolve())
 }
 
+/// [`time_render_cpu`] `repeats` times: the median wall and CPU seconds (as the Mitsuba script
+/// reports its renders), and the image of the last.
+fn time_render_median(
+    scene: &pathfarm_common::scene::Scene,
+    s: &RenderSettings,
+    repeats: usize,
+) -> (f64, Option<f64>, pathfarm_common::film::ImageLayers) {
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let (mut walls, mut cpus) = (Vec::new(), Vec::new());
+    let mut img = None;
+    for _ in 0..repeats.max(1) {
+        let (wall, cpu, i) = time_render_cpu(scene, s);
+        walls.push(wall);
+        cpus.extend(cpu);
+        img = Some(i);
+    }
+    let cpu = (cpus.len() == walls.len()).then(|| median(cpus));
+    (median(walls), cpu, img.expect("at least one render"))
+}
+
 fn time_render(scene: &pathfarm_common::scene::Scene, s: &RenderSettings) -> (f64, pathfarm_common::film::ImageLayers) {
     let (wall, _, img) = time_render_cpu(scene, s);
     (wall, img)
@@ -213,11 +237,16 @@ struct MitsubaRun {
 
 /// Runs the reference script.
 fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
-    mitsuba_with(variant, spp, "cornell", &[])
+    mitsuba_with(variant, spp, "cornell", CORNELL_REPEATS, &[])
 }
 
+/// Renders per timing (ours and Mitsuba's, each the median): the Cornell box's take about 2 s
+/// each, the 130k scene's about 0.2 s (so more of them).
+const CORNELL_REPEATS: usize = 3;
+const LARGE_REPEATS: usize = 7;
+
 /// [`mitsuba`] with more arguments for the script (another scene); `tag` names its output.
-fn mitsuba_with(variant: &str, spp: u32, tag: &str, extra: &[&std::ffi::OsStr]) -> Option<MitsubaRun> {
+fn mitsuba_with(variant: &str, spp: u32, tag: &str, repeats: usize, extra: &[&std::ffi::OsStr]) -> Option<MitsubaRun> {
     let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{tag}_{variant}_{spp}.exr"));
     let script = repo().join("scripts/make-reference.py");
     let mut cmd = Command::new("python3");
@@ -229,7 +258,7 @@ fn mitsuba_with(variant: &str, spp: u32, tag: &str, extra: &[&std::ffi::OsStr]) 
     let o = cmd
         .arg(script)
         .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp.to_string()])
-        .args(["--res", "256", "--repeats", "3", "--threads", "2", "--max-depth", "8", "--out"])
+        .args(["--res", "256", "--repeats", &repeats.to_string(), "--threads", "2", "--max-depth", "8", "--out"])
         .arg(&out)
         .args(extra)
         .output()
@@ -259,7 +288,7 @@ fn large_scene_figures(quick: bool) {
     let spp = 64;
     let s = large_scene_settings(spp);
     let samples = 256.0 * 256.0 * f64::from(spp);
-    let (t, cpu, _) = time_render_cpu(&scene, &s);
+    let (t, cpu, _) = time_render_median(&scene, &s, LARGE_REPEATS);
     let ours = samples / t;
     let ours_cpu = cpu.map(|c| samples / c);
     println!(
@@ -271,7 +300,8 @@ fn large_scene_figures(quick: bool) {
         return;
     }
     for variant in ["scalar_rgb", "llvm_ad_rgb"] {
-        let Some(m) = mitsuba_with(variant, spp, "vertex_count", &["--gltf".as_ref(), path.as_os_str()]) else {
+        let Some(m) = mitsuba_with(variant, spp, "vertex_count", LARGE_REPEATS, &["--gltf".as_ref(), path.as_os_str()])
+        else {
             println!("mitsuba {variant} on 01_vertex_count_32bit: no result");
             continue;
         };
@@ -422,7 +452,7 @@ fn main() {
         256.0 * 256.0 * 64.0 / t_sa / 1e6
     );
     let path = path_with(LightSampling::Area);
-    let (t, cpu, _) = time_render_cpu(&scene, &settings(64, path.clone()));
+    let (t, cpu, _) = time_render_median(&scene, &settings(64, path.clone()), CORNELL_REPEATS);
     let ours = 256.0 * 256.0 * 64.0 / t;
     let ours_cpu = cpu.map(|c| 256.0 * 256.0 * 64.0 / c);
     println!(
