@@ -335,6 +335,9 @@ impl Sampler for IndependentSampler {
 /// 2D request (one point in each elementary interval of area `2^-m`), and stratified in 1D;
 /// different dimensions are decorrelated by their independent shuffles. Only the first two
 /// Sobol dimensions are needed, so there are no tables beyond one 32-entry matrix.
+/// [`SobolSampler`]'s seeds of one bounce: per 1D request, per 2D request.
+type BounceSeeds = ([[u32; 2]; BOUNCE_1D.len()], [[u32; 3]; BOUNCE_2D.len()]);
+
 #[derive(Clone, Debug)]
 pub struct SobolSampler {
     seed: u64,
@@ -360,6 +363,21 @@ impl SobolSampler {
     #[inline]
     fn dim_hash(&self, tag: u64) -> u64 {
         self.hash_at(self.dim, tag)
+    }
+
+    /// The 32-bit seeds of a bounce's requests (see [`BOUNCE_1D`], [`BOUNCE_2D`]): per 1D
+    /// request the two scrambles', per 2D request the three.
+    #[inline]
+    fn bounce_seeds(&self) -> BounceSeeds {
+        let one = BOUNCE_1D.map(|o| {
+            let h = self.hash_at(self.dim.wrapping_add(o), 0);
+            [h as u32, (h >> 32) as u32]
+        });
+        let two = BOUNCE_2D.map(|o| {
+            let h = self.hash_at(self.dim.wrapping_add(o), 1);
+            [h as u32, (h >> 32) as u32, mix_bits(h.wrapping_add(GOLDEN)) as u32]
+        });
+        (one, two)
     }
 
     /// The seeds of a request at dimension `dim`.
@@ -435,18 +453,28 @@ impl Sampler for SobolSampler {
             out.extend(lanes.map(|s| s.get_pixel_2d()));
             return;
         };
-        // Eight samplers at a time: the 64-bit seeds of `get_2d` here, its scrambles 8-wide.
+        // Eight samplers at a time: the 64-bit seeds of `get_2d` here, its scrambles 8-wide. The
+        // seeds depend on (pixel, dimension) alone: a pixel's samples, which follow one another,
+        // share them (made once, then copied).
         let mut lanes = lanes.peekable();
+        let mut last: Option<((u64, u32), [u32; 3])> = None;
         while lanes.peek().is_some() {
             let mut rev_index = [0u32; 8];
             let mut seeds = [[0u32; 8]; 3];
             let mut n = 0;
             for s in lanes.by_ref().take(8) {
-                let h = s.dim_hash(1);
+                let key = (s.pixel_hash, s.dim);
+                let lane_seeds = match last {
+                    Some((k, v)) if k == key => v,
+                    _ => {
+                        let h = s.dim_hash(1);
+                        let v = [h as u32, (h >> 32) as u32, mix_bits(h.wrapping_add(GOLDEN)) as u32];
+                        last = Some((key, v));
+                        v
+                    }
+                };
                 rev_index[n] = s.index.reverse_bits();
-                seeds[0][n] = h as u32;
-                seeds[1][n] = (h >> 32) as u32;
-                seeds[2][n] = mix_bits(h.wrapping_add(GOLDEN)) as u32;
+                (seeds[0][n], seeds[1][n], seeds[2][n]) = (lane_seeds[0], lane_seeds[1], lane_seeds[2]);
                 s.dim = s.dim.wrapping_add(2);
                 n += 1;
             }
@@ -466,9 +494,12 @@ impl Sampler for SobolSampler {
             out.extend(lanes.map(|s| s.bounce_draws()));
             return;
         };
-        // Eight samplers at a time: the 64-bit seeds here, the scrambles in 8-wide kernels.
+        // Eight samplers at a time: the 64-bit seeds here, the scrambles in 8-wide kernels. The
+        // seeds depend on (pixel, dimension) alone: paths of one pixel at one bounce, which
+        // follow one another, share them (made once, then copied).
         let mut chunk: Vec<&Self> = Vec::with_capacity(8);
         let mut lanes = lanes.peekable();
+        let mut last: Option<((u64, u32), BounceSeeds)> = None;
         while lanes.peek().is_some() {
             chunk.clear();
             chunk.extend(lanes.by_ref().take(8));
@@ -477,16 +508,20 @@ impl Sampler for SobolSampler {
             let mut seeds2 = [[[0u32; 8]; 3]; 2];
             for (lane, s) in chunk.iter().enumerate() {
                 rev_index[lane] = s.index.reverse_bits();
-                for (k, &o) in BOUNCE_1D.iter().enumerate() {
-                    let h = s.hash_at(s.dim.wrapping_add(o), 0);
-                    seeds1[k][0][lane] = h as u32;
-                    seeds1[k][1][lane] = (h >> 32) as u32;
+                let key = (s.pixel_hash, s.dim);
+                let (one, two) = match last {
+                    Some((k, v)) if k == key => v,
+                    _ => {
+                        let v = s.bounce_seeds();
+                        last = Some((key, v));
+                        v
+                    }
+                };
+                for k in 0..BOUNCE_1D.len() {
+                    (seeds1[k][0][lane], seeds1[k][1][lane]) = (one[k][0], one[k][1]);
                 }
-                for (k, &o) in BOUNCE_2D.iter().enumerate() {
-                    let h = s.hash_at(s.dim.wrapping_add(o), 1);
-                    seeds2[k][0][lane] = h as u32;
-                    seeds2[k][1][lane] = (h >> 32) as u32;
-                    seeds2[k][2][lane] = mix_bits(h.wrapping_add(GOLDEN)) as u32;
+                for k in 0..BOUNCE_2D.len() {
+                    (seeds2[k][0][lane], seeds2[k][1][lane], seeds2[k][2][lane]) = (two[k][0], two[k][1], two[k][2]);
                 }
             }
             let (x1, (x2, y2)) = avx2.run(|| {
