@@ -459,7 +459,7 @@ impl Sampler for SobolSampler {
         let mut lanes = lanes.peekable();
         let mut last: Option<((u64, u32), [u32; 3])> = None;
         while lanes.peek().is_some() {
-            let mut rev_index = [0u32; 8];
+            let mut index = [0u32; 8];
             let mut seeds = [[0u32; 8]; 3];
             let mut n = 0;
             for s in lanes.by_ref().take(8) {
@@ -473,12 +473,12 @@ impl Sampler for SobolSampler {
                         v
                     }
                 };
-                rev_index[n] = s.index.reverse_bits();
+                index[n] = s.index;
                 (seeds[0][n], seeds[1][n], seeds[2][n]) = (lane_seeds[0], lane_seeds[1], lane_seeds[2]);
                 s.dim = s.dim.wrapping_add(2);
                 n += 1;
             }
-            let (x, y) = avx2.run(|| avx2.sobol_xy(&rev_index, &seeds[0], &seeds[1], &seeds[2]));
+            let (x, y) = avx2.run(|| avx2.sobol_xy(&index, &seeds[0], &seeds[1], &seeds[2]));
             out.extend((0..n).map(|i| Vec2::new(u32_to_unit_float(x[i]), u32_to_unit_float(y[i]))));
         }
     }
@@ -503,11 +503,11 @@ impl Sampler for SobolSampler {
         while lanes.peek().is_some() {
             chunk.clear();
             chunk.extend(lanes.by_ref().take(8));
-            let mut rev_index = [0u32; 8];
+            let mut index = [0u32; 8];
             let mut seeds1 = [[[0u32; 8]; 2]; 4];
             let mut seeds2 = [[[0u32; 8]; 3]; 2];
             for (lane, s) in chunk.iter().enumerate() {
-                rev_index[lane] = s.index.reverse_bits();
+                index[lane] = s.index;
                 let key = (s.pixel_hash, s.dim);
                 let (one, two) = match last {
                     Some((k, v)) if k == key => v,
@@ -525,8 +525,8 @@ impl Sampler for SobolSampler {
                 }
             }
             let (x1, (x2, y2)) = avx2.run(|| {
-                let x1 = seeds1.map(|[a, b]| avx2.sobol_x(&rev_index, &a, &b));
-                let xy2 = seeds2.map(|[a, b, c]| avx2.sobol_xy(&rev_index, &a, &b, &c));
+                let x1 = seeds1.map(|[a, b]| avx2.sobol_x(&index, &a, &b));
+                let xy2 = seeds2.map(|[a, b, c]| avx2.sobol_xy(&index, &a, &b, &c));
                 (x1, (xy2.map(|v| v.0), xy2.map(|v| v.1)))
             });
             for (lane, s) in chunk.iter().enumerate() {

@@ -157,32 +157,32 @@ impl NodeTest for Avx2 {
 
 impl Avx2 {
     /// The first coordinate of 8 Owen-scrambled Sobol requests ([`super::sampler::SobolSampler`]'s
-    /// `x` of `get_1d` and `get_2d`) from each lane's reversed sample index and its two request
+    /// `x` of `get_1d` and `get_2d`) from each lane's sample index and its two request
     /// seeds: `nested_uniform_scramble(sobol_dim0(nested_uniform_scramble(index, s1)), s2)`, as
     /// 32-bit fixed point. Integer operations only: the same bits as the scalar code.
     #[inline(always)]
-    pub fn sobol_x(self, rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8]) -> [u32; 8] {
+    pub fn sobol_x(self, index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8]) -> [u32; 8] {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe {
-            sobol_x8(rev_index, s1, s2, None).0
+            sobol_x8(index, s1, s2, None).0
         }
         #[cfg(not(target_arch = "x86_64"))]
-        std::array::from_fn(|i| sobol_scalar(rev_index[i], s1[i], s2[i], None).0)
+        std::array::from_fn(|i| sobol_scalar(index[i], s1[i], s2[i], None).0)
     }
 
     /// Both coordinates of 8 Sobol 2D requests: [`Avx2::sobol_x`], and the second coordinate
     /// `nested_uniform_scramble(sobol_dim1(shuffled), s3)` of the same shuffled index.
     #[inline(always)]
-    pub fn sobol_xy(self, rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: &[u32; 8]) -> ([u32; 8], [u32; 8]) {
+    pub fn sobol_xy(self, index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: &[u32; 8]) -> ([u32; 8], [u32; 8]) {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe {
-            sobol_x8(rev_index, s1, s2, Some(s3))
+            sobol_x8(index, s1, s2, Some(s3))
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let v: [(u32, u32); 8] = std::array::from_fn(|i| sobol_scalar(rev_index[i], s1[i], s2[i], Some(s3[i])));
+            let v: [(u32, u32); 8] = std::array::from_fn(|i| sobol_scalar(index[i], s1[i], s2[i], Some(s3[i])));
             (v.map(|p| p.0), v.map(|p| p.1))
         }
     }
@@ -506,9 +506,9 @@ mod lanes {
 
 /// The scalar form of the Sobol kernels (the sampler's own functions).
 #[cfg(any(test, not(target_arch = "x86_64")))]
-fn sobol_scalar(rev_index: u32, s1: u32, s2: u32, s3: Option<u32>) -> (u32, u32) {
+fn sobol_scalar(index: u32, s1: u32, s2: u32, s3: Option<u32>) -> (u32, u32) {
     use super::sampler::{nested_uniform_scramble, sobol_dim0, sobol_dim1};
-    let shuffled = nested_uniform_scramble(rev_index.reverse_bits(), s1);
+    let shuffled = nested_uniform_scramble(index, s1);
     let x = nested_uniform_scramble(sobol_dim0(shuffled), s2);
     (x, s3.map_or(0, |s3| nested_uniform_scramble(sobol_dim1(shuffled), s3)))
 }
@@ -552,7 +552,7 @@ fn laine_karras_x8(x: std::arch::x86_64::__m256i, seed: std::arch::x86_64::__m25
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-fn sobol_x8(rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([u32; 8], [u32; 8]) {
+fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([u32; 8], [u32; 8]) {
     use super::sampler::SOBOL_DIM1_BYTES;
     use std::arch::x86_64::*;
     // SAFETY (loads and stores): unaligned accesses to 8 u32 of arrays of 8 u32.
@@ -563,7 +563,7 @@ fn sobol_x8(rev_index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32
         out
     };
     // nested_uniform_scramble(v, s) = reverse(LK(reverse(v), s)); sobol_dim0 = reverse.
-    let shuffled = reverse_bits_x8(laine_karras_x8(load(rev_index), load(s1)));
+    let shuffled = reverse_bits_x8(laine_karras_x8(reverse_bits_x8(load(index)), load(s1)));
     let x = reverse_bits_x8(laine_karras_x8(shuffled, load(s2)));
     let Some(s3) = s3 else { return (store(x), [0; 8]) };
     // sobol_dim1: the XOR of one table entry per index byte.
@@ -720,16 +720,15 @@ mod tests {
             let word = |k: u64| (hash(round * 64 + k) >> 7) as u32;
             let index: [u32; 8] =
                 std::array::from_fn(|i| if round % 3 == 0 { i as u32 + round as u32 } else { word(i as u64) });
-            let rev = index.map(u32::reverse_bits);
             let (s1, s2, s3): ([u32; 8], [u32; 8], [u32; 8]) = (
                 std::array::from_fn(|i| word(8 + i as u64)),
                 std::array::from_fn(|i| word(16 + i as u64)),
                 std::array::from_fn(|i| word(24 + i as u64)),
             );
-            let x = avx2.run(|| avx2.sobol_x(&rev, &s1, &s2));
-            let (x2, y2) = avx2.run(|| avx2.sobol_xy(&rev, &s1, &s2, &s3));
+            let x = avx2.run(|| avx2.sobol_x(&index, &s1, &s2));
+            let (x2, y2) = avx2.run(|| avx2.sobol_xy(&index, &s1, &s2, &s3));
             for i in 0..8 {
-                let (want_x, want_y) = sobol_scalar(rev[i], s1[i], s2[i], Some(s3[i]));
+                let (want_x, want_y) = sobol_scalar(index[i], s1[i], s2[i], Some(s3[i]));
                 assert_eq!(
                     (x[i], x2[i], y2[i]),
                     (want_x, want_x, want_y),
