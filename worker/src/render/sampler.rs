@@ -479,7 +479,7 @@ impl Sampler for SobolSampler {
                 n += 1;
             }
             let (x, y) = avx2.run(|| avx2.sobol_xy(&index, &seeds[0], &seeds[1], &seeds[2]));
-            out.extend((0..n).map(|i| Vec2::new(u32_to_unit_float(x[i]), u32_to_unit_float(y[i]))));
+            out.extend((0..n).map(|i| Vec2::new(x[i], y[i])));
         }
     }
 
@@ -532,8 +532,8 @@ impl Sampler for SobolSampler {
             for (lane, s) in chunk.iter().enumerate() {
                 out.push(BounceDraws {
                     base: s.dim,
-                    d1: x1.map(|x| u32_to_unit_float(x[lane])),
-                    d2: [0, 1].map(|k| Vec2::new(u32_to_unit_float(x2[k][lane]), u32_to_unit_float(y2[k][lane]))),
+                    d1: x1.map(|x| x[lane]),
+                    d2: [0, 1].map(|k| Vec2::new(x2[k][lane], y2[k][lane])),
                 });
             }
         }

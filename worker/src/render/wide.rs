@@ -18,6 +18,8 @@
 //! compare bits.
 #![allow(unsafe_code)]
 
+#[cfg(any(test, not(target_arch = "x86_64")))]
+use super::sampler::u32_to_unit_float;
 use glam::Vec3A;
 use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::ray::Ray;
@@ -159,22 +161,23 @@ impl Avx2 {
     /// The first coordinate of 8 Owen-scrambled Sobol requests ([`super::sampler::SobolSampler`]'s
     /// `x` of `get_1d` and `get_2d`) from each lane's sample index and its two request
     /// seeds: `nested_uniform_scramble(sobol_dim0(nested_uniform_scramble(index, s1)), s2)`, as
-    /// 32-bit fixed point. Integer operations only: the same bits as the scalar code.
+    /// the sampler's number in [0, 1) (`u32_to_unit_float`, exact in lanes). Integer
+    /// operations, then exact conversions: the same bits as the scalar code.
     #[inline(always)]
-    pub fn sobol_x(self, index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8]) -> [u32; 8] {
+    pub fn sobol_x(self, index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8]) -> [f32; 8] {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe {
             sobol_x8(index, s1, s2, None).0
         }
         #[cfg(not(target_arch = "x86_64"))]
-        std::array::from_fn(|i| sobol_scalar(index[i], s1[i], s2[i], None).0)
+        std::array::from_fn(|i| u32_to_unit_float(sobol_scalar(index[i], s1[i], s2[i], None).0))
     }
 
     /// Both coordinates of 8 Sobol 2D requests: [`Avx2::sobol_x`], and the second coordinate
     /// `nested_uniform_scramble(sobol_dim1(shuffled), s3)` of the same shuffled index.
     #[inline(always)]
-    pub fn sobol_xy(self, index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: &[u32; 8]) -> ([u32; 8], [u32; 8]) {
+    pub fn sobol_xy(self, index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: &[u32; 8]) -> ([f32; 8], [f32; 8]) {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe {
@@ -183,7 +186,7 @@ impl Avx2 {
         #[cfg(not(target_arch = "x86_64"))]
         {
             let v: [(u32, u32); 8] = std::array::from_fn(|i| sobol_scalar(index[i], s1[i], s2[i], Some(s3[i])));
-            (v.map(|p| p.0), v.map(|p| p.1))
+            (v.map(|p| u32_to_unit_float(p.0)), v.map(|p| u32_to_unit_float(p.1)))
         }
     }
 }
@@ -552,20 +555,24 @@ fn laine_karras_x8(x: std::arch::x86_64::__m256i, seed: std::arch::x86_64::__m25
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([u32; 8], [u32; 8]) {
+fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([f32; 8], [f32; 8]) {
     use super::sampler::SOBOL_DIM1_BYTES;
     use std::arch::x86_64::*;
-    // SAFETY (loads and stores): unaligned accesses to 8 u32 of arrays of 8 u32.
+    // SAFETY (loads and stores): unaligned accesses to 8 u32 or f32 of arrays of 8.
     let load = |v: &[u32; 8]| unsafe { _mm256_loadu_si256(v.as_ptr().cast()) };
+    // `u32_to_unit_float`: the top 24 bits (an i32 below 2^24: converted exactly) times 2^-24
+    // (exact).
     let store = |v: __m256i| {
-        let mut out = [0u32; 8];
-        unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), v) };
+        let unit =
+            _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_srli_epi32::<8>(v)), _mm256_set1_ps(1.0 / (1u32 << 24) as f32));
+        let mut out = [0.0f32; 8];
+        unsafe { _mm256_storeu_ps(out.as_mut_ptr(), unit) };
         out
     };
     // nested_uniform_scramble(v, s) = reverse(LK(reverse(v), s)); sobol_dim0 = reverse.
     let shuffled = reverse_bits_x8(laine_karras_x8(reverse_bits_x8(load(index)), load(s1)));
     let x = reverse_bits_x8(laine_karras_x8(shuffled, load(s2)));
-    let Some(s3) = s3 else { return (store(x), [0; 8]) };
+    let Some(s3) = s3 else { return (store(x), [0.0; 8]) };
     // sobol_dim1: the XOR of one table entry per index byte.
     let byte = _mm256_set1_epi32(0xff);
     let mut dim1 = _mm256_setzero_si256();
@@ -729,6 +736,7 @@ mod tests {
             let (x2, y2) = avx2.run(|| avx2.sobol_xy(&index, &s1, &s2, &s3));
             for i in 0..8 {
                 let (want_x, want_y) = sobol_scalar(index[i], s1[i], s2[i], Some(s3[i]));
+                let (want_x, want_y) = (u32_to_unit_float(want_x), u32_to_unit_float(want_y));
                 assert_eq!(
                     (x[i], x2[i], y2[i]),
                     (want_x, want_x, want_y),
