@@ -17,7 +17,8 @@
 //!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
 //!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
 //!    and of Mitsuba's. Each timing, ours and Mitsuba's, is the median of several renders (3 of
-//!    the Cornell box, 7 of the 130k scene).
+//!    the Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba
+//!    does; the figure for the farm's default progressive passes is printed beside it.
 //! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
 //!    Mitsuba's throughput on the same view when installed.
 
@@ -155,6 +156,15 @@ fn bvh_figures() {
     println!("bvh: diffuse rays {:.2} Mrays/s (1 thread, {n} rays)", n as f64 / diffuse / 1e6);
 }
 
+/// `s` rendered in one pass of all its samples, as Mitsuba renders them (the comparisons with
+/// it use this). A job's default schedule is progressive (passes of 1, 2, 4, ... spp, for
+/// images that refine as they come): each pass goes over the whole image again, which costs
+/// cache locality (17% of the 130k scene's time at 64 spp, measured).
+fn one_pass(mut s: RenderSettings) -> RenderSettings {
+    s.passes = pathfarm_common::job::PassSchedule::Fixed { spp: s.spp };
+    s
+}
+
 fn settings(spp: u32, integrator: IntegratorSettings) -> RenderSettings {
     let mut s = RenderSettings::new(256, 256, spp);
     s.integrator = integrator;
@@ -288,13 +298,16 @@ fn large_scene_figures(quick: bool) {
     let spp = 64;
     let s = large_scene_settings(spp);
     let samples = 256.0 * 256.0 * f64::from(spp);
-    let (t, cpu, _) = time_render_median(&scene, &s, LARGE_REPEATS);
+    let (t_prog, cpu_prog, _) = time_render_median(&scene, &s, LARGE_REPEATS);
+    let (t, cpu, _) = time_render_median(&scene, &one_pass(s), LARGE_REPEATS);
     let ours = samples / t;
     let ours_cpu = cpu.map(|c| samples / c);
     println!(
-        "path: 01_vertex_count_32bit 256x256x{spp} max_depth 8, 2 threads, constant environment: {:.2} M samples/s ({t:.2} s); {}",
+        "path: 01_vertex_count_32bit 256x256x{spp} max_depth 8, 2 threads, constant environment, one pass: {:.2} M samples/s ({t:.2} s); {}; progressive passes: {:.2} M samples/s ({t_prog:.2} s); {}",
         ours / 1e6,
-        per_cpu_second(ours_cpu)
+        per_cpu_second(ours_cpu),
+        samples / t_prog / 1e6,
+        per_cpu_second(cpu_prog.map(|c| samples / c))
     );
     if quick {
         return;
@@ -362,7 +375,8 @@ fn newest_libllvm() -> Option<PathBuf> {
 /// `valgrind --tool=callgrind` (repeatable whatever the machine's load); `tiny solid`: with
 /// solid-angle light sampling; `tiny igi` and `tiny bdpt`: the same with those integrators;
 /// `tiny long`: 16x the pixels (for sampling profilers such as perf); `tiny large`: the
-/// 130k-triangle scene of [`large_scene_figures`] at 16 spp (`tiny large long`: 256 spp).
+/// 130k-triangle scene of [`large_scene_figures`] at 16 spp (`tiny large long`: 256 spp); with
+/// `onepass`, any of them in one pass ([`one_pass`]).
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -401,10 +415,16 @@ fn tiny() {
         };
         // `tiny large long`: 16x the samples (for sampling profilers).
         let long = std::env::args().any(|a| a == "long");
-        let s = large_scene_settings(if long { 256 } else { 16 });
+        let mut s = large_scene_settings(if long { 256 } else { 16 });
+        if std::env::args().any(|a| a == "onepass") {
+            s = one_pass(s);
+        }
         let (t, _) = time_render(&large, &s);
         println!("tiny: 01_vertex_count_32bit {}x{}x{} path in {t:.3} s", s.width, s.height, s.spp);
         return;
+    }
+    if std::env::args().any(|a| a == "onepass") {
+        s = one_pass(s);
     }
     if std::env::args().any(|a| a == "long") {
         // For sampling profilers (perf): 16x the pixels, same settings otherwise.
@@ -452,13 +472,17 @@ fn main() {
         256.0 * 256.0 * 64.0 / t_sa / 1e6
     );
     let path = path_with(LightSampling::Area);
-    let (t, cpu, _) = time_render_median(&scene, &settings(64, path.clone()), CORNELL_REPEATS);
-    let ours = 256.0 * 256.0 * 64.0 / t;
-    let ours_cpu = cpu.map(|c| 256.0 * 256.0 * 64.0 / c);
+    let samples = 256.0 * 256.0 * 64.0;
+    let (t_prog, cpu_prog, _) = time_render_median(&scene, &settings(64, path.clone()), CORNELL_REPEATS);
+    let (t, cpu, _) = time_render_median(&scene, &one_pass(settings(64, path.clone())), CORNELL_REPEATS);
+    let ours = samples / t;
+    let ours_cpu = cpu.map(|c| samples / c);
     println!(
-        "path: cornell 256x256x64 max_depth 8, 2 threads, area light sampling: {:.2} M samples/s ({t:.2} s); {}",
+        "path: cornell 256x256x64 max_depth 8, 2 threads, area light sampling, one pass: {:.2} M samples/s ({t:.2} s); {}; progressive passes: {:.2} M samples/s ({t_prog:.2} s); {}",
         ours / 1e6,
-        per_cpu_second(ours_cpu)
+        per_cpu_second(ours_cpu),
+        samples / t_prog / 1e6,
+        per_cpu_second(cpu_prog.map(|c| samples / c))
     );
     large_scene_figures(quick);
     if quick {
@@ -491,7 +515,7 @@ fn main() {
     let (llvm_s, llvm_exr) = (llvm.seconds, llvm.exr);
     // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
     let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
-    let (t_eq, img) = time_render(&scene, &settings(spp, path));
+    let (t_eq, img) = time_render(&scene, &one_pass(settings(spp, path)));
     let ours_rmse = rmse(&img.rgb, r, g, b);
     if let Ok(m) = pathfarm_common::film::read_exr(&llvm_exr) {
         let mi: Vec<[f32; 3]> = (0..65536)
