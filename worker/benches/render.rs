@@ -20,7 +20,9 @@
 //!    the Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba
 //!    does; the figure for the farm's default progressive passes is printed beside it.
 //! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
-//!    Mitsuba's throughput on the same view when installed.
+//!    Mitsuba's throughput on the same view when installed; the equal-time error there, each
+//!    renderer against its own 1,024-spp image (Mitsuba renders the glTF material with its
+//!    `principled` BSDF, so the two images differ).
 
 #![allow(clippy::print_stdout)] // a benchmark prints its figures
 
@@ -247,7 +249,7 @@ struct MitsubaRun {
 
 /// Runs the reference script.
 fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
-    mitsuba_with(variant, spp, "cornell", CORNELL_REPEATS, &[])
+    mitsuba_with(variant, spp, spp, "cornell", CORNELL_REPEATS, &[])
 }
 
 /// Renders per timing (ours and Mitsuba's, each the median): the Cornell box's take about 2 s
@@ -256,7 +258,14 @@ const CORNELL_REPEATS: usize = 3;
 const LARGE_REPEATS: usize = 7;
 
 /// [`mitsuba`] with more arguments for the script (another scene); `tag` names its output.
-fn mitsuba_with(variant: &str, spp: u32, tag: &str, repeats: usize, extra: &[&std::ffi::OsStr]) -> Option<MitsubaRun> {
+fn mitsuba_with(
+    variant: &str,
+    spp: u32,
+    spp_per_pass: u32,
+    tag: &str,
+    repeats: usize,
+    extra: &[&std::ffi::OsStr],
+) -> Option<MitsubaRun> {
     let out = std::env::temp_dir().join(format!("pathfarm_bench_mitsuba_{tag}_{variant}_{spp}.exr"));
     let script = repo().join("scripts/make-reference.py");
     let mut cmd = Command::new("python3");
@@ -267,7 +276,7 @@ fn mitsuba_with(variant: &str, spp: u32, tag: &str, repeats: usize, extra: &[&st
     }
     let o = cmd
         .arg(script)
-        .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp.to_string()])
+        .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp_per_pass.to_string()])
         .args(["--res", "256", "--repeats", &repeats.to_string(), "--threads", "2", "--max-depth", "8", "--out"])
         .arg(&out)
         .args(extra)
@@ -312,9 +321,10 @@ fn large_scene_figures(quick: bool) {
     if quick {
         return;
     }
+    let gltf = ["--gltf".as_ref(), path.as_os_str()];
+    let mut llvm = None;
     for variant in ["scalar_rgb", "llvm_ad_rgb"] {
-        let Some(m) = mitsuba_with(variant, spp, "vertex_count", LARGE_REPEATS, &["--gltf".as_ref(), path.as_os_str()])
-        else {
+        let Some(m) = mitsuba_with(variant, spp, spp, "vertex_count", LARGE_REPEATS, &gltf) else {
             println!("mitsuba {variant} on 01_vertex_count_32bit: no result");
             continue;
         };
@@ -326,7 +336,44 @@ fn large_scene_figures(quick: bool) {
             per_cpu_second(m.samples_per_cpu_s),
             ours / m.samples_per_s
         );
+        if variant == "llvm_ad_rgb" {
+            llvm = Some(m);
+        }
     }
+    // Equal-time error. Each renderer is compared with its own converged image (1,024 spp):
+    // Mitsuba renders the glTF material with its `principled` BSDF, so the images differ.
+    let Some(llvm) = llvm else { return };
+    // The references use other seeds than the timed renders: a sample sequence's prefix would
+    // share its errors with the whole.
+    let reference_spp = 1024;
+    let mut reference = one_pass(large_scene_settings(reference_spp));
+    reference.seed = 1000;
+    let (_, _, ours_ref) = time_render_median(&scene, &reference, 1);
+    let seeded = [gltf[0], gltf[1], "--seed".as_ref(), "1000".as_ref()];
+    let Some(m_ref) = mitsuba_with("llvm_ad_rgb", reference_spp, spp, "vertex_count_ref", 1, &seeded) else {
+        println!("mitsuba llvm_ad_rgb on 01_vertex_count_32bit, {reference_spp} spp: no result");
+        return;
+    };
+    let channels = |img: &[[f32; 3]]| -> [Vec<f32>; 3] { std::array::from_fn(|c| img.iter().map(|p| p[c]).collect()) };
+    let [r, g, b] = channels(&ours_ref.rgb);
+    let spp_eq = ((llvm.seconds * ours / (256.0 * 256.0)).floor() as u32).max(1);
+    let (t_eq, img) = time_render(&scene, &one_pass(large_scene_settings(spp_eq)));
+    let ours_rmse = rmse(&img.rgb, &r, &g, &b);
+    let (Ok(m), Ok(m_ref)) = (pathfarm_common::film::read_exr(&llvm.exr), pathfarm_common::film::read_exr(&m_ref.exr))
+    else {
+        println!("mitsuba on 01_vertex_count_32bit: cannot read its images");
+        return;
+    };
+    let pixel = |e: &pathfarm_common::film::ExrChannels, i: usize| {
+        [e.get("R").map_or(0.0, |c| c[i]), e.get("G").map_or(0.0, |c| c[i]), e.get("B").map_or(0.0, |c| c[i])]
+    };
+    let mi: Vec<[f32; 3]> = (0..65536).map(|i| pixel(&m, i)).collect();
+    let [mr, mg, mb] = channels(&(0..65536).map(|i| pixel(&m_ref, i)).collect::<Vec<_>>());
+    println!(
+        "equal time on 01_vertex_count_32bit ({:.2} s), each against its own {reference_spp}-spp image: ours {spp_eq} spp in {t_eq:.2} s RMSE {ours_rmse:.5}; mitsuba llvm {spp} spp RMSE {:.5}",
+        llvm.seconds,
+        rmse(&mi, &mr, &mg, &mb)
+    );
 }
 
 /// The settings of [`large_scene_figures`]: path tracing at 256 x 256, max depth 8, under a
