@@ -16,7 +16,9 @@
 //! sample against 12.2k one path at a time (callgrind, the bench's `tiny`), and about 1.2x the
 //! samples per CPU-second: the stages run long loops over warm code and data. The lane-wise
 //! camera and diffuse stages (with `render::math`) took it to 10.8k; the lane-wise triangle
-//! tests and packets (`accel`) trade it back up to 11.3k for less time.
+//! tests and packets (`accel`) trade it back up to 11.3k for less time; per-sample costs (the
+//! pixel hash, paths reset in place, seeds shared by a pixel's samples, the Sobol kernels'
+//! bit reversal and conversions in lanes) took it to 10.9k.
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
