@@ -64,18 +64,38 @@ impl Frame {
 /// a ray leaving in direction `w` does not hit the surface it starts on. Integer-ULP offsets for
 /// points far from the origin, a fixed epsilon near it (Wächter and Binder, "A Fast and Robust
 /// Method for Avoiding Self-Intersection", Ray Tracing Gems, 2019).
+#[inline]
 pub fn offset_ray_origin(p: Vec3A, ng: Vec3A, w: Vec3A) -> Vec3A {
-    const ORIGIN: f32 = 1.0 / 32.0;
-    const FLOAT_SCALE: f32 = 1.0 / 65536.0;
-    const INT_SCALE: f32 = 256.0;
     let n = if ng.dot(w) < 0.0 { -ng } else { ng };
+    // The same operations on the three components at once (SSE2: every x86-64 CPU has it).
+    #[cfg(target_arch = "x86_64")]
+    {
+        super::wide::offset_along(p, n)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    offset_along(p, n)
+}
+
+/// The offset of [`offset_ray_origin`] along `n` (already turned toward the ray): its
+/// constants, and the component-wise reference of the lane-wise form.
+pub(super) const OFFSET_ORIGIN: f32 = 1.0 / 32.0;
+pub(super) const OFFSET_FLOAT_SCALE: f32 = 1.0 / 65536.0;
+pub(super) const OFFSET_INT_SCALE: f32 = 256.0;
+
+/// [`offset_ray_origin`]'s move of `p` along `n`, one component at a time.
+#[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+pub(super) fn offset_along(p: Vec3A, n: Vec3A) -> Vec3A {
+    const ORIGIN: f32 = OFFSET_ORIGIN;
+    const FLOAT_SCALE: f32 = OFFSET_FLOAT_SCALE;
+    const INT_SCALE: f32 = OFFSET_INT_SCALE;
     let of_i = [(INT_SCALE * n.x) as i32, (INT_SCALE * n.y) as i32, (INT_SCALE * n.z) as i32];
     let pa = p.to_array();
     let na = n.to_array();
     let mut out = [0.0f32; 3];
     for k in 0..3 {
         let bits = pa[k].to_bits() as i32;
-        let moved = f32::from_bits((bits + if pa[k] < 0.0 { -of_i[k] } else { of_i[k] }) as u32);
+        let moved =
+            f32::from_bits(bits.wrapping_add(if pa[k] < 0.0 { of_i[k].wrapping_neg() } else { of_i[k] }) as u32);
         out[k] = if pa[k].abs() < ORIGIN { pa[k] + FLOAT_SCALE * na[k] } else { moved };
     }
     Vec3A::from_array(out)
