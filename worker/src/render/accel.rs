@@ -326,9 +326,6 @@ fn soa_of(tris: &[[Vec3A; 3]]) -> [Vec<f32>; 9] {
     })
 }
 
-/// The direction given to obvhs: negative zeros made positive (`-0.0 + 0.0 = +0.0`, every other
-/// value unchanged). obvhs orders a node's slabs by `d < 0.0` (false for -0.0) but inverts -0.0
-/// to a large negative number, so a ray with a -0.0 component (an orthographic camera's
 /// The union of a node's children's quantized boxes: per axis the lowest `child_min` and the
 /// highest `child_max` over its children (as f32, exact); `None` without children.
 fn quantized_union(node: &obvhs::cwbvh::node::CwBvhNode) -> Option<[[f32; 2]; 3]> {
@@ -347,6 +344,9 @@ fn quantized_union(node: &obvhs::cwbvh::node::CwBvhNode) -> Option<[[f32; 2]; 3]
     Some(union)
 }
 
+/// The direction given to obvhs: negative zeros made positive (`-0.0 + 0.0 = +0.0`, every other
+/// value unchanged). obvhs orders a node's slabs by `d < 0.0` (false for -0.0) but inverts -0.0
+/// to a large negative number, so a ray with a -0.0 component (an orthographic camera's
 /// axis-aligned rays) had swapped slabs and missed everything.
 #[inline(always)]
 fn bvh_direction(d: Vec3A) -> Vec3A {
@@ -1166,7 +1166,6 @@ fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
 mod tests {
     use super::*;
 
-    /// A closed cube [-1, 1]^3 of 12 triangles.
     /// `transpose_bits8` moves bit `c` of byte `r` to bit `r` of byte `c`, for every bit.
     #[cfg(target_arch = "x86_64")]
     #[test]
@@ -1180,6 +1179,7 @@ mod tests {
         assert_eq!(transpose_bits8(transpose_bits8(x)), x);
     }
 
+    /// A closed cube [-1, 1]^3 of 12 triangles.
     fn cube() -> Vec<[Vec3A; 3]> {
         let v = |x: f32, y: f32, z: f32| Vec3A::new(x, y, z);
         let c = [

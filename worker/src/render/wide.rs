@@ -394,13 +394,6 @@ mod lanes {
             unsafe { _mm256_storeu_ps(out.as_mut_ptr(), self.0) };
             out
         }
-
-        /// Lane `i` (below 8) in every lane.
-        #[inline(always)]
-        pub fn broadcast(self, i: u32) -> F32x8 {
-            // SAFETY: this value exists, so the CPU has AVX2.
-            F32x8(unsafe { _mm256_permutevar8x32_ps(self.0, _mm256_set1_epi32(i as i32)) })
-        }
     }
 
     // SAFETY (every `unsafe` block below): an operand of the operation exists, so the CPU has
