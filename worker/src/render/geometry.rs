@@ -76,19 +76,19 @@ pub fn offset_ray_origin(p: Vec3A, ng: Vec3A, w: Vec3A) -> Vec3A {
     offset_along(p, n)
 }
 
-/// The offset of [`offset_ray_origin`] along `n` (already turned toward the ray): its
-/// constants, and the component-wise reference of the lane-wise form.
+/// [`offset_ray_origin`]: components of `p` below this in magnitude move by a fixed step...
 pub(super) const OFFSET_ORIGIN: f32 = 1.0 / 32.0;
+/// ... of this times the normal's component;
 pub(super) const OFFSET_FLOAT_SCALE: f32 = 1.0 / 65536.0;
+/// the others by this times the normal's component, in ULPs (truncated to an integer).
 pub(super) const OFFSET_INT_SCALE: f32 = 256.0;
 
-/// [`offset_ray_origin`]'s move of `p` along `n`, one component at a time.
+/// [`offset_ray_origin`]'s move of `p` along `n` (already turned toward the ray), one component
+/// at a time: the reference of the lane-wise form (`wide::offset_along`) and the form where
+/// there are no lanes.
 #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
 pub(super) fn offset_along(p: Vec3A, n: Vec3A) -> Vec3A {
-    const ORIGIN: f32 = OFFSET_ORIGIN;
-    const FLOAT_SCALE: f32 = OFFSET_FLOAT_SCALE;
-    const INT_SCALE: f32 = OFFSET_INT_SCALE;
-    let of_i = [(INT_SCALE * n.x) as i32, (INT_SCALE * n.y) as i32, (INT_SCALE * n.z) as i32];
+    let of_i = [(OFFSET_INT_SCALE * n.x) as i32, (OFFSET_INT_SCALE * n.y) as i32, (OFFSET_INT_SCALE * n.z) as i32];
     let pa = p.to_array();
     let na = n.to_array();
     let mut out = [0.0f32; 3];
@@ -96,7 +96,7 @@ pub(super) fn offset_along(p: Vec3A, n: Vec3A) -> Vec3A {
         let bits = pa[k].to_bits() as i32;
         let moved =
             f32::from_bits(bits.wrapping_add(if pa[k] < 0.0 { of_i[k].wrapping_neg() } else { of_i[k] }) as u32);
-        out[k] = if pa[k].abs() < ORIGIN { pa[k] + FLOAT_SCALE * na[k] } else { moved };
+        out[k] = if pa[k].abs() < OFFSET_ORIGIN { pa[k] + OFFSET_FLOAT_SCALE * na[k] } else { moved };
     }
     Vec3A::from_array(out)
 }

@@ -325,6 +325,23 @@ impl Sampler for IndependentSampler {
     }
 }
 
+/// [`SobolSampler`]'s seeds of one bounce: per 1D request, per 2D request.
+type BounceSeeds = ([[u32; 2]; BOUNCE_1D.len()], [[u32; 3]; BOUNCE_2D.len()]);
+
+/// `make()`, or the value it gave for the same `key` last time: the batched draws' seeds, which
+/// depend on (pixel, dimension) alone and repeat for a pixel's samples, which follow one another.
+#[inline(always)]
+fn repeat_or<K: PartialEq + Copy, V: Copy>(last: &mut Option<(K, V)>, key: K, make: impl FnOnce() -> V) -> V {
+    match *last {
+        Some((k, v)) if k == key => v,
+        _ => {
+            let v = make();
+            *last = Some((key, v));
+            v
+        }
+    }
+}
+
 /// Owen-scrambled Sobol points, padded per dimension (Burley 2020; pbrt-v4's
 /// `PaddedSobolSampler` with `FastOwen` randomization).
 ///
@@ -335,9 +352,6 @@ impl Sampler for IndependentSampler {
 /// 2D request (one point in each elementary interval of area `2^-m`), and stratified in 1D;
 /// different dimensions are decorrelated by their independent shuffles. Only the first two
 /// Sobol dimensions are needed, so there are no tables beyond one 32-entry matrix.
-/// [`SobolSampler`]'s seeds of one bounce: per 1D request, per 2D request.
-type BounceSeeds = ([[u32; 2]; BOUNCE_1D.len()], [[u32; 3]; BOUNCE_2D.len()]);
-
 #[derive(Clone, Debug)]
 pub struct SobolSampler {
     seed: u64,
@@ -453,9 +467,8 @@ impl Sampler for SobolSampler {
             out.extend(lanes.map(|s| s.get_pixel_2d()));
             return;
         };
-        // Eight samplers at a time: the 64-bit seeds of `get_2d` here, its scrambles 8-wide. The
-        // seeds depend on (pixel, dimension) alone: a pixel's samples, which follow one another,
-        // share them (made once, then copied).
+        // Eight samplers at a time: the 64-bit seeds of `get_2d` here (made once for a pixel's
+        // samples: `repeat_or`), its scrambles 8-wide.
         let mut lanes = lanes.peekable();
         let mut last: Option<((u64, u32), [u32; 3])> = None;
         while lanes.peek().is_some() {
@@ -463,16 +476,10 @@ impl Sampler for SobolSampler {
             let mut seeds = [[0u32; 8]; 3];
             let mut n = 0;
             for s in lanes.by_ref().take(8) {
-                let key = (s.pixel_hash, s.dim);
-                let lane_seeds = match last {
-                    Some((k, v)) if k == key => v,
-                    _ => {
-                        let h = s.dim_hash(1);
-                        let v = [h as u32, (h >> 32) as u32, mix_bits(h.wrapping_add(GOLDEN)) as u32];
-                        last = Some((key, v));
-                        v
-                    }
-                };
+                let lane_seeds = repeat_or(&mut last, (s.pixel_hash, s.dim), || {
+                    let h = s.dim_hash(1);
+                    [h as u32, (h >> 32) as u32, mix_bits(h.wrapping_add(GOLDEN)) as u32]
+                });
                 index[n] = s.index;
                 (seeds[0][n], seeds[1][n], seeds[2][n]) = (lane_seeds[0], lane_seeds[1], lane_seeds[2]);
                 s.dim = s.dim.wrapping_add(2);
@@ -494,9 +501,8 @@ impl Sampler for SobolSampler {
             out.extend(lanes.map(|s| s.bounce_draws()));
             return;
         };
-        // Eight samplers at a time: the 64-bit seeds here, the scrambles in 8-wide kernels. The
-        // seeds depend on (pixel, dimension) alone: paths of one pixel at one bounce, which
-        // follow one another, share them (made once, then copied).
+        // Eight samplers at a time: the 64-bit seeds here (made once for a pixel's paths at one
+        // bounce: `repeat_or`), the scrambles in 8-wide kernels.
         let mut chunk: Vec<&Self> = Vec::with_capacity(8);
         let mut lanes = lanes.peekable();
         let mut last: Option<((u64, u32), BounceSeeds)> = None;
@@ -508,15 +514,7 @@ impl Sampler for SobolSampler {
             let mut seeds2 = [[[0u32; 8]; 3]; 2];
             for (lane, s) in chunk.iter().enumerate() {
                 index[lane] = s.index;
-                let key = (s.pixel_hash, s.dim);
-                let (one, two) = match last {
-                    Some((k, v)) if k == key => v,
-                    _ => {
-                        let v = s.bounce_seeds();
-                        last = Some((key, v));
-                        v
-                    }
-                };
+                let (one, two) = repeat_or(&mut last, (s.pixel_hash, s.dim), || s.bounce_seeds());
                 for k in 0..BOUNCE_1D.len() {
                     (seeds1[k][0][lane], seeds1[k][1][lane]) = (one[k][0], one[k][1]);
                 }
