@@ -121,9 +121,23 @@ pub fn nee_sample(
     params: &PathParams,
     time: f32,
 ) -> Option<NeeSample> {
-    let bsdf = sh.bsdf.as_ref()?;
+    sh.bsdf.as_ref()?;
     let ctx = LightSampleContext { p, n: sh.ng };
-    let (index, ls, pmf) = scene.sample_light_at(&ctx, u_select, u, params.light_sampling, time)?;
+    let light = scene.sample_light_at(&ctx, u_select, u, params.light_sampling, time)?;
+    nee_with_light(scene, sh, wo, light, params)
+}
+
+/// [`nee_sample`] from its light sample (`RenderScene::sample_light_at`: light index, sample,
+/// selection pmf), taken apart so that the wavefront can sample a batch's lights in lanes.
+#[inline]
+pub fn nee_with_light(
+    scene: &RenderScene,
+    sh: &Shading,
+    wo: Vec3A,
+    (index, ls, pmf): (usize, LightLiSample, f32),
+    params: &PathParams,
+) -> Option<NeeSample> {
+    let bsdf = sh.bsdf.as_ref()?;
     let light = &scene.lights[index];
     let delta = light.is_delta();
     // BSDF-only: area lights are found by BSDF sampling instead; delta lights can only be

@@ -5,6 +5,7 @@
 
 use super::geometry::Frame;
 use super::math;
+use super::math::Real;
 use super::sampling::{
     Distribution2D, MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA, cosine_hemisphere_pdf,
     sample_cosine_hemisphere, sample_spherical_triangle, sample_uniform_cone, sample_uniform_disk_concentric,
@@ -207,6 +208,117 @@ fn solid_angle_in_range(v: &[Vec3A; 3], p: Vec3A) -> Option<f32> {
         .then_some(solid_angle)
 }
 
+/// A point sampled on a triangle light as seen from a reference point, written once for one
+/// sample (`f32`) and for 8 in lanes (`Real`): the same f32 operations in the same order either
+/// way. `ok` is false where the sample contributes nothing (the point at the reference point,
+/// behind a one-sided light, a zero or non-finite density).
+pub(super) struct TriangleSample<R: Real> {
+    pub ok: R::Mask,
+    pub b: [R; 3],
+    pub p: [R; 3],
+    pub wi: [R; 3],
+    pub pdf: R,
+}
+
+/// Up to 8 triangle-light samples' inputs as lanes (`RenderScene::sample_light_at_many`):
+/// vertices `v[vertex][axis]`, normal, area, two-sidedness (1 or 0), reference point and
+/// barycentrics. Lanes left unset hold zeros (a sample that is not `ok`).
+#[derive(Default)]
+pub struct LightLanes {
+    /// The lanes handed in (bits), set or not.
+    pub used: u32,
+    pub v: [[[f32; 8]; 3]; 3],
+    pub n: [[f32; 8]; 3],
+    pub area: [f32; 8],
+    pub two_sided: [f32; 8],
+    pub p: [[f32; 8]; 3],
+    pub b: [[f32; 8]; 3],
+}
+
+impl LightLanes {
+    /// Lane `lane`'s inputs.
+    #[allow(clippy::too_many_arguments)]
+    pub fn set(&mut self, lane: usize, v: &[Vec3A; 3], n: Vec3A, area: f32, two_sided: bool, p: Vec3A, b: [f32; 3]) {
+        let lane = lane & 7;
+        for k in 0..3 {
+            for (i, vertex) in v.iter().enumerate() {
+                self.v[i][k][lane] = vertex[k];
+            }
+            self.n[k][lane] = n[k];
+            self.p[k][lane] = p[k];
+            self.b[k][lane] = b[k];
+        }
+        self.area[lane] = area;
+        self.two_sided[lane] = if two_sided { 1.0 } else { 0.0 };
+    }
+}
+
+/// The outcome of [`LightLanes`]: [`TriangleSample`]'s values per lane.
+pub struct LightLaneSamples {
+    pub ok: u32,
+    pub b: [[f32; 8]; 3],
+    pub p: [[f32; 8]; 3],
+    pub wi: [[f32; 8]; 3],
+    pub pdf: [f32; 8],
+}
+
+impl LightLaneSamples {
+    /// Lane `lane`'s light sample of a light of radiance `le` and normal `n`, as
+    /// [`Light::sample_li`] makes it.
+    pub fn get(&self, lane: usize, le: Vec3A, n: Vec3A) -> Option<LightLiSample> {
+        let lane = lane & 7;
+        (self.ok & (1 << lane) != 0).then(|| LightLiSample {
+            l: le,
+            wi: Vec3A::new(self.wi[0][lane], self.wi[1][lane], self.wi[2][lane]),
+            pdf: self.pdf[lane],
+            p_light: Vec3A::new(self.p[0][lane], self.p[1][lane], self.p[2][lane]),
+            n_light: Some(n),
+            b: [self.b[0][lane], self.b[1][lane], self.b[2][lane]],
+            infinite: false,
+        })
+    }
+}
+
+impl<R: Real> TriangleSample<R> {
+    /// The sample at barycentrics `b` of the triangle `v` (normal `n`, area `area`) seen from
+    /// `p_ref`, with solid-angle density `pdf_sa` where it was sampled by solid angle, else
+    /// the area density converted (`d^2 / (|cos| area)`).
+    #[inline(always)]
+    pub fn at(
+        v: [[R; 3]; 3],
+        n: [R; 3],
+        area: R,
+        two_sided: R::Mask,
+        p_ref: [R; 3],
+        b: [R; 3],
+        pdf_sa: Option<R>,
+    ) -> Self {
+        // glam's component-wise order: v0 b0 + v1 b1 + v2 b2; (x^2 + y^2) + z^2. No closures
+        // (the lane form is inlined into a function compiled for AVX2; see `accel::Sheared`).
+        let p = [
+            v[0][0] * b[0] + v[1][0] * b[1] + v[2][0] * b[2],
+            v[0][1] * b[0] + v[1][1] * b[1] + v[2][1] * b[2],
+            v[0][2] * b[0] + v[1][2] * b[1] + v[2][2] * b[2],
+        ];
+        let d = [p[0] - p_ref[0], p[1] - p_ref[1], p[2] - p_ref[2]];
+        let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        let zero = d2.splat(0.0);
+        let len = d2.sqrt();
+        let wi = [d[0] / len, d[1] / len, d[2] / len];
+        let cos_l = n[0] * -wi[0] + n[1] * -wi[1] + n[2] * -wi[2];
+        let mut ok = d2.gt(zero) & (two_sided | !cos_l.le(zero));
+        let pdf = match pdf_sa {
+            Some(pdf) => pdf,
+            None => {
+                ok = ok & !cos_l.eq(zero);
+                d2 / (cos_l.abs() * area)
+            }
+        };
+        ok = ok & pdf.gt(zero) & pdf.lt(zero.splat(f32::INFINITY));
+        Self { ok, b, p, wi, pdf }
+    }
+}
+
 impl Light {
     pub fn is_delta(&self) -> bool {
         !matches!(self, Light::Triangle { .. } | Light::Environment(_))
@@ -269,30 +381,24 @@ impl Light {
                 } else {
                     (sample_uniform_triangle(u), None)
                 };
-                let p = v[0] * b[0] + v[1] * b[1] + v[2] * b[2];
-                let d = p - ctx.p;
-                let d2 = d.length_squared();
-                if !(d2 > 0.0) {
-                    return None;
-                }
-                let wi = d / d2.sqrt();
-                let cos_l = n.dot(-wi);
-                if !two_sided && cos_l <= 0.0 {
-                    return None;
-                }
-                let pdf = match pdf_sa {
-                    Some(pdf) => pdf,
-                    None => {
-                        if cos_l == 0.0 {
-                            return None;
-                        }
-                        d2 / (cos_l.abs() * area)
-                    }
-                };
-                if !(pdf > 0.0) || !pdf.is_finite() {
-                    return None;
-                }
-                Some(LightLiSample { l: le, wi, pdf, p_light: p, n_light: Some(n), b, infinite: false })
+                let t = TriangleSample::at(
+                    [v[0].into(), v[1].into(), v[2].into()],
+                    n.into(),
+                    area,
+                    two_sided,
+                    ctx.p.into(),
+                    b,
+                    pdf_sa,
+                );
+                t.ok.then(|| LightLiSample {
+                    l: le,
+                    wi: t.wi.into(),
+                    pdf: t.pdf,
+                    p_light: t.p.into(),
+                    n_light: Some(n),
+                    b: t.b,
+                    infinite: false,
+                })
             }
             Light::Environment(ref env) => {
                 let (wi, pdf) = env.sample_wi(u)?;

@@ -3,10 +3,11 @@
 
 use super::accel::{Accel, Hit, RayQuery, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
-use super::light::{EnvironmentLight, Light, LightLeSample, LightLiSample, LightSampleContext};
+use super::light::{EnvironmentLight, Light, LightLanes, LightLeSample, LightLiSample, LightSampleContext};
 use super::math;
 use super::sampler::hash_u64;
-use super::sampling::Distribution1D;
+use super::sampling::{Distribution1D, sample_uniform_triangle};
+use super::wide::SimdLevel;
 use glam::{Vec2, Vec3, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
 use pathfarm_common::scene::{AlphaMode, Material, Mesh, PunctualKind, Scene, Texture, TextureRef};
@@ -62,6 +63,8 @@ pub struct RenderScene {
     has_alpha: bool,
     /// Whether some material has an emission texture (else every area light's factor is 1).
     has_emission_texture: bool,
+    /// Whether every light is a triangle and nothing moves (lights can be sampled in lanes).
+    triangle_lights_only: bool,
     pub center: Vec3A,
     pub radius: f32,
     /// Motion blur: where things are at shutter close (`None`: nothing moves).
@@ -213,6 +216,8 @@ impl RenderScene {
             .materials
             .iter()
             .any(|m| if m.unlit { m.base_color_texture.is_some() } else { m.emissive_texture.is_some() });
+        let triangle_lights_only =
+            close.is_none() && !lights.is_empty() && lights.iter().all(|l| matches!(l, Light::Triangle { .. }));
         let motion = close.zip(close_tris.as_ref()).map(|(c, ct)| Motion {
             close: c.meshes.clone(),
             light_close: lights
@@ -239,6 +244,7 @@ impl RenderScene {
             environment,
             has_alpha,
             has_emission_texture,
+            triangle_lights_only,
             center,
             radius,
             motion,
@@ -577,7 +583,14 @@ impl RenderScene {
             return None;
         }
         let light = self.light_at(index, time);
-        let mut s = light.sample_li(ctx, u, mode)?;
+        let s = light.sample_li(ctx, u, mode)?;
+        Some((index, self.on_emitter(&light, s)?, pmf))
+    }
+
+    /// A light sample of `light` as the emitter gives it: cut out by alpha, times the emission
+    /// texture.
+    #[inline]
+    fn on_emitter(&self, light: &Light, mut s: LightLiSample) -> Option<LightLiSample> {
         if let Light::Triangle { prim, .. } = *light {
             // A point that alpha cuts out of an emitter emits nothing.
             if self.has_alpha && !self.present(prim, s.b[1], s.b[2]) {
@@ -585,7 +598,58 @@ impl RenderScene {
             }
             s.l *= self.emission_texture(prim, s.b);
         }
-        Some((index, s, pmf))
+        Some(s)
+    }
+
+    /// Whether [`RenderScene::sample_light_at_many`] samples this scene's lights in lanes: every
+    /// light a triangle, none moving, area sampling, and a CPU with AVX2.
+    pub fn samples_lights_in_lanes(&self, mode: LightSampling) -> bool {
+        self.triangle_lights_only && mode == LightSampling::Area && self.simd_level() == SimdLevel::Avx2
+    }
+
+    /// [`RenderScene::sample_light_at`] of each (point, light selection number, point number,
+    /// time), appended to `out` in order (a light sample reads nothing of the point's surface); the triangle geometry 8 lanes at a time (the same bits,
+    /// `TriangleSample` being written once for both). Only where
+    /// [`RenderScene::samples_lights_in_lanes`] holds (else one at a time, the same values).
+    pub fn sample_light_at_many(
+        &self,
+        queries: impl ExactSizeIterator<Item = (Vec3A, f32, Vec2, f32)>,
+        mode: LightSampling,
+        out: &mut Vec<Option<(usize, LightLiSample, f32)>>,
+    ) {
+        let lanes = self.samples_lights_in_lanes(mode).then(super::wide::Avx2::new).flatten();
+        let Some(avx2) = lanes else {
+            out.extend(queries.map(|(p, u_select, u, time)| {
+                self.sample_light_at(&LightSampleContext { p, n: Vec3A::ZERO }, u_select, u, mode, time)
+            }));
+            return;
+        };
+        let mut queries = queries.peekable();
+        while queries.peek().is_some() {
+            let mut lanes = LightLanes::default();
+            let mut picked = [None; 8];
+            // (Nothing moves here: the query's time changes nothing.)
+            for (lane, (p, u_select, u, _)) in queries.by_ref().take(8).enumerate() {
+                let (index, pmf, _) = self.light_distr.sample(u_select);
+                lanes.used |= 1 << lane;
+                if !(pmf > 0.0) {
+                    continue;
+                }
+                let Some(Light::Triangle { v, n, area, two_sided, .. }) = self.lights.get(index) else { continue };
+                let b = sample_uniform_triangle(u);
+                lanes.set(lane, v, *n, *area, *two_sided, p, b);
+                picked[lane] = Some((index, pmf));
+            }
+            let samples = avx2.triangle_samples(&lanes);
+            for (lane, pick) in picked.iter().enumerate().take(lanes.used.count_ones() as usize) {
+                out.push(pick.and_then(|(index, pmf)| {
+                    let light = &self.lights[index];
+                    let Light::Triangle { n, le, .. } = *light else { return None };
+                    let s = samples.get(lane, le, n)?;
+                    Some((index, self.on_emitter(light, s)?, pmf))
+                }));
+            }
+        }
     }
 
     /// Picks a light by power: (light index, selection pmf).
@@ -673,10 +737,19 @@ mod tests {
     /// triangles, mesh `k` of radiance `10^(4 k / 63)` (1 to 10^4), triangle `j` of it with edges
     /// `0.0008 (1 + j)` (within its grid cell of 0.0625), so the lights' powers span 7 decades.
     fn many_lights() -> RenderScene {
+        lights_scene(false)
+    }
+
+    /// [`many_lights`], with the odd meshes' lights two-sided where `two_sided`.
+    fn lights_scene(two_sided: bool) -> RenderScene {
         let mut b = GltfBuilder::new();
         for k in 0..64 {
             let le = 10f32.powf(4.0 * k as f32 / 63.0);
-            let m = b.material(emitter(&format!("e{k}"), Vec3::ZERO, Vec3::splat(le)));
+            let mut material = emitter(&format!("e{k}"), Vec3::ZERO, Vec3::splat(le));
+            if two_sided && k % 2 == 1 {
+                material["doubleSided"] = true.into();
+            }
+            let m = b.material(material);
             let (mut p, mut n, mut idx) = (Vec::new(), Vec::new(), Vec::new());
             for j in 0..64u32 {
                 // Scatter the lights over the grid (1031 is odd: a permutation of the 4096
@@ -696,6 +769,67 @@ mod tests {
         b.camera(Vec3::new(0.0, 0.5, 3.0), Vec3::ZERO, Vec3::Y, 0.7, 1.0);
         let scene = load_scene_from_slice(&b.to_glb(), "lights.glb", None, &LoadOptions::default()).expect("loads");
         RenderScene::new(&scene)
+    }
+
+    /// Light samples taken 8 lanes at a time (`sample_light_at_many`) are the one-at-a-time
+    /// samples, bit for bit: from points below the lights, beside them, above them (behind
+    /// one-sided lights), on their plane and at their vertices (zero distance), with one-sided
+    /// and two-sided lights.
+    #[test]
+    fn light_samples_in_lanes_are_the_single_samples() {
+        for two_sided in [false, true] {
+            let scene = lights_scene(two_sided);
+            let any_two_sided = scene.lights.iter().any(|l| matches!(l, Light::Triangle { two_sided: true, .. }));
+            assert_eq!(any_two_sided, two_sided);
+            light_samples_in_lanes_match(&scene);
+        }
+    }
+
+    fn light_samples_in_lanes_match(scene: &RenderScene) {
+        if !scene.samples_lights_in_lanes(LightSampling::Area) {
+            eprintln!("this CPU has no AVX2: no lanes to compare");
+            return;
+        }
+        let Light::Triangle { v: corner, .. } = scene.lights[17] else { panic!("a triangle light") };
+        let mut rng = TestRng::new(2200);
+        let mut queries = Vec::new();
+        for i in 0..8003 {
+            let (x, z) = (rng.uniform() * 5.0 - 2.5, rng.uniform() * 5.0 - 2.5);
+            let p = match i % 5 {
+                0 => Vec3A::new(x, rng.uniform() * 0.9, z),
+                1 => Vec3A::new(x, 1.0 + rng.uniform(), z),
+                2 => Vec3A::new(x, 1.0, z),
+                3 => corner[i % 3],
+                _ => Vec3A::new(x * 3.0, rng.uniform() * 4.0 - 2.0, z * 3.0),
+            };
+            queries.push((p, rng.uniform(), rng.uniform_2d(), 0.0));
+        }
+        let bits = |s: &Option<(usize, LightLiSample, f32)>| {
+            s.map(|(i, l, pmf)| {
+                let v = |v: Vec3A| v.to_array().map(f32::to_bits);
+                (
+                    i,
+                    v(l.l),
+                    v(l.wi),
+                    l.pdf.to_bits(),
+                    v(l.p_light),
+                    l.n_light.map(v),
+                    l.b.map(f32::to_bits),
+                    pmf.to_bits(),
+                )
+            })
+        };
+        let mut got = Vec::new();
+        scene.sample_light_at_many(queries.iter().copied(), LightSampling::Area, &mut got);
+        assert_eq!(got.len(), queries.len());
+        let mut found = 0;
+        for (&(p, u_select, u, time), g) in queries.iter().zip(&got) {
+            let ctx = LightSampleContext { p, n: Vec3A::ZERO };
+            let want = scene.sample_light_at(&ctx, u_select, u, LightSampling::Area, time);
+            assert_eq!(bits(g), bits(&want), "{p} {u_select} {u}");
+            found += usize::from(want.is_some());
+        }
+        assert!(found > queries.len() / 4 && found < queries.len() * 3 / 4, "{found} samples of {}", queries.len());
     }
 
     #[test]

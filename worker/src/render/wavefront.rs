@@ -33,8 +33,10 @@
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin};
-use super::integrator::{PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, sample_scatter_ahead};
-use super::light::LightSampleContext;
+use super::integrator::{
+    PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, nee_with_light, sample_scatter_ahead,
+};
+use super::light::{LightLiSample, LightSampleContext};
 use super::material::shade;
 use super::sampler::{BounceDraws, Replay, Sampler};
 use super::sampling::{CosineSample, cosine_hemisphere_many};
@@ -117,6 +119,9 @@ pub struct CameraStage<'a, F> {
     pub shutter: Option<&'a dyn Fn(f32) -> Camera>,
 }
 
+/// A light sample: light index, sample, selection pmf (`RenderScene::sample_light_at`).
+type LightSample = (usize, LightLiSample, f32);
+
 /// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
 /// if the ray is unoccluded, `beta * 0` if it is not (as the scalar integrator adds).
 struct PendingShadow {
@@ -142,6 +147,8 @@ pub struct Wavefront<S> {
     rays: Vec<RayQuery>,
     hits: Vec<Option<Hit>>,
     surfaces: Vec<Option<SurfaceInteraction>>,
+    /// Each shading path's light sample, where they are sampled ahead in lanes.
+    light_samples: Vec<Option<LightSample>>,
     shadows: Vec<PendingShadow>,
     shadow_rays: Vec<RayQuery>,
     blocked: Vec<bool>,
@@ -161,6 +168,7 @@ impl<S: Sampler> Default for Wavefront<S> {
             rays: Vec::with_capacity(BATCH),
             hits: Vec::with_capacity(BATCH),
             surfaces: Vec::with_capacity(BATCH),
+            light_samples: Vec::with_capacity(BATCH),
             shadows: Vec::with_capacity(BATCH),
             shadow_rays: Vec::with_capacity(BATCH),
             blocked: Vec::with_capacity(BATCH),
@@ -278,15 +286,30 @@ impl<S: Sampler + Clone> Wavefront<S> {
             self.cosine_us.extend(self.draws.iter().map(|d| d.d2[1]));
             self.cosines.clear();
             cosine_hemisphere_many(&self.cosine_us, scene.simd_level(), &mut self.cosines);
+            // The light samples of every shading path, 8 lanes at a time, where the scene's
+            // lights allow (`RenderScene::samples_lights_in_lanes`): from the numbers a non-delta
+            // vertex samples its light with (`BOUNCE_1D[1]`, `BOUNCE_2D[0]`) and the hit point
+            // (all a light sample reads of the vertex).
+            self.light_samples.clear();
+            let ahead = scene.samples_lights_in_lanes(params.light_sampling);
+            if ahead {
+                let (paths, live, surfaces) = (&self.paths, &self.live, &self.surfaces);
+                let queries = self.shading.iter().zip(&self.draws).map(|(&k, d)| {
+                    let p = surfaces[k as usize].as_ref().map_or(Vec3A::ZERO, |si| si.p);
+                    (p, d.d1[1], d.d2[0], paths[live[k as usize] as usize].time)
+                });
+                scene.sample_light_at_many(queries, params.light_sampling, &mut self.light_samples);
+            }
             // Shading stage: BSDF, light sample, scattering, roulette.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
-            for ((&k, draws), cosine) in self.shading.iter().zip(&self.draws).zip(&self.cosines) {
+            for (n, ((&k, draws), cosine)) in self.shading.iter().zip(&self.draws).zip(&self.cosines).enumerate() {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut self.paths[i as usize];
-                let pending = scatter(scene, params, path, si, draws, cosine);
+                let light = self.light_samples.get(n).filter(|_| ahead);
+                let pending = scatter(scene, params, path, si, draws, cosine, light);
                 if let Some((ray, shadow)) = pending.shadow {
                     self.shadow_rays.push(ray);
                     self.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
@@ -374,6 +397,7 @@ fn arrive<S: Sampler>(
 /// The rest of the iteration after [`arrive`], line for line: shading, the light sample (its
 /// shadow ray queued), BSDF sampling and roulette, with the bounce's numbers drawn ahead.
 #[inline]
+#[allow(clippy::too_many_arguments)]
 fn scatter<S: Sampler>(
     scene: &RenderScene,
     params: &PathParams,
@@ -381,6 +405,7 @@ fn scatter<S: Sampler>(
     si: &SurfaceInteraction,
     draws: &BounceDraws,
     cosine: &CosineSample,
+    light: Option<&Option<LightSample>>,
 ) -> Bounce {
     let done = Bounce { shadow: None, alive: false };
     let time = path.time;
@@ -396,7 +421,12 @@ fn scatter<S: Sampler>(
     if !bsdf.is_delta() {
         let u_select = sampler.get_1d();
         let u = sampler.get_2d();
-        match nee_sample(scene, si.p, &sh, wo, u_select, u, params, time) {
+        let nee = match light {
+            // Sampled ahead with these numbers.
+            Some(light) => light.and_then(|light| nee_with_light(scene, &sh, wo, light, params)),
+            None => nee_sample(scene, si.p, &sh, wo, u_select, u, params, time),
+        };
+        match nee {
             Some(nee) => {
                 let (o, d, t_max) = RenderScene::shadow_ray(si.p, sh.ng, &nee.ls);
                 let c = nee.contribution(&sh, wo, params);

@@ -500,6 +500,48 @@ mod lanes {
     }
 }
 
+impl Avx2 {
+    /// `super::light::TriangleSample` of 8 triangle-light samples at once, in a function
+    /// compiled for AVX2 (the scalar sample's bits in every lane).
+    #[inline(always)]
+    pub fn triangle_samples(self, lanes: &super::light::LightLanes) -> super::light::LightLaneSamples {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        fn kernel(avx2: Avx2, l: &super::light::LightLanes) -> super::light::LightLaneSamples {
+            use super::math::Real;
+            // No closures: see `accel::Sheared::new`.
+            let v = [
+                [avx2.f32x8(&l.v[0][0]), avx2.f32x8(&l.v[0][1]), avx2.f32x8(&l.v[0][2])],
+                [avx2.f32x8(&l.v[1][0]), avx2.f32x8(&l.v[1][1]), avx2.f32x8(&l.v[1][2])],
+                [avx2.f32x8(&l.v[2][0]), avx2.f32x8(&l.v[2][1]), avx2.f32x8(&l.v[2][2])],
+            ];
+            let n = [avx2.f32x8(&l.n[0]), avx2.f32x8(&l.n[1]), avx2.f32x8(&l.n[2])];
+            let p = [avx2.f32x8(&l.p[0]), avx2.f32x8(&l.p[1]), avx2.f32x8(&l.p[2])];
+            let b = [avx2.f32x8(&l.b[0]), avx2.f32x8(&l.b[1]), avx2.f32x8(&l.b[2])];
+            let area = avx2.f32x8(&l.area);
+            let two_sided = avx2.f32x8(&l.two_sided).gt(area.splat(0.0));
+            let t = super::light::TriangleSample::at(v, n, area, two_sided, p, b, None);
+            super::light::LightLaneSamples {
+                ok: t.ok.bits(),
+                b: [t.b[0].to_array(), t.b[1].to_array(), t.b[2].to_array()],
+                p: [t.p[0].to_array(), t.p[1].to_array(), t.p[2].to_array()],
+                wi: [t.wi[0].to_array(), t.wi[1].to_array(), t.wi[2].to_array()],
+                pdf: t.pdf.to_array(),
+            }
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            kernel(self, lanes)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = lanes;
+            unreachable!("no AVX2 proof exists on this architecture")
+        }
+    }
+}
+
 /// `super::geometry::offset_along` on the three components at once in SSE2 lanes (every
 /// x86-64 CPU has SSE2): the same multiplications and additions, Rust's saturating `as i32`
 /// (NaN to 0, beyond the range to its ends) and the same integer steps on the bits, so the
