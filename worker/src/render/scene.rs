@@ -46,6 +46,31 @@ struct TriRef {
     tri: u32,
 }
 
+/// The light samples of a batch of points ([`RenderScene::sample_light_at_many`]): 8 to a
+/// lane group, or one at a time.
+#[derive(Default)]
+pub struct LightBatch {
+    lanes: Vec<super::light::LightLaneSamples>,
+    /// Per point: the light picked (index, selection pmf), `None` where none was.
+    picks: Vec<Option<(u32, f32)>>,
+    single: Vec<Option<(usize, LightLiSample, f32)>>,
+}
+
+impl LightBatch {
+    /// The `n`-th point's light sample, as [`RenderScene::sample_light_at`] gives it.
+    #[inline]
+    pub fn get(&self, scene: &RenderScene, n: usize) -> Option<(usize, LightLiSample, f32)> {
+        if !self.single.is_empty() {
+            return self.single.get(n).copied().flatten();
+        }
+        let (index, pmf) = (*self.picks.get(n)?)?;
+        let light = scene.lights.get(index as usize)?;
+        let Light::Triangle { n: normal, le, .. } = *light else { return None };
+        let s = self.lanes.get(n / 8)?.get(n % 8, le, normal)?;
+        Some((index as usize, scene.on_emitter(light, s)?, pmf))
+    }
+}
+
 /// The render-side scene.
 pub struct RenderScene {
     accel: Accel,
@@ -608,18 +633,22 @@ impl RenderScene {
     }
 
     /// [`RenderScene::sample_light_at`] of each (point, light selection number, point number,
-    /// time), appended to `out` in order (a light sample reads nothing of the point's surface); the triangle geometry 8 lanes at a time (the same bits,
-    /// `TriangleSample` being written once for both). Only where
-    /// [`RenderScene::samples_lights_in_lanes`] holds (else one at a time, the same values).
+    /// time), kept in `out` in order (read back with [`LightBatch::get`]; a light sample reads
+    /// nothing of the point's surface): the triangle geometry 8 lanes at a time, the same bits
+    /// (`TriangleSample` is written once for both). Where
+    /// [`RenderScene::samples_lights_in_lanes`] does not hold, one at a time.
     pub fn sample_light_at_many(
         &self,
         queries: impl ExactSizeIterator<Item = (Vec3A, f32, Vec2, f32)>,
         mode: LightSampling,
-        out: &mut Vec<Option<(usize, LightLiSample, f32)>>,
+        out: &mut LightBatch,
     ) {
+        out.lanes.clear();
+        out.picks.clear();
+        out.single.clear();
         let lanes = self.samples_lights_in_lanes(mode).then(super::wide::Avx2::new).flatten();
         let Some(avx2) = lanes else {
-            out.extend(queries.map(|(p, u_select, u, time)| {
+            out.single.extend(queries.map(|(p, u_select, u, time)| {
                 self.sample_light_at(&LightSampleContext { p, n: Vec3A::ZERO }, u_select, u, mode, time)
             }));
             return;
@@ -627,28 +656,20 @@ impl RenderScene {
         let mut queries = queries.peekable();
         while queries.peek().is_some() {
             let mut lanes = LightLanes::default();
-            let mut picked = [None; 8];
             // (Nothing moves here: the query's time changes nothing.)
             for (lane, (p, u_select, u, _)) in queries.by_ref().take(8).enumerate() {
                 let (index, pmf, _) = self.light_distr.sample(u_select);
-                lanes.used |= 1 << lane;
-                if !(pmf > 0.0) {
-                    continue;
-                }
-                let Some(Light::Triangle { v, n, area, two_sided, .. }) = self.lights.get(index) else { continue };
-                let b = sample_uniform_triangle(u);
-                lanes.set(lane, v, *n, *area, *two_sided, p, b);
-                picked[lane] = Some((index, pmf));
+                let light = self.lights.get(index).filter(|_| pmf > 0.0);
+                let pick = match light {
+                    Some(Light::Triangle { v, n, area, two_sided, .. }) => {
+                        lanes.set(lane, v, *n, *area, *two_sided, p, sample_uniform_triangle(u));
+                        Some((index as u32, pmf))
+                    }
+                    _ => None,
+                };
+                out.picks.push(pick);
             }
-            let samples = avx2.triangle_samples(&lanes);
-            for (lane, pick) in picked.iter().enumerate().take(lanes.used.count_ones() as usize) {
-                out.push(pick.and_then(|(index, pmf)| {
-                    let light = &self.lights[index];
-                    let Light::Triangle { n, le, .. } = *light else { return None };
-                    let s = samples.get(lane, le, n)?;
-                    Some((index, self.on_emitter(light, s)?, pmf))
-                }));
-            }
+            out.lanes.push(avx2.triangle_samples(&lanes));
         }
     }
 
@@ -819,14 +840,14 @@ mod tests {
                 )
             })
         };
-        let mut got = Vec::new();
+        let mut got = LightBatch::default();
         scene.sample_light_at_many(queries.iter().copied(), LightSampling::Area, &mut got);
-        assert_eq!(got.len(), queries.len());
+        assert!(got.get(scene, queries.len()).is_none());
         let mut found = 0;
-        for (&(p, u_select, u, time), g) in queries.iter().zip(&got) {
+        for (n, &(p, u_select, u, time)) in queries.iter().enumerate() {
             let ctx = LightSampleContext { p, n: Vec3A::ZERO };
             let want = scene.sample_light_at(&ctx, u_select, u, LightSampling::Area, time);
-            assert_eq!(bits(g), bits(&want), "{p} {u_select} {u}");
+            assert_eq!(bits(&got.get(scene, n)), bits(&want), "{p} {u_select} {u}");
             found += usize::from(want.is_some());
         }
         assert!(found > queries.len() / 4 && found < queries.len() * 3 / 4, "{found} samples of {}", queries.len());

@@ -36,11 +36,11 @@ use super::geometry::{Ray, offset_ray_origin};
 use super::integrator::{
     PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, nee_with_light, sample_scatter_ahead,
 };
-use super::light::{LightLiSample, LightSampleContext};
+use super::light::LightSampleContext;
 use super::material::shade;
 use super::sampler::{BounceDraws, Replay, Sampler};
 use super::sampling::{CosineSample, cosine_hemisphere_many};
-use super::scene::{RenderScene, SurfaceInteraction};
+use super::scene::{LightBatch, RenderScene, SurfaceInteraction};
 use super::wide::{Avx2, SimdLevel};
 use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::film::SampleValue;
@@ -119,9 +119,6 @@ pub struct CameraStage<'a, F> {
     pub shutter: Option<&'a dyn Fn(f32) -> Camera>,
 }
 
-/// A light sample: light index, sample, selection pmf (`RenderScene::sample_light_at`).
-type LightSample = (usize, LightLiSample, f32);
-
 /// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
 /// if the ray is unoccluded, `beta * 0` if it is not (as the scalar integrator adds).
 struct PendingShadow {
@@ -147,8 +144,8 @@ pub struct Wavefront<S> {
     rays: Vec<RayQuery>,
     hits: Vec<Option<Hit>>,
     surfaces: Vec<Option<SurfaceInteraction>>,
-    /// Each shading path's light sample, where they are sampled ahead in lanes.
-    light_samples: Vec<Option<LightSample>>,
+    /// The shading paths' light samples, where they are sampled ahead in lanes.
+    light_samples: LightBatch,
     shadows: Vec<PendingShadow>,
     shadow_rays: Vec<RayQuery>,
     blocked: Vec<bool>,
@@ -168,7 +165,7 @@ impl<S: Sampler> Default for Wavefront<S> {
             rays: Vec::with_capacity(BATCH),
             hits: Vec::with_capacity(BATCH),
             surfaces: Vec::with_capacity(BATCH),
-            light_samples: Vec::with_capacity(BATCH),
+            light_samples: LightBatch::default(),
             shadows: Vec::with_capacity(BATCH),
             shadow_rays: Vec::with_capacity(BATCH),
             blocked: Vec::with_capacity(BATCH),
@@ -290,7 +287,6 @@ impl<S: Sampler + Clone> Wavefront<S> {
             // lights allow (`RenderScene::samples_lights_in_lanes`): from the numbers a non-delta
             // vertex samples its light with (`BOUNCE_1D[1]`, `BOUNCE_2D[0]`) and the hit point
             // (all a light sample reads of the vertex).
-            self.light_samples.clear();
             let ahead = scene.samples_lights_in_lanes(params.light_sampling);
             if ahead {
                 let (paths, live, surfaces) = (&self.paths, &self.live, &self.surfaces);
@@ -308,7 +304,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut self.paths[i as usize];
-                let light = self.light_samples.get(n).filter(|_| ahead);
+                let light = ahead.then_some((&self.light_samples, n));
                 let pending = scatter(scene, params, path, si, draws, cosine, light);
                 if let Some((ray, shadow)) = pending.shadow {
                     self.shadow_rays.push(ray);
@@ -405,7 +401,7 @@ fn scatter<S: Sampler>(
     si: &SurfaceInteraction,
     draws: &BounceDraws,
     cosine: &CosineSample,
-    light: Option<&Option<LightSample>>,
+    light: Option<(&LightBatch, usize)>,
 ) -> Bounce {
     let done = Bounce { shadow: None, alive: false };
     let time = path.time;
@@ -423,7 +419,7 @@ fn scatter<S: Sampler>(
         let u = sampler.get_2d();
         let nee = match light {
             // Sampled ahead with these numbers.
-            Some(light) => light.and_then(|light| nee_with_light(scene, &sh, wo, light, params)),
+            Some((batch, n)) => batch.get(scene, n).and_then(|light| nee_with_light(scene, &sh, wo, light, params)),
             None => nee_sample(scene, si.p, &sh, wo, u_select, u, params, time),
         };
         match nee {
