@@ -253,7 +253,7 @@ impl LightLanes {
     }
 }
 
-/// The outcome of [`LightLanes`]: [`TriangleSample`]'s values per lane.
+/// The outcome of [`LightLanes`]: `TriangleSample`'s values per lane.
 pub struct LightLaneSamples {
     pub ok: u32,
     pub b: [[f32; 8]; 3],
