@@ -177,6 +177,10 @@ fn cases() -> Vec<Case> {
     add("gltf mirror", &glb_scene(&demo::gltf_mirror_glb()), settings(16, 4, default_path()), None);
     add("mis plates", &glb_scene(&demo::mis_glb()), settings(16, 4, default_path()), None);
     add("textured microfacet layers alpha", &textured_microfacet_scene(), settings(24, 6, default_path()), None);
+    // Area sampling: where every light is a triangle, the lights are sampled in lanes, here
+    // with alpha-cut and textured surfaces.
+    let area = path(8, 5, MisHeuristic::Power, LightSampling::Area);
+    add("textured microfacet layers alpha, area", &textured_microfacet_scene(), settings(24, 6, area), None);
     add("point spot directional", &punctual_lights_scene(), settings(24, 6, default_path()), None);
     let mut env = settings(16, 4, default_path());
     env.environment =
