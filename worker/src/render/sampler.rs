@@ -522,16 +522,27 @@ impl Sampler for SobolSampler {
                     (seeds2[k][0][lane], seeds2[k][1][lane], seeds2[k][2][lane]) = (two[k][0], two[k][1], two[k][2]);
                 }
             }
-            let (x1, (x2, y2)) = avx2.run(|| {
-                let x1 = seeds1.map(|[a, b]| avx2.sobol_x(&index, &a, &b));
-                let xy2 = seeds2.map(|[a, b, c]| avx2.sobol_xy(&index, &a, &b, &c));
-                (x1, (xy2.map(|v| v.0), xy2.map(|v| v.1)))
+            // Row `r` of the requests' values (lanes), transposed: lane `i`'s 8 numbers in a
+            // row (4 1D, then 2 2D).
+            let by_lane = avx2.run(|| {
+                let (x20, y20) = avx2.sobol_xy(&index, &seeds2[0][0], &seeds2[0][1], &seeds2[0][2]);
+                let (x21, y21) = avx2.sobol_xy(&index, &seeds2[1][0], &seeds2[1][1], &seeds2[1][2]);
+                avx2.transpose8x8(&[
+                    avx2.sobol_x(&index, &seeds1[0][0], &seeds1[0][1]),
+                    avx2.sobol_x(&index, &seeds1[1][0], &seeds1[1][1]),
+                    avx2.sobol_x(&index, &seeds1[2][0], &seeds1[2][1]),
+                    avx2.sobol_x(&index, &seeds1[3][0], &seeds1[3][1]),
+                    x20,
+                    y20,
+                    x21,
+                    y21,
+                ])
             });
-            for (lane, s) in chunk.iter().enumerate() {
+            for (s, v) in chunk.iter().zip(&by_lane) {
                 out.push(BounceDraws {
                     base: s.dim,
-                    d1: x1.map(|x| x[lane]),
-                    d2: [0, 1].map(|k| Vec2::new(x2[k][lane], y2[k][lane])),
+                    d1: [v[0], v[1], v[2], v[3]],
+                    d2: [Vec2::new(v[4], v[5]), Vec2::new(v[6], v[7])],
                 });
             }
         }

@@ -158,6 +158,21 @@ impl NodeTest for Avx2 {
 }
 
 impl Avx2 {
+    /// The 8 x 8 matrix of rows `m`, transposed (row `i` of the result: element `i` of every
+    /// row). Data movement only.
+    #[inline(always)]
+    pub fn transpose8x8(self, m: &[[f32; 8]; 8]) -> [[f32; 8]; 8] {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe {
+            transpose8x8_avx(m)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        std::array::from_fn(|i| std::array::from_fn(|j| m[j][i]))
+    }
+}
+
+impl Avx2 {
     /// The first coordinate of 8 Owen-scrambled Sobol requests ([`super::sampler::SobolSampler`]'s
     /// `x` of `get_1d` and `get_2d`) from each lane's sample index and its two request
     /// seeds: `nested_uniform_scramble(sobol_dim0(nested_uniform_scramble(index, s1)), s2)`, as
@@ -574,6 +589,59 @@ pub fn offset_along(p: Vec3A, n: Vec3A) -> Vec3A {
     Vec3A::from(out)
 }
 
+/// [`Avx2::transpose8x8`]: unpack pairs, then quads, then swap the 128-bit halves.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+fn transpose8x8_avx(m: &[[f32; 8]; 8]) -> [[f32; 8]; 8] {
+    use std::arch::x86_64::*;
+    // SAFETY (loads and stores): unaligned accesses to rows of 8 f32. No closures (see
+    // `accel::Sheared::new`).
+    let r = unsafe {
+        [
+            _mm256_loadu_ps(m[0].as_ptr()),
+            _mm256_loadu_ps(m[1].as_ptr()),
+            _mm256_loadu_ps(m[2].as_ptr()),
+            _mm256_loadu_ps(m[3].as_ptr()),
+            _mm256_loadu_ps(m[4].as_ptr()),
+            _mm256_loadu_ps(m[5].as_ptr()),
+            _mm256_loadu_ps(m[6].as_ptr()),
+            _mm256_loadu_ps(m[7].as_ptr()),
+        ]
+    };
+    let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+    let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+    let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+    let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+    let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+    let s0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+    let s1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+    let s2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+    let s3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+    let s4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+    let s5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+    let s6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+    let s7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+    let out = [
+        _mm256_permute2f128_ps::<0x20>(s0, s4),
+        _mm256_permute2f128_ps::<0x20>(s1, s5),
+        _mm256_permute2f128_ps::<0x20>(s2, s6),
+        _mm256_permute2f128_ps::<0x20>(s3, s7),
+        _mm256_permute2f128_ps::<0x31>(s0, s4),
+        _mm256_permute2f128_ps::<0x31>(s1, s5),
+        _mm256_permute2f128_ps::<0x31>(s2, s6),
+        _mm256_permute2f128_ps::<0x31>(s3, s7),
+    ];
+    let mut t = [[0.0f32; 8]; 8];
+    for (row, v) in t.iter_mut().zip(out) {
+        unsafe { _mm256_storeu_ps(row.as_mut_ptr(), v) };
+    }
+    t
+}
+
 /// The scalar form of the Sobol kernels (the sampler's own functions).
 #[cfg(any(test, not(target_arch = "x86_64")))]
 fn sobol_scalar(index: u32, s1: u32, s2: u32, s3: Option<u32>) -> (u32, u32) {
@@ -831,6 +899,19 @@ mod tests {
             cases += 1;
         }
         assert!(cases > 20_000);
+    }
+
+    /// `transpose8x8` moves element `j` of row `i` to element `i` of row `j`.
+    #[test]
+    fn matrix_transpose_moves_each_element() {
+        let Some(avx2) = Avx2::new() else { return };
+        let m: [[f32; 8]; 8] = std::array::from_fn(|i| std::array::from_fn(|j| (i * 8 + j) as f32));
+        let t = avx2.transpose8x8(&m);
+        for i in 0..8 {
+            for j in 0..8 {
+                assert_eq!(t[j][i], m[i][j], "row {i} column {j}");
+            }
+        }
     }
 
     /// The 8-wide Sobol kernels give the scalar sampler's bits for many indices and seeds.
