@@ -22,7 +22,8 @@
 //! tests and packets (`accel`) trade it back up to 11.3k for less time; per-sample costs (the
 //! pixel hash, paths reset in place, seeds shared by a pixel's samples, the Sobol kernels'
 //! bit reversal and conversions in lanes) took it to 10.9k, the ray-origin offset in SSE2
-//! lanes to 10.6k and the light samples in lanes to 10.5k (and 0.057 to 0.053 s).
+//! lanes to 10.6k, the light samples in lanes to 10.5k and the bounce draws' transpose to
+//! 10.2k (0.058 to 0.051 s over the session that made these last steps).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
