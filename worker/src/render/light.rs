@@ -225,8 +225,6 @@ pub(super) struct TriangleSample<R: Real> {
 /// barycentrics. Lanes left unset hold zeros (a sample that is not `ok`).
 #[derive(Default)]
 pub struct LightLanes {
-    /// The lanes handed in (bits), set or not.
-    pub used: u32,
     pub v: [[[f32; 8]; 3]; 3],
     pub n: [[f32; 8]; 3],
     pub area: [f32; 8],
