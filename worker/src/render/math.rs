@@ -705,5 +705,16 @@ mod tests {
         check!("asin", |x, _y| asin(x));
         check!("acos", |x, _y| acos(x));
         check!("exp", |x, _y| exp(x));
+        check!("max", |x, y| Real::max(x, y));
+        // Every pair of the special values (zeros of both signs, NaN on either side).
+        let pairs: Vec<(f32, f32)> = special.iter().flat_map(|&x| special.iter().map(move |&y| (x, y))).collect();
+        for chunk in pairs.chunks(8) {
+            let xs: [f32; 8] = std::array::from_fn(|i| chunk.get(i).map_or(0.0, |p| p.0));
+            let ys: [f32; 8] = std::array::from_fn(|i| chunk.get(i).map_or(0.0, |p| p.1));
+            let got = avx2.run(|| Real::max(avx2.f32x8(&xs), avx2.f32x8(&ys)).to_array());
+            for i in 0..8 {
+                assert_eq!(got[i].to_bits(), Real::max(xs[i], ys[i]).to_bits(), "max at {:?}", (xs[i], ys[i]));
+            }
+        }
     }
 }

@@ -512,6 +512,13 @@ mod lanes {
         fn select(m: M32x8, a: Self, b: Self) -> Self {
             F32x8(unsafe { _mm256_blendv_ps(b.0, a.0, m.0) })
         }
+        /// One `vmaxps`: `_mm256_max_ps(a, b)` is `a > b ? a : b` in each lane (`b` where either
+        /// is NaN or both are zeros), so `max_ps(o, self)` is the trait's `self < o ? o : self`,
+        /// bit for bit.
+        #[inline(always)]
+        fn max(self, o: Self) -> Self {
+            F32x8(unsafe { _mm256_max_ps(o.0, self.0) })
+        }
     }
 }
 
