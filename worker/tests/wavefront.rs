@@ -102,6 +102,50 @@ fn textured_microfacet_scene() -> Scene {
     scene
 }
 
+/// The Cornell box's diffuse materials as plain Lambertian BSDFs in every form the wavefront
+/// bounces in lanes (glTF with factors 0, the Lambert model, double-sided, vertex colours),
+/// beside a mirror and a rough metal that it bounces one at a time. Every other mesh has its
+/// winding reversed and is double-sided: its faces are seen from their backs (the normals
+/// turned to the viewer, the shading normal then on the wrong side and replaced).
+fn lambert_scene() -> Scene {
+    let mut scene = file_scene(&reference().join("cornell_mitsuba.glb"));
+    for (k, m) in scene.materials.iter_mut().enumerate() {
+        if m.emissive.max_element() > 0.0 {
+            continue;
+        }
+        match k % 4 {
+            0 => m.model = MaterialModel::Lambert,
+            1 => m.double_sided = true,
+            2 => {
+                m.metallic = 1.0;
+                m.roughness = 0.4;
+                m.specular_factor = 1.0;
+            }
+            _ => m.model = MaterialModel::Mirror,
+        }
+    }
+    let lights: Vec<bool> = scene.materials.iter().map(|m| m.emissive.max_element() > 0.0).collect();
+    for (i, mesh) in scene.meshes.iter_mut().enumerate() {
+        if i % 2 == 0 {
+            mesh.colors =
+                Some(mesh.positions.iter().map(|p| Vec4::new(0.5 + 0.4 * p.x, 0.8, 0.6 + 0.3 * p.y, 1.0)).collect());
+        } else if !lights[mesh.material] {
+            for t in &mut mesh.indices {
+                t.swap(1, 2);
+            }
+        }
+    }
+    // The reversed meshes' materials (and so some others') are double-sided.
+    let reversed: Vec<usize> =
+        scene.meshes.iter().enumerate().filter(|(i, _)| i % 2 == 1).map(|(_, m)| m.material).collect();
+    for k in reversed {
+        if !lights[k] {
+            scene.materials[k].double_sided = true;
+        }
+    }
+    scene
+}
+
 /// The Cornell box with a point, a spot and a directional light besides its area light.
 fn punctual_lights_scene() -> Scene {
     let mut scene = file_scene(&reference().join("cornell_mitsuba.glb"));
@@ -180,7 +224,15 @@ fn cases() -> Vec<Case> {
     // Area sampling: where every light is a triangle, the lights are sampled in lanes, here
     // with alpha-cut and textured surfaces.
     let area = path(8, 5, MisHeuristic::Power, LightSampling::Area);
-    add("textured microfacet layers alpha, area", &textured_microfacet_scene(), settings(24, 6, area), None);
+    add("textured microfacet layers alpha, area", &textured_microfacet_scene(), settings(24, 6, area.clone()), None);
+    add("plain lambert, area", &lambert_scene(), settings(24, 6, area.clone()), None);
+    add(
+        "plain lambert, balance, roulette from 1",
+        &lambert_scene(),
+        settings(24, 6, path(0, 1, MisHeuristic::Balance, LightSampling::Area)),
+        None,
+    );
+    add("spheres (mirror, glass), area", &spheres, settings(24, 6, area), None);
     add("point spot directional", &punctual_lights_scene(), settings(24, 6, default_path()), None);
     let mut env = settings(16, 4, default_path());
     env.environment =

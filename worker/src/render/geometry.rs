@@ -88,17 +88,17 @@ pub(super) const OFFSET_INT_SCALE: f32 = 256.0;
 /// there are no lanes.
 #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
 pub(super) fn offset_along(p: Vec3A, n: Vec3A) -> Vec3A {
-    let of_i = [(OFFSET_INT_SCALE * n.x) as i32, (OFFSET_INT_SCALE * n.y) as i32, (OFFSET_INT_SCALE * n.z) as i32];
-    let pa = p.to_array();
-    let na = n.to_array();
-    let mut out = [0.0f32; 3];
-    for k in 0..3 {
-        let bits = pa[k].to_bits() as i32;
-        let moved =
-            f32::from_bits(bits.wrapping_add(if pa[k] < 0.0 { of_i[k].wrapping_neg() } else { of_i[k] }) as u32);
-        out[k] = if pa[k].abs() < OFFSET_ORIGIN { pa[k] + OFFSET_FLOAT_SCALE * na[k] } else { moved };
-    }
-    Vec3A::from_array(out)
+    Vec3A::new(offset_component(p.x, n.x), offset_component(p.y, n.y), offset_component(p.z, n.z))
+}
+
+/// One component of [`offset_along`]: `p` moved by `(OFFSET_INT_SCALE n) as i32` ULPs away
+/// from zero's side of `n`, or by `OFFSET_FLOAT_SCALE n` where `|p| < OFFSET_ORIGIN`.
+#[inline]
+pub(super) fn offset_component(p: f32, n: f32) -> f32 {
+    let of_i = (OFFSET_INT_SCALE * n) as i32;
+    let bits = p.to_bits() as i32;
+    let moved = f32::from_bits(bits.wrapping_add(if p < 0.0 { of_i.wrapping_neg() } else { of_i }) as u32);
+    if p.abs() < OFFSET_ORIGIN { p + OFFSET_FLOAT_SCALE * n } else { moved }
 }
 
 /// Offsets both ends of a segment and returns (origin, direction, max t) for a shadow ray

@@ -73,6 +73,9 @@ pub trait Real:
     fn eq(self, o: Self) -> Self::Mask;
     /// `a` where `m` holds, else `b`.
     fn select(m: Self::Mask, a: Self, b: Self) -> Self;
+    /// The ray-origin offset of one coordinate `self` along the normal's component `n`
+    /// (`super::geometry::offset_component`: integer ULPs, a fixed step near the origin).
+    fn offset_along(self, n: Self) -> Self;
 
     #[inline(always)]
     fn gt(self, o: Self) -> Self::Mask {
@@ -153,6 +156,10 @@ impl Real for f32 {
     #[inline(always)]
     fn eq(self, o: Self) -> bool {
         self == o
+    }
+    #[inline(always)]
+    fn offset_along(self, n: Self) -> Self {
+        super::geometry::offset_component(self, n)
     }
     #[inline(always)]
     fn select(m: bool, a: Self, b: Self) -> Self {
@@ -706,14 +713,19 @@ mod tests {
         check!("acos", |x, _y| acos(x));
         check!("exp", |x, _y| exp(x));
         check!("max", |x, y| Real::max(x, y));
+        check!("offset", |x, y| Real::offset_along(x, y));
+        check!("offset of small numbers", |x, y| Real::offset_along(x * x.splat(1e-3), y));
         // Every pair of the special values (zeros of both signs, NaN on either side).
         let pairs: Vec<(f32, f32)> = special.iter().flat_map(|&x| special.iter().map(move |&y| (x, y))).collect();
         for chunk in pairs.chunks(8) {
             let xs: [f32; 8] = std::array::from_fn(|i| chunk.get(i).map_or(0.0, |p| p.0));
             let ys: [f32; 8] = std::array::from_fn(|i| chunk.get(i).map_or(0.0, |p| p.1));
             let got = avx2.run(|| Real::max(avx2.f32x8(&xs), avx2.f32x8(&ys)).to_array());
+            let offset = avx2.run(|| Real::offset_along(avx2.f32x8(&xs), avx2.f32x8(&ys)).to_array());
             for i in 0..8 {
                 assert_eq!(got[i].to_bits(), Real::max(xs[i], ys[i]).to_bits(), "max at {:?}", (xs[i], ys[i]));
+                let want = Real::offset_along(xs[i], ys[i]);
+                assert_eq!(offset[i].to_bits(), want.to_bits(), "offset at {:?}", (xs[i], ys[i]));
             }
         }
     }

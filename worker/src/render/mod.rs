@@ -10,6 +10,7 @@ pub mod chi2;
 pub mod geometry;
 pub mod igi;
 pub mod integrator;
+pub mod lambert;
 pub mod light;
 pub mod material;
 pub mod math;

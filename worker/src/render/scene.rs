@@ -90,6 +90,8 @@ pub struct RenderScene {
     has_emission_texture: bool,
     /// Whether every light is a triangle and nothing moves (lights can be sampled in lanes).
     triangle_lights_only: bool,
+    /// Per material: whether it shades as a bare Lambertian ([`super::lambert::is_plain_lambert`]).
+    plain_lambert: Vec<bool>,
     pub center: Vec3A,
     pub radius: f32,
     /// Motion blur: where things are at shutter close (`None`: nothing moves).
@@ -270,10 +272,31 @@ impl RenderScene {
             has_alpha,
             has_emission_texture,
             triangle_lights_only,
+            plain_lambert: scene.materials.iter().map(super::lambert::is_plain_lambert).collect(),
             center,
             radius,
             motion,
         }
+    }
+
+    /// Whether some material shades as a bare Lambertian BSDF ([`RenderScene::plain_lambert_at`]).
+    pub fn has_plain_lambert(&self) -> bool {
+        self.plain_lambert.iter().any(|&p| p)
+    }
+
+    /// The reflectance of a hit whose material shades as a bare Lambertian BSDF
+    /// ([`super::lambert`]) seen from `wo`: `shade`'s base colour (factor, no texture, times the
+    /// hit's colour). `None` for other materials, hits with tangents (their frame is not the
+    /// normal's alone), and the back of one-sided materials (no BSDF there).
+    #[inline]
+    pub fn plain_lambert_at(&self, si: &SurfaceInteraction, wo: Vec3A) -> Option<Vec3A> {
+        let m = self.materials.get(si.material as usize)?;
+        let plain = self.plain_lambert.get(si.material as usize).copied().unwrap_or(false);
+        if !plain || si.tangent.is_some() || !(m.double_sided || si.ng.dot(wo) > 0.0) {
+            return None;
+        }
+        use glam::Vec4Swizzles;
+        Some(Vec3A::from((m.base_color * glam::Vec4::ONE * si.color).xyz()))
     }
 
     /// Whether geometry moves during the shutter.

@@ -41,6 +41,7 @@ use super::geometry::{Ray, offset_ray_origin};
 use super::integrator::{
     PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, nee_with_light, sample_scatter_ahead,
 };
+use super::lambert::{LambertLanes, get3, set3};
 use super::light::LightSampleContext;
 use super::material::shade;
 use super::sampler::{BounceDraws, Replay, Sampler};
@@ -49,6 +50,7 @@ use super::scene::{LightBatch, RenderScene, SurfaceInteraction};
 use super::wide::{Avx2, SimdLevel};
 use glam::{UVec2, Vec2, Vec3A};
 use pathfarm_common::film::SampleValue;
+use pathfarm_common::job::MisHeuristic;
 
 /// Paths per batch: enough that a stage's loop runs long over warm code and data, few enough
 /// that the batch's state (about 200 bytes a path) stays in the L2 cache.
@@ -154,6 +156,9 @@ pub struct Wavefront<S> {
     shadows: Vec<PendingShadow>,
     shadow_rays: Vec<RayQuery>,
     blocked: Vec<bool>,
+    /// The shading paths (positions in `shading`) at plain Lambertian hits, with their
+    /// reflectance, bounced 8 at a time in lanes ([`super::lambert`]).
+    lambert: Vec<(u32, Vec3A)>,
 }
 
 impl<S: Sampler> Default for Wavefront<S> {
@@ -174,6 +179,7 @@ impl<S: Sampler> Default for Wavefront<S> {
             shadows: Vec::with_capacity(BATCH),
             shadow_rays: Vec::with_capacity(BATCH),
             blocked: Vec::with_capacity(BATCH),
+            lambert: Vec::with_capacity(BATCH),
         }
     }
 }
@@ -301,14 +307,28 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 });
                 scene.sample_light_at_many(queries, params.light_sampling, &mut self.light_samples);
             }
-            // Shading stage: BSDF, light sample, scattering, roulette.
+            // Shading stage: BSDF, light sample, scattering, roulette. Paths at plain Lambertian
+            // hits go 8 at a time in lanes where their light samples were taken ahead (the same
+            // bits: `lambert` is written once for both); the others one at a time.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
+            self.lambert.clear();
+            let lanes = (ahead
+                && scene.has_plain_lambert()
+                && matches!(params.mis, MisHeuristic::Power | MisHeuristic::Balance))
+            .then(|| Avx2::new().filter(|_| scene.simd_level() == SimdLevel::Avx2))
+            .flatten();
             for (n, ((&k, draws), cosine)) in self.shading.iter().zip(&self.draws).zip(&self.cosines).enumerate() {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut self.paths[i as usize];
+                if lanes.is_some()
+                    && let Some(r) = scene.plain_lambert_at(si, -path.ray.d)
+                {
+                    self.lambert.push((n as u32, r));
+                    continue;
+                }
                 let light = ahead.then_some((&self.light_samples, n));
                 let pending = scatter(scene, params, path, si, draws, cosine, light);
                 if let Some((ray, shadow)) = pending.shadow {
@@ -318,6 +338,9 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 if pending.alive {
                     self.next_live.push(i);
                 }
+            }
+            if let Some(avx2) = lanes {
+                self.lambert_bounces(avx2, scene, params);
             }
             // Shadow stage.
             if !self.shadows.is_empty() {
@@ -331,6 +354,80 @@ impl<S: Sampler + Clone> Wavefront<S> {
         }
         for p in &mut self.paths {
             p.out.radiance = p.l.to_array();
+        }
+    }
+}
+
+impl<S: Sampler + Clone> Wavefront<S> {
+    /// The shading stage of the paths in `lambert`, 8 at a time in lanes: [`scatter`]'s effects
+    /// on each path, from [`super::lambert::bounce`] (the same bits).
+    #[inline(never)]
+    fn lambert_bounces(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
+        let power = params.mis == MisHeuristic::Power;
+        for chunk in self.lambert.chunks(8) {
+            let mut lanes = LambertLanes::default();
+            for (j, &(n, r)) in chunk.iter().enumerate() {
+                let k = self.shading[n as usize] as usize;
+                let path = &self.paths[self.live[k] as usize];
+                let Some(si) = self.surfaces[k].as_ref() else { continue };
+                let draws = &self.draws[n as usize];
+                set3(&mut lanes.p, j, si.p);
+                set3(&mut lanes.ng, j, si.ng);
+                set3(&mut lanes.ns, j, si.ns);
+                set3(&mut lanes.d, j, path.ray.d);
+                set3(&mut lanes.r, j, r);
+                set3(&mut lanes.beta, j, path.beta);
+                lanes.eta_scale[j] = path.eta_scale;
+                if let Some((_, ls, pmf)) = self.light_samples.get(scene, n as usize) {
+                    lanes.light[j] = 1.0;
+                    set3(&mut lanes.ls_l, j, ls.l);
+                    set3(&mut lanes.ls_wi, j, ls.wi);
+                    lanes.ls_pdf[j] = ls.pdf;
+                    lanes.pmf[j] = pmf;
+                    set3(&mut lanes.p_light, j, ls.p_light);
+                    // Triangle lights' samples all have their normal.
+                    set3(&mut lanes.n_light, j, ls.n_light.unwrap_or(Vec3A::ZERO));
+                }
+                set3(&mut lanes.cosine, j, self.cosines[n as usize].w);
+                lanes.roulette[j] = if path.depth + 1 >= params.rr_depth { 1.0 } else { 0.0 };
+                lanes.u_rr[j] = draws.d1[3];
+            }
+            let out = avx2.lambert_bounces(&lanes, power);
+            for (j, &(n, r)) in chunk.iter().enumerate() {
+                let k = self.shading[n as usize] as usize;
+                let i = self.live[k];
+                let Some(si) = self.surfaces[k].as_ref() else { continue };
+                let base = self.draws[n as usize].base;
+                let path = &mut self.paths[i as usize];
+                if path.depth == 0 {
+                    path.out.albedo = r.to_array();
+                    path.out.normal = get3(&out.ns, j).to_array();
+                }
+                if out.shadow & (1 << j) != 0 {
+                    let (o, d) = (get3(&out.shadow_o, j), get3(&out.shadow_d, j));
+                    self.shadow_rays.push(RayQuery { o, d, t_max: out.shadow_t_max[j], time: path.time });
+                    self.shadows.push(PendingShadow {
+                        path: i,
+                        beta: path.beta,
+                        contribution: get3(&out.contribution, j),
+                    });
+                } else {
+                    path.l += path.beta * Vec3A::ZERO;
+                }
+                if out.alive & (1 << j) == 0 {
+                    continue;
+                }
+                // The numbers the bounce read: 7, and roulette's.
+                let roulette = path.depth + 1 >= params.rr_depth;
+                path.sampler.set_dimension(base + if roulette { 8 } else { 7 });
+                path.beta = get3(&out.beta, j);
+                path.specular_bounce = false;
+                path.prev_bsdf_pdf = out.pdf[j];
+                path.prev_ctx = LightSampleContext { p: si.p, n: get3(&out.ng, j) };
+                path.depth += 1;
+                path.ray = Ray::new(get3(&out.ray_o, j), get3(&out.ray_d, j));
+                self.next_live.push(i);
+            }
         }
     }
 }

@@ -512,6 +512,29 @@ mod lanes {
         fn select(m: M32x8, a: Self, b: Self) -> Self {
             F32x8(unsafe { _mm256_blendv_ps(b.0, a.0, m.0) })
         }
+        /// `super::super::geometry::offset_component` in lanes: the same operations as the SSE2
+        /// `super::offset_along`, 8 wide.
+        #[inline(always)]
+        fn offset_along(self, n: Self) -> Self {
+            use super::super::geometry::{OFFSET_FLOAT_SCALE, OFFSET_INT_SCALE, OFFSET_ORIGIN};
+            // SAFETY: this value exists, so the CPU has AVX2.
+            F32x8(unsafe {
+                let (p, n) = (self.0, n.0);
+                let s = _mm256_mul_ps(_mm256_set1_ps(OFFSET_INT_SCALE), n);
+                let s = _mm256_and_ps(s, _mm256_cmp_ps::<_CMP_ORD_Q>(s, s));
+                let big = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GE_OQ>(s, _mm256_set1_ps(2_147_483_648.0)));
+                let t = _mm256_cvttps_epi32(s);
+                let of_i =
+                    _mm256_or_si256(_mm256_and_si256(big, _mm256_set1_epi32(i32::MAX)), _mm256_andnot_si256(big, t));
+                let negative = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LT_OQ>(p, _mm256_setzero_ps()));
+                let offset = _mm256_sub_epi32(_mm256_xor_si256(of_i, negative), negative);
+                let moved = _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(p), offset));
+                let abs = _mm256_and_ps(p, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
+                let near = _mm256_cmp_ps::<_CMP_LT_OQ>(abs, _mm256_set1_ps(OFFSET_ORIGIN));
+                let nudged = _mm256_add_ps(p, _mm256_mul_ps(_mm256_set1_ps(OFFSET_FLOAT_SCALE), n));
+                _mm256_blendv_ps(moved, nudged, near)
+            })
+        }
         /// One `vmaxps`: `_mm256_max_ps(a, b)` is `a > b ? a : b` in each lane (`b` where either
         /// is NaN or both are zeros), so `max_ps(o, self)` is the trait's `self < o ? o : self`,
         /// bit for bit.
@@ -561,6 +584,21 @@ impl Avx2 {
             let _ = lanes;
             unreachable!("no AVX2 proof exists on this architecture")
         }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Avx2 {
+    /// [`super::lambert::lane_bounces`]: 8 plain Lambertian bounces, in a function compiled for
+    /// AVX2 (the scalar bounce's bits in every lane).
+    #[inline(always)]
+    pub fn lambert_bounces(self, lanes: &super::lambert::LambertLanes, power: bool) -> super::lambert::LambertLaneOut {
+        #[target_feature(enable = "avx2")]
+        fn kernel(avx2: Avx2, l: &super::lambert::LambertLanes, power: bool) -> super::lambert::LambertLaneOut {
+            super::lambert::lane_bounces(avx2, l, power)
+        }
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { kernel(self, lanes, power) }
     }
 }
 
