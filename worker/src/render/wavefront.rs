@@ -126,6 +126,14 @@ pub struct CameraStage<'a, F> {
     pub shutter: Option<&'a dyn Fn(f32) -> Camera>,
 }
 
+/// A path of [`Wavefront::lambert`].
+struct LambertPath {
+    n: u32,
+    path: u32,
+    k: u32,
+    r: Vec3A,
+}
+
 /// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
 /// if the ray is unoccluded, `beta * 0` if it is not (as the scalar integrator adds).
 struct PendingShadow {
@@ -156,9 +164,12 @@ pub struct Wavefront<S> {
     shadows: Vec<PendingShadow>,
     shadow_rays: Vec<RayQuery>,
     blocked: Vec<bool>,
-    /// The shading paths (positions in `shading`) at plain Lambertian hits, with their
-    /// reflectance, bounced 8 at a time in lanes ([`super::lambert`]).
-    lambert: Vec<(u32, Vec3A)>,
+    /// The shading paths at plain Lambertian hits (position in `shading`, path, position in
+    /// `live`) with their reflectance, bounced 8 at a time in lanes ([`super::lambert`]), and
+    /// the lanes' inputs (reused: lanes past a short chunk's end keep old values, and their
+    /// results are dropped).
+    lambert: Vec<LambertPath>,
+    lambert_lanes: Box<LambertLanes>,
 }
 
 impl<S: Sampler> Default for Wavefront<S> {
@@ -180,6 +191,7 @@ impl<S: Sampler> Default for Wavefront<S> {
             shadow_rays: Vec::with_capacity(BATCH),
             blocked: Vec::with_capacity(BATCH),
             lambert: Vec::with_capacity(BATCH),
+            lambert_lanes: Box::default(),
         }
     }
 }
@@ -326,7 +338,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 if lanes.is_some()
                     && let Some(r) = scene.plain_lambert_at(si, -path.ray.d)
                 {
-                    self.lambert.push((n as u32, r));
+                    self.lambert.push(LambertPath { n: n as u32, path: i, k, r });
                     continue;
                 }
                 let light = ahead.then_some((&self.light_samples, n));
@@ -365,20 +377,19 @@ impl<S: Sampler + Clone> Wavefront<S> {
     fn lambert_bounces(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
         let power = params.mis == MisHeuristic::Power;
         for chunk in self.lambert.chunks(8) {
-            let mut lanes = LambertLanes::default();
-            for (j, &(n, r)) in chunk.iter().enumerate() {
-                let k = self.shading[n as usize] as usize;
-                let path = &self.paths[self.live[k] as usize];
-                let Some(si) = self.surfaces[k].as_ref() else { continue };
-                let draws = &self.draws[n as usize];
+            let lanes = &mut *self.lambert_lanes;
+            for (j, l) in chunk.iter().enumerate() {
+                let path = &self.paths[l.path as usize];
+                let Some(si) = self.surfaces[l.k as usize].as_ref() else { continue };
                 set3(&mut lanes.p, j, si.p);
                 set3(&mut lanes.ng, j, si.ng);
                 set3(&mut lanes.ns, j, si.ns);
                 set3(&mut lanes.d, j, path.ray.d);
-                set3(&mut lanes.r, j, r);
+                set3(&mut lanes.r, j, l.r);
                 set3(&mut lanes.beta, j, path.beta);
                 lanes.eta_scale[j] = path.eta_scale;
-                if let Some((_, ls, pmf)) = self.light_samples.get(scene, n as usize) {
+                lanes.light[j] = 0.0;
+                if let Some((_, ls, pmf)) = self.light_samples.get(scene, l.n as usize) {
                     lanes.light[j] = 1.0;
                     set3(&mut lanes.ls_l, j, ls.l);
                     set3(&mut lanes.ls_wi, j, ls.wi);
@@ -388,16 +399,15 @@ impl<S: Sampler + Clone> Wavefront<S> {
                     // Triangle lights' samples all have their normal.
                     set3(&mut lanes.n_light, j, ls.n_light.unwrap_or(Vec3A::ZERO));
                 }
-                set3(&mut lanes.cosine, j, self.cosines[n as usize].w);
+                set3(&mut lanes.cosine, j, self.cosines[l.n as usize].w);
                 lanes.roulette[j] = if path.depth + 1 >= params.rr_depth { 1.0 } else { 0.0 };
-                lanes.u_rr[j] = draws.d1[3];
+                lanes.u_rr[j] = self.draws[l.n as usize].d1[3];
             }
-            let out = avx2.lambert_bounces(&lanes, power);
-            for (j, &(n, r)) in chunk.iter().enumerate() {
-                let k = self.shading[n as usize] as usize;
-                let i = self.live[k];
-                let Some(si) = self.surfaces[k].as_ref() else { continue };
-                let base = self.draws[n as usize].base;
+            let out = avx2.lambert_bounces(lanes, power);
+            for (j, l) in chunk.iter().enumerate() {
+                let (i, r) = (l.path, l.r);
+                let Some(si) = self.surfaces[l.k as usize].as_ref() else { continue };
+                let base = self.draws[l.n as usize].base;
                 let path = &mut self.paths[i as usize];
                 if path.depth == 0 {
                     path.out.albedo = r.to_array();

@@ -589,7 +589,7 @@ impl Avx2 {
 
 #[cfg(target_arch = "x86_64")]
 impl Avx2 {
-    /// [`super::lambert::lane_bounces`]: 8 plain Lambertian bounces, in a function compiled for
+    /// `super::lambert::lane_bounces`: 8 plain Lambertian bounces, in a function compiled for
     /// AVX2 (the scalar bounce's bits in every lane).
     #[inline(always)]
     pub fn lambert_bounces(self, lanes: &super::lambert::LambertLanes, power: bool) -> super::lambert::LambertLaneOut {
