@@ -23,7 +23,8 @@
 //! pixel hash, paths reset in place, seeds shared by a pixel's samples, the Sobol kernels'
 //! bit reversal and conversions in lanes) took it to 10.9k, the ray-origin offset in SSE2
 //! lanes to 10.6k, the light samples in lanes to 10.5k and the bounce draws' transpose to
-//! 10.2k (0.058 to 0.051 s over the session that made these last steps).
+//! 10.2k (0.058 to 0.051 s over the session that made these last steps); the plain Lambertian
+//! bounces in lanes ([`super::lambert`]) took it to 8.9k (0.766 to 0.718 s on `tiny long`).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
