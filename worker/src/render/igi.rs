@@ -25,11 +25,12 @@
 
 use super::accel::RayQuery;
 use super::bdpt::{Subpaths, VertexKind, light_subpath};
-use super::bsdf::Bsdf;
+use super::bsdf::{Bsdf, Bxdf};
 use super::camera::Camera;
 use super::geometry::{Ray, offset_ray_origin, shadow_segment};
 use super::integrator::{PathParams, sample_ld, sample_scatter};
 use super::material::{Shading, shade};
+use super::math::Real;
 use super::sampler::{AnySampler, Sampler, hash_u64};
 use super::scene::RenderScene;
 use glam::{UVec2, Vec3A};
@@ -115,7 +116,186 @@ pub struct Vpl {
 /// The VPL sets of one sample index.
 #[derive(Clone, Debug, Default)]
 pub struct VplSets {
-    pub sets: Vec<Vec<Vpl>>,
+    pub sets: Vec<VplSet>,
+}
+
+/// One VPL set, and its VPLs in lanes of 8 where every one of them is plain Lambertian: a
+/// shading point on a plain Lambertian surface then evaluates them 8 at a time ([`vpl_terms`]).
+#[derive(Clone, Debug, Default)]
+pub struct VplSet {
+    pub vpls: Vec<Vpl>,
+    lanes: Option<Vec<VplLanes>>,
+}
+
+/// Up to 8 VPLs as lanes (lane `i` is VPL `i` of the chunk; lanes past `count` are zeros):
+/// what [`vpl_terms`] reads of each.
+#[derive(Clone, Debug, Default)]
+pub struct VplLanes {
+    pub p: [[f32; 8]; 3],
+    pub ng: [[f32; 8]; 3],
+    pub ns: [[f32; 8]; 3],
+    pub ng_side: [[f32; 8]; 3],
+    /// The VPL's BSDF frame's normal, `wo` in that frame (its z), and `f` (`r / pi`).
+    pub z: [[f32; 8]; 3],
+    pub wo_z: [f32; 8],
+    pub f: [[f32; 8]; 3],
+    pub beta: [[f32; 8]; 3],
+    segments: [u32; 8],
+    count: usize,
+}
+
+impl VplLanes {
+    /// `set` in chunks of 8, or `None` if some VPL's BSDF is not a bare Lambertian.
+    fn of(set: &[Vpl]) -> Option<Vec<Self>> {
+        use super::lambert::set3;
+        set.chunks(8)
+            .map(|chunk| {
+                let mut l = Self { count: chunk.len(), ..Self::default() };
+                for (j, v) in chunk.iter().enumerate() {
+                    let r = lambert_reflectance(&v.bsdf)?;
+                    set3(&mut l.p, j, v.p);
+                    set3(&mut l.ng, j, v.ng);
+                    set3(&mut l.ns, j, v.ns);
+                    set3(&mut l.ng_side, j, v.ng_side);
+                    set3(&mut l.z, j, v.bsdf.frame.z);
+                    // `Bsdf::f`'s `to_local(wo).z` and `Bxdf::f`'s value.
+                    l.wo_z[j] = v.wo.dot(v.bsdf.frame.z);
+                    set3(&mut l.f, j, r * std::f32::consts::FRAC_1_PI);
+                    set3(&mut l.beta, j, v.beta);
+                    l.segments[j] = v.segments;
+                }
+                Some(l)
+            })
+            .collect()
+    }
+}
+
+/// The reflectance of a BSDF that is a bare Lambertian (no layers), else `None`.
+fn lambert_reflectance(b: &Bsdf) -> Option<Vec3A> {
+    match (b.bxdf, &b.layers) {
+        (Bxdf::Lambertian { r }, None) => Some(r),
+        _ => None,
+    }
+}
+
+/// The shading point of [`vpl_terms`]: position, geometric normal (toward the viewer), BSDF
+/// frame normal, `wo` in that frame (its z), `f` (`r / pi`), and the clamp of `G`.
+#[derive(Clone, Copy)]
+pub struct VplPoint<R> {
+    pub p: [R; 3],
+    pub ng: [R; 3],
+    pub z: [R; 3],
+    pub wo_z: R,
+    pub f: [R; 3],
+    pub g_limit: R,
+}
+
+/// 8 (or 1) VPLs' terms at a plain Lambertian point `x`, written once over [`Real`]: where the
+/// VPL lights `x` (`valid`, both on the right sides, `f` and the clamped `G` nonzero), its
+/// contribution `f(x) f(vpl) beta min(G, g_limit)` and the shadow segment; the scalar loop of
+/// `reflected` does the same f32 operations (glam's orders), so the lanes give its bits.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn vpl_terms<R: Real>(
+    x: &VplPoint<R>,
+    valid: R::Mask,
+    p: [R; 3],
+    ng: [R; 3],
+    ns: [R; 3],
+    ng_side: [R; 3],
+    z: [R; 3],
+    wo_z: R,
+    f: [R; 3],
+    beta: [R; 3],
+) -> VplTerm<R> {
+    use super::lambert::{dot, is_zero, neg, shadow_segment};
+    let zero = wo_z.splat(0.0);
+    let d = [p[0] - x.p[0], p[1] - x.p[1], p[2] - x.p[2]];
+    let d2 = dot(d, d);
+    let len = d2.sqrt();
+    let w = [d[0] / len, d[1] / len, d[2] / len];
+    let sides = !dot(w, x.ng).le(zero) & !dot(neg(w), ng_side).le(zero);
+    let wi_z = dot(w, x.z);
+    let f_x = !x.wo_z.eq(zero) & (x.wo_z * wi_z).gt(zero);
+    let wv_z = dot(neg(w), z);
+    let f_v = !wo_z.eq(zero) & (wo_z * wv_z).gt(zero);
+    let f = [
+        R::select(f_x, x.f[0], zero) * R::select(f_v, f[0], zero) * beta[0],
+        R::select(f_x, x.f[1], zero) * R::select(f_v, f[1], zero) * beta[1],
+        R::select(f_x, x.f[2], zero) * R::select(f_v, f[2], zero) * beta[2],
+    ];
+    let g = wi_z.abs() * dot(w, ns).abs() / d2;
+    // `f32::min`: the limit where `g` is NaN.
+    let g = R::select(g.lt(x.g_limit), g, x.g_limit);
+    let c = [f[0] * g, f[1] * g, f[2] * g];
+    let lit = valid & d2.gt(zero) & sides & !is_zero(f) & !is_zero(c);
+    let (o, d, t_max) = shadow_segment(x.p, x.ng, p, ng);
+    VplTerm { lit, c, o, d, t_max }
+}
+
+/// One VPL's term (or 8 in lanes): whether it lights the point, its contribution and shadow
+/// segment (origin, direction, max t).
+pub struct VplTerm<R: Real> {
+    pub lit: R::Mask,
+    pub c: [R; 3],
+    pub o: [R; 3],
+    pub d: [R; 3],
+    pub t_max: R,
+}
+
+/// What [`vpl_terms`] gives for 8 VPLs in lanes: where each lights the point (bits), and its
+/// contribution and shadow segment.
+pub struct VplTerms {
+    pub lit: u32,
+    pub c: [[f32; 8]; 3],
+    pub o: [[f32; 8]; 3],
+    pub d: [[f32; 8]; 3],
+    pub t_max: [f32; 8],
+}
+
+/// [`vpl_terms`] of the chunk `v` in AVX2 lanes (called from [`super::wide::Avx2::vpl_terms`]).
+/// No closures (see `accel::Sheared::new`).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(super) fn lane_vpl_terms(avx2: super::wide::Avx2, x: &VplPoint<f32>, v: &VplLanes, valid: u32) -> VplTerms {
+    use super::wide::F32x8;
+    #[inline(always)]
+    fn v3(avx2: super::wide::Avx2, a: &[[f32; 8]; 3]) -> [F32x8; 3] {
+        [avx2.f32x8(&a[0]), avx2.f32x8(&a[1]), avx2.f32x8(&a[2])]
+    }
+    #[inline(always)]
+    fn s3(l: F32x8, a: [f32; 3]) -> [F32x8; 3] {
+        [l.splat(a[0]), l.splat(a[1]), l.splat(a[2])]
+    }
+    let zero = avx2.f32x8(&[0.0; 8]);
+    let point = VplPoint {
+        p: s3(zero, x.p),
+        ng: s3(zero, x.ng),
+        z: s3(zero, x.z),
+        wo_z: zero.splat(x.wo_z),
+        f: s3(zero, x.f),
+        g_limit: zero.splat(x.g_limit),
+    };
+    let bits: [f32; 8] = std::array::from_fn(|i| if valid & (1 << i) != 0 { 1.0 } else { 0.0 });
+    let VplTerm { lit, c, o, d, t_max } = vpl_terms(
+        &point,
+        avx2.f32x8(&bits).gt(zero),
+        v3(avx2, &v.p),
+        v3(avx2, &v.ng),
+        v3(avx2, &v.ns),
+        v3(avx2, &v.ng_side),
+        v3(avx2, &v.z),
+        avx2.f32x8(&v.wo_z),
+        v3(avx2, &v.f),
+        v3(avx2, &v.beta),
+    );
+    VplTerms {
+        lit: lit.bits(),
+        c: [c[0].to_array(), c[1].to_array(), c[2].to_array()],
+        o: [o[0].to_array(), o[1].to_array(), o[2].to_array()],
+        d: [d[0].to_array(), d[1].to_array(), d[2].to_array()],
+        t_max: t_max.to_array(),
+    }
 }
 
 /// VPL sets by sample index, built on first use; the tiles of a pass share them.
@@ -140,7 +320,7 @@ impl VplCache {
                 }
                 let built = Arc::new(trace_vpls(scene, params, sampler, seed, s));
                 let mut map = self.0.lock().unwrap_or_else(|e| e.into_inner());
-                let count = |v: &VplSets| v.sets.iter().map(Vec::len).sum::<usize>();
+                let count = |v: &VplSets| v.sets.iter().map(|s| s.vpls.len()).sum::<usize>();
                 let mut total: usize = map.values().map(|v| count(v)).sum::<usize>() + count(&built);
                 while total > CACHED_VPLS {
                     let Some((_, old)) = map.pop_first() else { break };
@@ -190,7 +370,8 @@ pub fn trace_vpls(
                     });
                 }
             }
-            vpls
+            let lanes = VplLanes::of(&vpls);
+            VplSet { vpls, lanes }
         })
         .collect();
     VplSets { sets }
@@ -225,7 +406,7 @@ pub fn li_igi(
     scratch: &mut IgiScratch,
 ) -> SampleValue {
     let mut out = SampleValue::default();
-    let empty = Vec::new();
+    let empty = VplSet::default();
     let set = if vpls.sets.is_empty() {
         &empty
     } else {
@@ -284,7 +465,7 @@ fn reflected(
     segments: u32,
     sampler: &mut impl Sampler,
     params: &IgiParams,
-    set: &[Vpl],
+    set: &VplSet,
     recursion: u32,
     scratch: &mut IgiScratch,
 ) -> Vec3A {
@@ -301,7 +482,34 @@ fn reflected(
         // IGI refuses motion blur (see `Renderer::new`): the scene is at time 0.
         l += sample_ld(scene, p, sh, wo, sampler, &direct, 0.0);
     }
-    for vpl in set {
+    let lanes = set.lanes.as_ref().zip(lambert_reflectance(bsdf)).zip(scene.avx2());
+    if let Some(((chunks, r), avx2)) = lanes {
+        // 8 VPLs at a time (the scalar loop's bits, in its order).
+        let point = VplPoint {
+            p: p.to_array(),
+            ng: sh.ng.to_array(),
+            z: bsdf.frame.z.to_array(),
+            wo_z: wo.dot(bsdf.frame.z),
+            f: (r * std::f32::consts::FRAC_1_PI).to_array(),
+            g_limit: params.g_limit,
+        };
+        for chunk in chunks {
+            let valid = (0..chunk.count)
+                .filter(|&j| within(segments + 1 + chunk.segments[j]))
+                .fold(0u32, |bits, j| bits | 1 << j);
+            if valid == 0 {
+                continue;
+            }
+            let t = avx2.vpl_terms(&point, chunk, valid);
+            for j in (0..chunk.count).filter(|&j| t.lit & (1 << j) != 0) {
+                let get = |a: &[[f32; 8]; 3]| Vec3A::new(a[0][j], a[1][j], a[2][j]);
+                scratch.contributions.push(get(&t.c));
+                scratch.rays.push(RayQuery { o: get(&t.o), d: get(&t.d), t_max: t.t_max[j], time: 0.0 });
+            }
+        }
+    }
+    let one_by_one = if lanes.is_some() { &[][..] } else { &set.vpls[..] };
+    for vpl in one_by_one {
         if !within(segments + 1 + vpl.segments) {
             continue;
         }
@@ -353,7 +561,7 @@ fn compensation(
     segments: u32,
     sampler: &mut impl Sampler,
     params: &IgiParams,
-    set: &[Vpl],
+    set: &VplSet,
     recursion: u32,
     scratch: &mut IgiScratch,
 ) -> Vec3A {

@@ -85,12 +85,12 @@ pub struct LambertOut<R: Real> {
 
 /// glam's `Vec3A::dot`: `(x x' + y y') + z z'`.
 #[inline(always)]
-fn dot<R: Real>(a: [R; 3], b: [R; 3]) -> R {
+pub(super) fn dot<R: Real>(a: [R; 3], b: [R; 3]) -> R {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 #[inline(always)]
-fn neg<R: Real>(a: [R; 3]) -> [R; 3] {
+pub(super) fn neg<R: Real>(a: [R; 3]) -> [R; 3] {
     [-a[0], -a[1], -a[2]]
 }
 
@@ -101,7 +101,7 @@ fn select3<R: Real>(m: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
 
 /// Where all three are zero (glam's `== Vec3A::ZERO`).
 #[inline(always)]
-fn is_zero<R: Real>(a: [R; 3]) -> R::Mask {
+pub(super) fn is_zero<R: Real>(a: [R; 3]) -> R::Mask {
     let zero = a[0].splat(0.0);
     a[0].eq(zero) & a[1].eq(zero) & a[2].eq(zero)
 }
@@ -123,6 +123,18 @@ fn max_element<R: Real>(a: [R; 3]) -> R {
 fn offset_origin<R: Real>(p: [R; 3], ng: [R; 3], w: [R; 3]) -> [R; 3] {
     let n = select3(dot(ng, w).lt(p[0].splat(0.0)), neg(ng), ng);
     [p[0].offset_along(n[0]), p[1].offset_along(n[1]), p[2].offset_along(n[2])]
+}
+
+/// `geometry::shadow_segment(p0, n0, p1, Some(n1))`: both ends offset, the direction and the
+/// distance just short of the target.
+#[inline(always)]
+pub(super) fn shadow_segment<R: Real>(p0: [R; 3], n0: [R; 3], p1: [R; 3], n1: [R; 3]) -> ([R; 3], [R; 3], R) {
+    let seg = [p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]];
+    let o = offset_origin(p0, n0, seg);
+    let target = offset_origin(p1, n1, neg(seg));
+    let dir = [target[0] - o[0], target[1] - o[1], target[2] - o[2]];
+    let len = dot(dir, dir).sqrt();
+    (o, [dir[0] / len, dir[1] / len, dir[2] / len], len * len.splat(1.0 - 1e-4))
 }
 
 /// The bounce (see the module documentation). `power`: the power heuristic weighs the light
@@ -171,14 +183,7 @@ pub fn bounce<R: Real>(b: &LambertIn<R>, power: bool) -> LambertOut<R> {
     let w = R::select(infinite, one, R::select(light_pdf.gt(zero), heuristic, zero));
     let scale = w / light_pdf;
     let contribution = [f[0] * b.ls_l[0] * scale, f[1] * b.ls_l[1] * scale, f[2] * b.ls_l[2] * scale];
-    // `shadow_segment(p, ng, p_light, Some(n_light))`.
-    let seg = [b.p_light[0] - b.p[0], b.p_light[1] - b.p[1], b.p_light[2] - b.p[2]];
-    let shadow_o = offset_origin(b.p, ng, seg);
-    let target = offset_origin(b.p_light, b.n_light, neg(seg));
-    let dir = [target[0] - shadow_o[0], target[1] - shadow_o[1], target[2] - shadow_o[2]];
-    let len = dot(dir, dir).sqrt();
-    let shadow_d = [dir[0] / len, dir[1] / len, dir[2] / len];
-    let shadow_t_max = len * x.splat(1.0 - 1e-4);
+    let (shadow_o, shadow_d, shadow_t_max) = shadow_segment(b.p, ng, b.p_light, b.n_light);
 
     // `sample_scatter_ahead`: the cosine direction, mirrored below the surface.
     let pdf = b.cosine[2] * inv_pi;

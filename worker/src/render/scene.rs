@@ -350,6 +350,11 @@ impl RenderScene {
         self.accel.simd_level()
     }
 
+    /// The proof of AVX2 where the scene runs its AVX2 kernels (its SIMD level is AVX2).
+    pub fn avx2(&self) -> Option<super::wide::Avx2> {
+        (self.simd_level() == super::wide::SimdLevel::Avx2).then(super::wide::Avx2::new).flatten()
+    }
+
     /// Uses `level` for the ray queries where the CPU supports it; returns the level in use.
     pub fn set_simd_level(&mut self, level: super::wide::SimdLevel) -> super::wide::SimdLevel {
         self.accel.set_simd_level(level)

@@ -602,6 +602,31 @@ impl Avx2 {
     }
 }
 
+#[cfg(target_arch = "x86_64")]
+impl Avx2 {
+    /// `super::igi::lane_vpl_terms`: 8 VPLs' terms at a point, in a function compiled for AVX2
+    /// (the scalar terms' bits in every lane).
+    #[inline(always)]
+    pub fn vpl_terms(
+        self,
+        x: &super::igi::VplPoint<f32>,
+        v: &super::igi::VplLanes,
+        valid: u32,
+    ) -> super::igi::VplTerms {
+        #[target_feature(enable = "avx2")]
+        fn kernel(
+            avx2: Avx2,
+            x: &super::igi::VplPoint<f32>,
+            v: &super::igi::VplLanes,
+            valid: u32,
+        ) -> super::igi::VplTerms {
+            super::igi::lane_vpl_terms(avx2, x, v, valid)
+        }
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { kernel(self, x, v, valid) }
+    }
+}
+
 /// `super::geometry::offset_along` on the three components at once in SSE2 lanes (every
 /// x86-64 CPU has SSE2): the same multiplications and additions, Rust's saturating `as i32`
 /// (NaN to 0, beyond the range to its ends) and the same integer steps on the bits, so the
