@@ -91,9 +91,10 @@ const UNLIMITED_VERTICES: usize = 256;
 const MAX_SPECULAR_CHAIN: u32 = 64;
 /// Separates the VPL sampler's seed from the camera sampler's.
 const VPL_SEED_TAG: u64 = 0x1617_0001;
-/// VPLs kept in the cache (about 200 bytes each); the oldest sample indices go first. Units
-/// arrive pass by pass, so the cache mostly serves the tiles of the current pass.
-const CACHED_VPLS: usize = 1 << 21;
+/// Bytes of VPLs kept in the cache (`VplSets::bytes`: about 290 bytes a VPL, 380 with its
+/// lanes); the oldest sample indices go first. Units arrive pass by pass, so the cache mostly
+/// serves the tiles of the current pass.
+const CACHED_VPL_BYTES: usize = 512 << 20;
 
 /// A virtual point light: a light-path vertex on a non-specular surface.
 #[derive(Clone, Debug)]
@@ -117,6 +118,17 @@ pub struct Vpl {
 #[derive(Clone, Debug, Default)]
 pub struct VplSets {
     pub sets: Vec<VplSet>,
+}
+
+impl VplSets {
+    /// The memory the sets hold: their VPLs and lanes.
+    fn bytes(&self) -> usize {
+        let set = |s: &VplSet| {
+            s.vpls.len() * std::mem::size_of::<Vpl>()
+                + s.lanes.as_ref().map_or(0, |l| l.len() * std::mem::size_of::<VplLanes>())
+        };
+        self.sets.iter().map(set).sum()
+    }
 }
 
 /// One VPL set, and its VPLs in lanes of 8 where every one of them is plain Lambertian: a
@@ -320,11 +332,10 @@ impl VplCache {
                 }
                 let built = Arc::new(trace_vpls(scene, params, sampler, seed, s));
                 let mut map = self.0.lock().unwrap_or_else(|e| e.into_inner());
-                let count = |v: &VplSets| v.sets.iter().map(|s| s.vpls.len()).sum::<usize>();
-                let mut total: usize = map.values().map(|v| count(v)).sum::<usize>() + count(&built);
-                while total > CACHED_VPLS {
+                let mut total: usize = map.values().map(|v| v.bytes()).sum::<usize>() + built.bytes();
+                while total > CACHED_VPL_BYTES {
                     let Some((_, old)) = map.pop_first() else { break };
-                    total -= count(&old);
+                    total -= old.bytes();
                 }
                 map.entry(s).or_insert(built).clone()
             })
