@@ -292,7 +292,7 @@ impl V3Kernel for IntersectMany<'_> {
             // Too few for a packet: these rays one by one (without asking again from each).
             let end = i + n.max(1);
             for r in &rays[i..end] {
-                hits.push(accel.intersect_dispatch(avx2, &mut state, r.o, r.d, r.t_max, r.time));
+                hits.push(accel.intersect_dispatch(avx2, Some(&mut state), r.o, r.d, r.t_max, r.time));
             }
             i = end;
         }
@@ -317,7 +317,7 @@ impl V3Kernel for OccludedMany<'_> {
         // `tiny` and cost `tiny igi` 3.5% (its rays to the VPLs part at once; telling them
         // apart cost more than it saved).
         for r in rays {
-            blocked.push(accel.occluded_dispatch(avx2, &mut state, r.o, r.d, r.t_max, r.time));
+            blocked.push(accel.occluded_dispatch(avx2, Some(&mut state), r.o, r.d, r.t_max, r.time));
         }
     }
 }
@@ -452,8 +452,8 @@ impl Accel {
     #[inline]
     pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<Hit> {
         match self.avx2 {
-            Some(avx2) => avx2.run(|| self.intersect_dispatch(avx2, &mut Traversal::default(), o, d, t_max, time)),
-            None => self.intersect_dispatch(Baseline, &mut Traversal::default(), o, d, t_max, time),
+            Some(avx2) => avx2.run(|| self.intersect_dispatch(avx2, None, o, d, t_max, time)),
+            None => self.intersect_dispatch(Baseline, None, o, d, t_max, time),
         }
     }
 
@@ -461,7 +461,7 @@ impl Accel {
     fn intersect_dispatch<N: NodeTest>(
         &self,
         nodes: N,
-        state: &mut Traversal,
+        state: Option<&mut Traversal>,
         o: Vec3A,
         d: Vec3A,
         t_max: f32,
@@ -496,7 +496,7 @@ impl Accel {
     fn intersect_with<N: NodeTest, const KX: usize, const KY: usize, const KZ: usize>(
         &self,
         nodes: N,
-        state: &mut Traversal,
+        state: Option<&mut Traversal>,
         shear: RayShear<KX, KY, KZ>,
         o: Vec3A,
         d: Vec3A,
@@ -505,7 +505,18 @@ impl Accel {
     ) -> Option<Hit> {
         let bvh = self.bvh.as_ref()?;
         let mut ray = Ray::new(o, bvh_direction(d), 0.0, t_max);
-        restart(state, bvh, ray.direction);
+        // A batch's state restarted in place, or a fresh one for a single ray.
+        let mut fresh;
+        let state = match state {
+            Some(state) => {
+                restart(state, bvh, ray.direction);
+                state
+            }
+            None => {
+                fresh = bvh.new_traversal(ray.direction);
+                &mut fresh
+            }
+        };
         let mut node;
         let mut hit: Option<u32> = None;
         let mut best = (0.0f32, 0.0f32);
@@ -547,7 +558,7 @@ impl Accel {
             None => {
                 let mut state = Traversal::default();
                 for r in rays {
-                    hits.push(self.intersect_dispatch(Baseline, &mut state, r.o, r.d, r.t_max, r.time));
+                    hits.push(self.intersect_dispatch(Baseline, Some(&mut state), r.o, r.d, r.t_max, r.time));
                 }
             }
         }
@@ -610,7 +621,7 @@ impl Accel {
             None => {
                 let mut state = Traversal::default();
                 for r in rays {
-                    blocked.push(self.occluded_dispatch(Baseline, &mut state, r.o, r.d, r.t_max, r.time));
+                    blocked.push(self.occluded_dispatch(Baseline, Some(&mut state), r.o, r.d, r.t_max, r.time));
                 }
             }
         }
@@ -625,8 +636,8 @@ impl Accel {
     #[inline]
     pub fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
         match self.avx2 {
-            Some(avx2) => avx2.run(|| self.occluded_dispatch(avx2, &mut Traversal::default(), o, d, t_max, time)),
-            None => self.occluded_dispatch(Baseline, &mut Traversal::default(), o, d, t_max, time),
+            Some(avx2) => avx2.run(|| self.occluded_dispatch(avx2, None, o, d, t_max, time)),
+            None => self.occluded_dispatch(Baseline, None, o, d, t_max, time),
         }
     }
 
@@ -634,7 +645,7 @@ impl Accel {
     fn occluded_dispatch<N: NodeTest>(
         &self,
         nodes: N,
-        state: &mut Traversal,
+        state: Option<&mut Traversal>,
         o: Vec3A,
         d: Vec3A,
         t_max: f32,
@@ -653,7 +664,7 @@ impl Accel {
     fn occluded_with<N: NodeTest, const KX: usize, const KY: usize, const KZ: usize>(
         &self,
         nodes: N,
-        state: &mut Traversal,
+        state: Option<&mut Traversal>,
         shear: RayShear<KX, KY, KZ>,
         o: Vec3A,
         d: Vec3A,
@@ -662,7 +673,18 @@ impl Accel {
     ) -> bool {
         let Some(bvh) = self.bvh.as_ref() else { return false };
         let ray = Ray::new(o, bvh_direction(d), 0.0, t_max);
-        restart(state, bvh, ray.direction);
+        // A batch's state restarted in place, or a fresh one for a single ray.
+        let mut fresh;
+        let state = match state {
+            Some(state) => {
+                restart(state, bvh, ray.direction);
+                state
+            }
+            None => {
+                fresh = bvh.new_traversal(ray.direction);
+                &mut fresh
+            }
+        };
         let mut node;
         let mut blocked = false;
         let lanes = nodes.lanes().zip(self.soa.as_deref()).map(|(avx2, soa)| TriangleLanes { avx2, soa });
