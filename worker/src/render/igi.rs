@@ -612,3 +612,91 @@ fn compensation(
     }
     beta * reflected(scene, y.p, &sh_y, wo_y, segments + 1, sampler, params, set, recursion + 1, scratch)
 }
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+    use crate::render::wide::{Avx2, unit};
+
+    /// The 8-lane VPL terms (AVX2) are the `f32` terms in every lane, on random points, normals
+    /// and weights with zeros, NaN and infinities among them, VPLs at the point itself, and
+    /// lanes left invalid. (The `f32` terms are the scalar loop's: the renders' digests and the
+    /// baseline-against-AVX2 renders compare them.)
+    #[test]
+    fn lanes_are_the_scalar_vpl_terms() {
+        let Some(avx2) = Avx2::new() else { return };
+        let special = [0.0, -0.0, f32::NAN, f32::INFINITY, 1e-30, 1e30, 1.0, -1.0];
+        let value = |i: u64, k: u64| {
+            let u = unit(i * 61 + k);
+            if u < 0.03 {
+                special[(unit(i * 61 + k + 40) * special.len() as f32) as usize % special.len()]
+            } else {
+                u * 2.0 - 1.0
+            }
+        };
+        let bits = |x: f32| if x.is_nan() { f32::NAN.to_bits() } else { x.to_bits() };
+        let (mut compared, mut lit) = (0, 0);
+        for case in 0..3000u64 {
+            let v = |k: u64| value(case * 1000, k);
+            let v3 = |k: u64| [v(k), v(k + 1), v(k + 2)];
+            let up = if v(20) > -0.8 { [0.0, 0.0, 1.0] } else { v3(3) };
+            let point = VplPoint {
+                p: v3(0),
+                ng: up,
+                z: up,
+                wo_z: v(9).abs(),
+                f: v3(10).map(f32::abs),
+                g_limit: v(13).abs() * 5.0,
+            };
+            let mut lanes = VplLanes { count: 8, ..VplLanes::default() };
+            let valid = (unit(case) * 256.0) as u32 | 1;
+            for j in 0..8 {
+                let w = |k: u64| value(case * 1000 + 1 + j as u64, k);
+                let w3 = |k: u64| glam::Vec3A::new(w(k), w(k + 1), w(k + 2));
+                // Mostly above the point (its normals are +z) and facing it; now and then on
+                // the point itself.
+                let origin = glam::Vec3A::from_array(point.p);
+                let above = glam::Vec3A::new(w(0), w(1), w(2).abs() + 0.1);
+                let p = if w(30) > 0.95 { origin } else { origin + above };
+                let facing = -above + w3(3) * 0.3;
+                crate::render::lambert::set3(&mut lanes.p, j, p);
+                crate::render::lambert::set3(&mut lanes.ng, j, facing);
+                crate::render::lambert::set3(&mut lanes.ns, j, w3(6));
+                crate::render::lambert::set3(&mut lanes.ng_side, j, if w(31) > -0.8 { facing } else { w3(9) });
+                crate::render::lambert::set3(&mut lanes.z, j, if w(32) > -0.8 { facing } else { w3(12) });
+                lanes.wo_z[j] = if w(33) > -0.8 { w(15).abs() } else { w(15) };
+                crate::render::lambert::set3(&mut lanes.f, j, w3(16).abs());
+                crate::render::lambert::set3(&mut lanes.beta, j, w3(19).abs());
+            }
+            let got = avx2.vpl_terms(&point, &lanes, valid);
+            for j in 0..8 {
+                let l3 = |a: &[[f32; 8]; 3]| [a[0][j], a[1][j], a[2][j]];
+                let want = vpl_terms(
+                    &point,
+                    valid & (1 << j) != 0,
+                    l3(&lanes.p),
+                    l3(&lanes.ng),
+                    l3(&lanes.ns),
+                    l3(&lanes.ng_side),
+                    l3(&lanes.z),
+                    lanes.wo_z[j],
+                    l3(&lanes.f),
+                    l3(&lanes.beta),
+                );
+                let at = format!("case {case} lane {j}");
+                assert_eq!(got.lit & (1 << j) != 0, want.lit, "{at}: lit");
+                if want.lit {
+                    lit += 1;
+                    assert_eq!(l3(&got.c).map(bits), want.c.map(bits), "{at}: contribution");
+                    assert_eq!(l3(&got.o).map(bits), want.o.map(bits), "{at}: origin");
+                    assert_eq!(l3(&got.d).map(bits), want.d.map(bits), "{at}: direction");
+                    assert_eq!(bits(got.t_max[j]), bits(want.t_max), "{at}: t_max");
+                }
+                compared += 1;
+            }
+        }
+        assert_eq!(compared, 24_000);
+        // Enough of them light the point to compare the values too.
+        assert!(lit > 5000, "{lit} lit");
+    }
+}
