@@ -330,7 +330,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
             let lanes = (ahead
                 && scene.has_plain_lambert()
                 && matches!(params.mis, MisHeuristic::Power | MisHeuristic::Balance))
-            .then(|| Avx2::new().filter(|_| scene.simd_level() == SimdLevel::Avx2))
+            .then(|| scene.avx2())
             .flatten();
             for (n, ((&k, draws), cosine)) in self.shading.iter().zip(&self.draws).zip(&self.cosines).enumerate() {
                 let i = self.live[k as usize];
