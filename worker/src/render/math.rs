@@ -722,8 +722,14 @@ mod tests {
             let ys: [f32; 8] = std::array::from_fn(|i| chunk.get(i).map_or(0.0, |p| p.1));
             let got = avx2.run(|| Real::max(avx2.f32x8(&xs), avx2.f32x8(&ys)).to_array());
             let offset = avx2.run(|| Real::offset_along(avx2.f32x8(&xs), avx2.f32x8(&ys)).to_array());
+            let (x8, y8) = (avx2.f32x8(&xs), avx2.f32x8(&ys));
+            let (one, zero) = (x8.splat(1.0), x8.splat(0.0));
+            let le = super::super::wide::F32x8::select(x8.le(y8), one, zero).to_array();
+            let ge = super::super::wide::F32x8::select(x8.ge(y8), one, zero).to_array();
             for i in 0..8 {
                 assert_eq!(got[i].to_bits(), Real::max(xs[i], ys[i]).to_bits(), "max at {:?}", (xs[i], ys[i]));
+                assert_eq!(le[i] == 1.0, Real::le(xs[i], ys[i]), "le at {:?}", (xs[i], ys[i]));
+                assert_eq!(ge[i] == 1.0, Real::ge(xs[i], ys[i]), "ge at {:?}", (xs[i], ys[i]));
                 let want = Real::offset_along(xs[i], ys[i]);
                 assert_eq!(offset[i].to_bits(), want.to_bits(), "offset at {:?}", (xs[i], ys[i]));
             }

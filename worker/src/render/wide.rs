@@ -508,6 +508,16 @@ mod lanes {
         fn eq(self, o: Self) -> M32x8 {
             M32x8(unsafe { _mm256_cmp_ps::<_CMP_EQ_OQ>(self.0, o.0) })
         }
+        /// `_CMP_LE_OQ`: the trait's `lt | eq` in one instruction (false where either is NaN).
+        #[inline(always)]
+        fn le(self, o: Self) -> M32x8 {
+            M32x8(unsafe { _mm256_cmp_ps::<_CMP_LE_OQ>(self.0, o.0) })
+        }
+        /// `_CMP_GE_OQ`: the trait's `gt | eq` in one instruction (false where either is NaN).
+        #[inline(always)]
+        fn ge(self, o: Self) -> M32x8 {
+            M32x8(unsafe { _mm256_cmp_ps::<_CMP_GE_OQ>(self.0, o.0) })
+        }
         #[inline(always)]
         fn select(m: M32x8, a: Self, b: Self) -> Self {
             F32x8(unsafe { _mm256_blendv_ps(b.0, a.0, m.0) })
