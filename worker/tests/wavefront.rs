@@ -232,6 +232,7 @@ fn cases() -> Vec<Case> {
         settings(24, 6, path(0, 1, MisHeuristic::Balance, LightSampling::Area)),
         None,
     );
+    add("plain lambert, solid angle", &lambert_scene(), settings(24, 6, default_path()), None);
     add("spheres (mirror, glass), area", &spheres, settings(24, 6, area), None);
     add("point spot directional", &punctual_lights_scene(), settings(24, 6, default_path()), None);
     let mut env = settings(16, 4, default_path());

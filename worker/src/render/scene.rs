@@ -666,6 +666,12 @@ impl RenderScene {
         Some(s)
     }
 
+    /// Whether every light is a triangle and nothing moves: every light sample is then a point on
+    /// an area light with its normal (no delta, no light at infinity).
+    pub fn triangle_lights_only(&self) -> bool {
+        self.triangle_lights_only
+    }
+
     /// Whether [`RenderScene::sample_light_at_many`] samples this scene's lights in lanes: every
     /// light a triangle, none moving, area sampling, and a CPU with AVX2.
     pub fn samples_lights_in_lanes(&self, mode: LightSampling) -> bool {

@@ -321,13 +321,13 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 scene.sample_light_at_many(queries, params.light_sampling, &mut self.light_samples);
             }
             // Shading stage: BSDF, light sample, scattering, roulette. Paths at plain Lambertian
-            // hits go 8 at a time in lanes where their light samples were taken ahead (the same
-            // bits: `lambert` is written once for both); the others one at a time.
+            // hits go 8 at a time in lanes where every light is a triangle (the same bits:
+            // `lambert` is written once for both); the others one at a time.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
             self.lambert.clear();
-            let lanes = (ahead
+            let lanes = (scene.triangle_lights_only()
                 && scene.has_plain_lambert()
                 && matches!(params.mis, MisHeuristic::Power | MisHeuristic::Balance))
             .then(|| scene.avx2())
@@ -353,7 +353,11 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 }
             }
             if let Some(avx2) = lanes {
-                self.lambert_bounces(avx2, scene, params);
+                if ahead {
+                    self.lambert_bounces::<true>(avx2, scene, params);
+                } else {
+                    self.lambert_bounces::<false>(avx2, scene, params);
+                }
             }
             // Shadow stage.
             if !self.shadows.is_empty() {
@@ -375,7 +379,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
     /// The shading stage of the paths in `lambert`, 8 at a time in lanes: [`scatter`]'s effects
     /// on each path, from [`super::lambert::bounce`] (the same bits).
     #[inline(never)]
-    fn lambert_bounces(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
+    fn lambert_bounces<const AHEAD: bool>(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
         let power = params.mis == MisHeuristic::Power;
         for chunk in self.lambert.chunks(8) {
             let lanes = &mut *self.lambert_lanes;
@@ -390,7 +394,17 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 set3(&mut lanes.beta, j, path.beta);
                 lanes.eta_scale[j] = path.eta_scale;
                 lanes.light[j] = 0.0;
-                if let Some((_, ls, pmf)) = self.light_samples.get(scene, l.n as usize) {
+                // The light sample: taken ahead in lanes, or here as `nee_sample` takes it (from
+                // the normal `shade` turns toward the viewer).
+                let draws = &self.draws[l.n as usize];
+                let light = if AHEAD {
+                    self.light_samples.get(scene, l.n as usize)
+                } else {
+                    let ng = if si.ng.dot(-path.ray.d) > 0.0 { si.ng } else { -si.ng };
+                    let ctx = LightSampleContext { p: si.p, n: ng };
+                    scene.sample_light_at(&ctx, draws.d1[1], draws.d2[0], params.light_sampling, path.time)
+                };
+                if let Some((_, ls, pmf)) = light {
                     lanes.light[j] = 1.0;
                     set3(&mut lanes.ls_l, j, ls.l);
                     set3(&mut lanes.ls_wi, j, ls.wi);
@@ -402,7 +416,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 }
                 set3(&mut lanes.cosine, j, self.cosines[l.n as usize].w);
                 lanes.roulette[j] = if path.depth + 1 >= params.rr_depth { 1.0 } else { 0.0 };
-                lanes.u_rr[j] = self.draws[l.n as usize].d1[3];
+                lanes.u_rr[j] = draws.d1[3];
             }
             let out = avx2.lambert_bounces(lanes, power);
             for (j, l) in chunk.iter().enumerate() {
