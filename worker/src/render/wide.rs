@@ -320,10 +320,10 @@ impl Avx2 {
 
 #[cfg(target_arch = "x86_64")]
 impl Avx2 {
-    /// [`super::accel::trace_packet`]: the closest hits of a packet of up to 8 coherent rays, in
-    /// a function compiled for AVX2.
+    /// [`super::accel::trace_packet`]: the closest hits (`ANY`: whether anything is hit) of a
+    /// packet of up to 8 rays, in a function compiled for AVX2.
     #[inline(always)]
-    pub(super) fn trace_packet<const KX: usize, const KY: usize, const KZ: usize>(
+    pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
         self,
         accel: &super::accel::Accel,
         rays: &[super::accel::RayQuery],
@@ -333,16 +333,16 @@ impl Avx2 {
         // instructions).
         #[target_feature(enable = "avx2")]
         #[inline(never)]
-        fn kernel<const KX: usize, const KY: usize, const KZ: usize>(
+        fn kernel<const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
             avx2: Avx2,
             accel: &super::accel::Accel,
             rays: &[super::accel::RayQuery],
             hits: &mut Vec<Option<super::accel::Hit>>,
         ) -> bool {
-            super::accel::trace_packet::<KX, KY, KZ>(avx2, accel, rays, hits)
+            super::accel::trace_packet::<ANY, KX, KY, KZ>(avx2, accel, rays, hits)
         }
         // SAFETY: `self` proves the CPU has AVX2.
-        unsafe { kernel::<KX, KY, KZ>(self, accel, rays, hits) }
+        unsafe { kernel::<ANY, KX, KY, KZ>(self, accel, rays, hits) }
     }
 
     /// A box's interval test for 8 rays in lanes, from each ray's entry and exit distances of
