@@ -7,9 +7,9 @@ use super::geometry::Frame;
 use super::math;
 use super::math::Real;
 use super::sampling::{
-    Distribution2D, MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA, cosine_hemisphere_pdf,
-    sample_cosine_hemisphere, sample_spherical_triangle, sample_uniform_cone, sample_uniform_disk_concentric,
-    sample_uniform_sphere, sample_uniform_triangle, triangle_solid_angle, uniform_cone_pdf, uniform_sphere_pdf,
+    Distribution2D, MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA, SphericalTriangle, cosine_hemisphere_pdf,
+    sample_cosine_hemisphere, sample_uniform_cone, sample_uniform_disk_concentric, sample_uniform_sphere,
+    sample_uniform_triangle, uniform_cone_pdf, uniform_sphere_pdf,
 };
 use glam::{Vec2, Vec3A};
 use pathfarm_common::job::LightSampling;
@@ -189,10 +189,10 @@ pub struct LightLiSample {
 /// Whether a triangle of this solid angle is sampled by solid angle: Arvo's method loses
 /// precision on tiny and on huge spherical triangles, which are sampled by area instead (pbrt-v4's
 /// cut-offs). `sample_li` and `pdf_li` decide alike, so their densities always match.
-/// Returns the solid angle where it is used (computed only in solid-angle mode: area sampling
-/// never needs it).
+/// Returns the spherical triangle (its area the solid angle) where it is used (computed only in
+/// solid-angle mode: area sampling never needs it).
 #[inline(always)]
-fn use_solid_angle(mode: LightSampling, v: &[Vec3A; 3], p: Vec3A) -> Option<f32> {
+fn use_solid_angle(mode: LightSampling, v: &[Vec3A; 3], p: Vec3A) -> Option<SphericalTriangle> {
     if mode != LightSampling::SolidAngle {
         return None;
     }
@@ -202,10 +202,10 @@ fn use_solid_angle(mode: LightSampling, v: &[Vec3A; 3], p: Vec3A) -> Option<f32>
 /// The solid angle of `v` seen from `p`, where [`sample_spherical_triangle`] samples by it. Out
 /// of line: area sampling (inlined above) never calls it.
 #[inline(never)]
-fn solid_angle_in_range(v: &[Vec3A; 3], p: Vec3A) -> Option<f32> {
-    let solid_angle = triangle_solid_angle(*v, p);
-    (solid_angle.is_finite() && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&solid_angle))
-        .then_some(solid_angle)
+fn solid_angle_in_range(v: &[Vec3A; 3], p: Vec3A) -> Option<SphericalTriangle> {
+    // `p` at a vertex: a solid angle of 0, out of range.
+    let s = SphericalTriangle::new(*v, p)?;
+    (s.area.is_finite() && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&s.area)).then_some(s)
 }
 
 /// A point sampled on a triangle light as seen from a reference point, written once for one
@@ -373,8 +373,10 @@ impl Light {
                 infinite: true,
             }),
             Light::Triangle { v, n, area, le, two_sided, .. } => {
-                let (b, pdf_sa) = if use_solid_angle(mode, &v, ctx.p).is_some() {
-                    let (b, pdf) = sample_spherical_triangle(v, ctx.p, u)?;
+                // The projection made for the choice is the one sampled (`sample_spherical_triangle`
+                // would make it again).
+                let (b, pdf_sa) = if let Some(s) = use_solid_angle(mode, &v, ctx.p) {
+                    let (b, pdf) = s.sample(v, ctx.p, u)?;
                     (b, Some(pdf))
                 } else {
                     (sample_uniform_triangle(u), None)
@@ -430,8 +432,8 @@ impl Light {
         if !two_sided && cos_l <= 0.0 {
             return 0.0;
         }
-        if let Some(solid_angle) = use_solid_angle(mode, &v, ctx.p) {
-            1.0 / solid_angle
+        if let Some(s) = use_solid_angle(mode, &v, ctx.p) {
+            1.0 / s.area
         } else if cos_l == 0.0 {
             0.0
         } else {

@@ -218,11 +218,99 @@ pub fn spherical_triangle_area(a: Vec3A, b: Vec3A, c: Vec3A) -> f32 {
 /// [`MAX_SPHERICAL_SAMPLE_AREA`] to know which strategy [`sample_spherical_triangle`] used.
 #[inline]
 pub fn triangle_solid_angle(v: [Vec3A; 3], p: Vec3A) -> f32 {
-    let (a, b, c) = ((v[0] - p).normalize_or_zero(), (v[1] - p).normalize_or_zero(), (v[2] - p).normalize_or_zero());
-    if a == Vec3A::ZERO || b == Vec3A::ZERO || c == Vec3A::ZERO {
-        return 0.0;
+    SphericalTriangle::new(v, p).map_or(0.0, |s| s.area)
+}
+
+/// The triangle `v` projected onto the unit sphere around `p`: its vertices' directions and its
+/// area (the solid angle), made once for both the choice of strategy and the sample.
+#[derive(Clone, Copy, Debug)]
+pub struct SphericalTriangle {
+    a: Vec3A,
+    b: Vec3A,
+    c: Vec3A,
+    /// The solid angle ([`triangle_solid_angle`]).
+    pub area: f32,
+}
+
+impl SphericalTriangle {
+    /// `None` where `p` is a vertex.
+    #[inline]
+    pub fn new(v: [Vec3A; 3], p: Vec3A) -> Option<Self> {
+        let (a, b, c) =
+            ((v[0] - p).normalize_or_zero(), (v[1] - p).normalize_or_zero(), (v[2] - p).normalize_or_zero());
+        if a == Vec3A::ZERO || b == Vec3A::ZERO || c == Vec3A::ZERO {
+            return None;
+        }
+        Some(Self { a, b, c, area: spherical_triangle_area(a, b, c) })
     }
-    spherical_triangle_area(a, b, c)
+
+    /// [`sample_spherical_triangle`] of the triangle `v` seen from `p`, this its projection
+    /// (whatever its area).
+    pub fn sample(&self, v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f32; 3], f32)> {
+        let Self { a, b, c, area } = *self;
+        // Normals of the great circles through each pair of vertices.
+        let (n_ab, n_bc, n_ca) =
+            (a.cross(b).normalize_or_zero(), b.cross(c).normalize_or_zero(), c.cross(a).normalize_or_zero());
+        if n_ab == Vec3A::ZERO || n_bc == Vec3A::ZERO || n_ca == Vec3A::ZERO {
+            return None;
+        }
+        // The scalar part runs in f64: for thin or grazing triangles (an interior angle near 0 or
+        // pi) the closed form for cos b' cancels catastrophically in f32, and the sampled density
+        // visibly departs from uniform (see the barycentric chi-square tests).
+        use std::f64::consts::PI as PI64;
+        // Interior angles at the vertices.
+        let alpha = f64::from(angle_between(n_ab, -n_ca));
+        let beta = f64::from(angle_between(n_bc, -n_ab));
+        let gamma = f64::from(angle_between(n_ca, -n_bc));
+
+        // Uniformly sample the area A' of the sub-triangle (a, b, c'), as the angle sum A' + pi.
+        let ap_pi = PI64 + f64::from(u.x) * (alpha + beta + gamma - PI64);
+
+        // c' lies on the arc from a to c; b' is the length of the arc (a, c') (side opposite b).
+        let (sin_alpha, cos_alpha) = math::sin_cos_f64(alpha);
+        let (sin_ap, cos_ap) = math::sin_cos_f64(ap_pi);
+        let sin_phi = sin_ap * cos_alpha - cos_ap * sin_alpha;
+        let cos_phi = cos_ap * cos_alpha + sin_ap * sin_alpha;
+        let k1 = cos_phi + cos_alpha;
+        let k2 = sin_phi - sin_alpha * f64::from(a.dot(b));
+        let cos_bp = (k2 + (k2 * cos_phi - k1 * sin_phi) * cos_alpha) / ((k2 * sin_phi + k1 * cos_phi) * sin_alpha);
+        if !cos_bp.is_finite() {
+            return None;
+        }
+        let cos_bp = cos_bp.clamp(-1.0, 1.0);
+        let sin_bp = (1.0 - cos_bp * cos_bp).max(0.0).sqrt();
+        let cp = cos_bp as f32 * a + sin_bp as f32 * gram_schmidt(c, a).normalize_or_zero();
+
+        // Sample the arc from b towards c' uniformly in cos theta. 1 - cos theta is computed from the
+        // half-angle, 2 sin^2(theta / 2), which keeps its precision for short arcs.
+        let half = 0.5 * angle_between(b, cp.normalize_or_zero());
+        let sin_half = math::sin(half);
+        let one_minus_cos = u.y * 2.0 * sin_half * sin_half;
+        let cos_theta = 1.0 - one_minus_cos;
+        let sin_theta = safe_sqrt(one_minus_cos * (2.0 - one_minus_cos));
+        let w = cos_theta * b + sin_theta * gram_schmidt(cp, b).normalize_or_zero();
+
+        // Barycentrics of the ray (p, w) with the triangle (Moller-Trumbore).
+        let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
+        let s1 = w.cross(e2);
+        let divisor = s1.dot(e1);
+        if divisor == 0.0 || !divisor.is_finite() {
+            return None;
+        }
+        let inv_divisor = 1.0 / divisor;
+        let s = p - v[0];
+        let mut b1 = (s.dot(s1) * inv_divisor).clamp(0.0, 1.0);
+        let mut b2 = (w.dot(s.cross(e1)) * inv_divisor).clamp(0.0, 1.0);
+        if !(b1.is_finite() && b2.is_finite()) {
+            return None;
+        }
+        let sum = b1 + b2;
+        if sum > 1.0 {
+            b1 /= sum;
+            b2 /= sum;
+        }
+        Some(([(1.0 - b1 - b2).max(0.0), b1, b2], 1.0 / area))
+    }
 }
 
 /// Samples a direction from `p` uniformly in the solid angle subtended by the triangle `v`
@@ -234,77 +322,11 @@ pub fn triangle_solid_angle(v: [Vec3A; 3], p: Vec3A) -> f32 {
 /// its solid angle lies outside [`MIN_SPHERICAL_SAMPLE_AREA`, `MAX_SPHERICAL_SAMPLE_AREA`];
 /// the caller then samples by area.
 pub fn sample_spherical_triangle(v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f32; 3], f32)> {
-    let (a, b, c) = ((v[0] - p).normalize_or_zero(), (v[1] - p).normalize_or_zero(), (v[2] - p).normalize_or_zero());
-    if a == Vec3A::ZERO || b == Vec3A::ZERO || c == Vec3A::ZERO {
+    let s = SphericalTriangle::new(v, p)?;
+    if !(MIN_SPHERICAL_SAMPLE_AREA..=MAX_SPHERICAL_SAMPLE_AREA).contains(&s.area) {
         return None;
     }
-    let area = spherical_triangle_area(a, b, c);
-    if !(MIN_SPHERICAL_SAMPLE_AREA..=MAX_SPHERICAL_SAMPLE_AREA).contains(&area) {
-        return None;
-    }
-
-    // Normals of the great circles through each pair of vertices.
-    let (n_ab, n_bc, n_ca) =
-        (a.cross(b).normalize_or_zero(), b.cross(c).normalize_or_zero(), c.cross(a).normalize_or_zero());
-    if n_ab == Vec3A::ZERO || n_bc == Vec3A::ZERO || n_ca == Vec3A::ZERO {
-        return None;
-    }
-    // The scalar part runs in f64: for thin or grazing triangles (an interior angle near 0 or
-    // pi) the closed form for cos b' cancels catastrophically in f32, and the sampled density
-    // visibly departs from uniform (see the barycentric chi-square tests).
-    use std::f64::consts::PI as PI64;
-    // Interior angles at the vertices.
-    let alpha = f64::from(angle_between(n_ab, -n_ca));
-    let beta = f64::from(angle_between(n_bc, -n_ab));
-    let gamma = f64::from(angle_between(n_ca, -n_bc));
-
-    // Uniformly sample the area A' of the sub-triangle (a, b, c'), as the angle sum A' + pi.
-    let ap_pi = PI64 + f64::from(u.x) * (alpha + beta + gamma - PI64);
-
-    // c' lies on the arc from a to c; b' is the length of the arc (a, c') (side opposite b).
-    let (sin_alpha, cos_alpha) = math::sin_cos_f64(alpha);
-    let (sin_ap, cos_ap) = math::sin_cos_f64(ap_pi);
-    let sin_phi = sin_ap * cos_alpha - cos_ap * sin_alpha;
-    let cos_phi = cos_ap * cos_alpha + sin_ap * sin_alpha;
-    let k1 = cos_phi + cos_alpha;
-    let k2 = sin_phi - sin_alpha * f64::from(a.dot(b));
-    let cos_bp = (k2 + (k2 * cos_phi - k1 * sin_phi) * cos_alpha) / ((k2 * sin_phi + k1 * cos_phi) * sin_alpha);
-    if !cos_bp.is_finite() {
-        return None;
-    }
-    let cos_bp = cos_bp.clamp(-1.0, 1.0);
-    let sin_bp = (1.0 - cos_bp * cos_bp).max(0.0).sqrt();
-    let cp = cos_bp as f32 * a + sin_bp as f32 * gram_schmidt(c, a).normalize_or_zero();
-
-    // Sample the arc from b towards c' uniformly in cos theta. 1 - cos theta is computed from the
-    // half-angle, 2 sin^2(theta / 2), which keeps its precision for short arcs.
-    let half = 0.5 * angle_between(b, cp.normalize_or_zero());
-    let sin_half = math::sin(half);
-    let one_minus_cos = u.y * 2.0 * sin_half * sin_half;
-    let cos_theta = 1.0 - one_minus_cos;
-    let sin_theta = safe_sqrt(one_minus_cos * (2.0 - one_minus_cos));
-    let w = cos_theta * b + sin_theta * gram_schmidt(cp, b).normalize_or_zero();
-
-    // Barycentrics of the ray (p, w) with the triangle (Moller-Trumbore).
-    let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
-    let s1 = w.cross(e2);
-    let divisor = s1.dot(e1);
-    if divisor == 0.0 || !divisor.is_finite() {
-        return None;
-    }
-    let inv_divisor = 1.0 / divisor;
-    let s = p - v[0];
-    let mut b1 = (s.dot(s1) * inv_divisor).clamp(0.0, 1.0);
-    let mut b2 = (w.dot(s.cross(e1)) * inv_divisor).clamp(0.0, 1.0);
-    if !(b1.is_finite() && b2.is_finite()) {
-        return None;
-    }
-    let sum = b1 + b2;
-    if sum > 1.0 {
-        b1 /= sum;
-        b2 /= sum;
-    }
-    Some(([(1.0 - b1 - b2).max(0.0), b1, b2], 1.0 / area))
+    s.sample(v, p, u)
 }
 
 /// Multiple importance sampling weight of strategy f by the power heuristic (beta = 2), with
