@@ -95,7 +95,7 @@ pub(super) fn neg<R: Real>(a: [R; 3]) -> [R; 3] {
 }
 
 #[inline(always)]
-fn select3<R: Real>(m: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
+pub(super) fn select3<R: Real>(m: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
     [R::select(m, a[0], b[0]), R::select(m, a[1], b[1]), R::select(m, a[2], b[2])]
 }
 

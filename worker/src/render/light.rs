@@ -205,7 +205,7 @@ fn use_solid_angle(mode: LightSampling, v: &[Vec3A; 3], p: Vec3A) -> Option<Sphe
 fn solid_angle_in_range(v: &[Vec3A; 3], p: Vec3A) -> Option<SphericalTriangle> {
     // `p` at a vertex: a solid angle of 0, out of range.
     let s = SphericalTriangle::new(*v, p)?;
-    (s.area.is_finite() && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&s.area)).then_some(s)
+    (s.area().is_finite() && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&s.area())).then_some(s)
 }
 
 /// A point sampled on a triangle light as seen from a reference point, written once for one
@@ -221,8 +221,9 @@ pub(super) struct TriangleSample<R: Real> {
 }
 
 /// Up to 8 triangle-light samples' inputs as lanes (`RenderScene::sample_light_at_many`):
-/// vertices `v[vertex][axis]`, normal, area, two-sidedness (1 or 0), reference point and
-/// barycentrics. Lanes left unset hold zeros (a sample that is not `ok`).
+/// vertices `v[vertex][axis]`, normal, area, two-sidedness (1 or 0), reference point, the
+/// sample's numbers and their barycentrics by area. Lanes left unset hold zeros (a sample that
+/// is not `ok`).
 #[derive(Default)]
 pub struct LightLanes {
     pub v: [[[f32; 8]; 3]; 3],
@@ -230,14 +231,16 @@ pub struct LightLanes {
     pub area: [f32; 8],
     pub two_sided: [f32; 8],
     pub p: [[f32; 8]; 3],
+    pub u: [[f32; 8]; 2],
     pub b: [[f32; 8]; 3],
 }
 
 impl LightLanes {
     /// Lane `lane`'s inputs.
     #[allow(clippy::too_many_arguments)]
-    pub fn set(&mut self, lane: usize, v: &[Vec3A; 3], n: Vec3A, area: f32, two_sided: bool, p: Vec3A, b: [f32; 3]) {
+    pub fn set(&mut self, lane: usize, v: &[Vec3A; 3], n: Vec3A, area: f32, two_sided: bool, p: Vec3A, u: Vec2) {
         let lane = lane & 7;
+        let b = sample_uniform_triangle(u);
         for k in 0..3 {
             for (i, vertex) in v.iter().enumerate() {
                 self.v[i][k][lane] = vertex[k];
@@ -246,6 +249,8 @@ impl LightLanes {
             self.p[k][lane] = p[k];
             self.b[k][lane] = b[k];
         }
+        self.u[0][lane] = u.x;
+        self.u[1][lane] = u.y;
         self.area[lane] = area;
         self.two_sided[lane] = if two_sided { 1.0 } else { 0.0 };
     }
@@ -279,8 +284,8 @@ impl LightLaneSamples {
 
 impl<R: Real> TriangleSample<R> {
     /// The sample at barycentrics `b` of the triangle `v` (normal `n`, area `area`) seen from
-    /// `p_ref`, with solid-angle density `pdf_sa` where it was sampled by solid angle, else
-    /// the area density converted (`d^2 / (|cos| area)`).
+    /// `p_ref`, with the solid-angle density `pdf` of `sa: Some((by_solid_angle, pdf))` in the
+    /// lanes sampled by solid angle, else the area density converted (`d^2 / (|cos| area)`).
     #[inline(always)]
     pub fn at(
         v: [[R; 3]; 3],
@@ -289,7 +294,7 @@ impl<R: Real> TriangleSample<R> {
         two_sided: R::Mask,
         p_ref: [R; 3],
         b: [R; 3],
-        pdf_sa: Option<R>,
+        sa: Option<(R::Mask, R)>,
     ) -> Self {
         // glam's component-wise order: v0 b0 + v1 b1 + v2 b2; (x^2 + y^2) + z^2. No closures
         // (the lane form is inlined into a function compiled for AVX2; see `accel::Sheared`).
@@ -305,11 +310,15 @@ impl<R: Real> TriangleSample<R> {
         let wi = [d[0] / len, d[1] / len, d[2] / len];
         let cos_l = n[0] * -wi[0] + n[1] * -wi[1] + n[2] * -wi[2];
         let mut ok = d2.gt(zero) & (two_sided | !cos_l.le(zero));
-        let pdf = match pdf_sa {
-            Some(pdf) => pdf,
+        let by_area = d2 / (cos_l.abs() * area);
+        let pdf = match sa {
+            Some((by_solid_angle, pdf)) => {
+                ok = ok & (by_solid_angle | !cos_l.eq(zero));
+                R::select(by_solid_angle, pdf, by_area)
+            }
             None => {
                 ok = ok & !cos_l.eq(zero);
-                d2 / (cos_l.abs() * area)
+                by_area
             }
         };
         ok = ok & pdf.gt(zero) & pdf.lt(zero.splat(f32::INFINITY));
@@ -388,7 +397,7 @@ impl Light {
                     two_sided,
                     ctx.p.into(),
                     b,
-                    pdf_sa,
+                    pdf_sa.map(|pdf| (true, pdf)),
                 );
                 t.ok.then(|| LightLiSample {
                     l: le,
@@ -433,7 +442,7 @@ impl Light {
             return 0.0;
         }
         if let Some(s) = use_solid_angle(mode, &v, ctx.p) {
-            1.0 / s.area
+            1.0 / s.area()
         } else if cos_l == 0.0 {
             0.0
         } else {
@@ -785,5 +794,75 @@ mod tests {
         assert!((spot.sample_li(&ctx, Vec2::ZERO, LightSampling::Area).expect("inside").l.x - 1.0).abs() < 1e-6);
         let off = LightSampleContext { p: Vec3A::new(5.0, 0.0, 0.0), n: Vec3A::Y };
         assert!(spot.sample_li(&off, Vec2::ZERO, LightSampling::Area).is_none());
+    }
+}
+
+#[cfg(test)]
+mod lane_tests {
+    use super::*;
+    use crate::render::wide::{Avx2, unit};
+
+    /// Triangle-light samples by solid angle taken 8 at a time in lanes (AVX2) are
+    /// `Light::sample_li`'s, bit for bit, on random and degenerate inputs: tiny, huge and thin
+    /// spherical triangles (both strategies, and the range's ends), points at a vertex, on the
+    /// triangle's plane and edges, behind one-sided lights, degenerate triangles, and numbers
+    /// 0 and 1.
+    #[test]
+    fn solid_angle_samples_in_lanes_are_the_single_samples() {
+        let Some(avx2) = Avx2::new() else { return };
+        let (mut compared, mut by_solid_angle) = (0, 0);
+        for case in 0..6000u64 {
+            let mut lanes = LightLanes::default();
+            let mut want = Vec::new();
+            for lane in 0..8 {
+                let i = case * 8 + lane as u64;
+                let r = |k: u64| unit(i * 32 + k) * 2.0 - 1.0;
+                let v3 = |k: u64| Vec3A::new(r(k), r(k + 1), r(k + 2));
+                let mut v = [v3(0), v3(3), v3(6)];
+                match i % 7 {
+                    // Thin: the third vertex near the first edge.
+                    0 => v[2] = v[0].lerp(v[1], r(9).abs()) + v3(10) * 1e-4,
+                    // Degenerate: two vertices the same.
+                    1 => v[2] = v[1],
+                    _ => {}
+                }
+                let scale = [1e-3, 0.05, 1.0, 4.0][(i / 7 % 4) as usize];
+                let v = v.map(|x| x * scale);
+                let p = match i % 5 {
+                    0 => v[(i / 5 % 3) as usize],
+                    1 => v[0].lerp(v[1], 0.5),
+                    2 => (v[0] + v[1] + v[2]) / 3.0 + v3(12) * scale * 0.01,
+                    _ => v3(12) * (0.5 + 2.0 * r(15).abs()),
+                };
+                let n = (v[1] - v[0]).cross(v[2] - v[0]).normalize_or(Vec3A::Z);
+                let area = 0.5 * (v[1] - v[0]).cross(v[2] - v[0]).length();
+                let two_sided = i.is_multiple_of(3);
+                let u = match i % 11 {
+                    0 => Vec2::ZERO,
+                    1 => Vec2::ONE,
+                    _ => Vec2::new(r(16).abs().min(0.999_999_9), r(17).abs().min(0.999_999_9)),
+                };
+                lanes.set(lane, &v, n, area, two_sided, p, u);
+                let light = Light::Triangle { prim: 0, v, n, area, le: Vec3A::ONE, two_sided };
+                let ctx = LightSampleContext { p, n: Vec3A::ZERO };
+                if use_solid_angle(LightSampling::SolidAngle, &v, p).is_some() {
+                    by_solid_angle += 1;
+                }
+                want.push((light.sample_li(&ctx, u, LightSampling::SolidAngle), n));
+            }
+            let got = avx2.triangle_samples(&lanes, true);
+            let bits = |s: Option<LightLiSample>| {
+                s.map(|s| {
+                    let v = |v: Vec3A| v.to_array().map(f32::to_bits);
+                    (v(s.wi), s.pdf.to_bits(), v(s.p_light), s.b.map(f32::to_bits))
+                })
+            };
+            for (lane, (w, n)) in want.into_iter().enumerate() {
+                let g = got.get(lane, Vec3A::ONE, n);
+                assert_eq!(bits(g), bits(w), "case {case} lane {lane}");
+                compared += usize::from(w.is_some());
+            }
+        }
+        assert!(compared > 10_000 && by_solid_angle > 10_000, "{compared} samples, {by_solid_angle} by solid angle");
     }
 }

@@ -76,6 +76,16 @@ pub trait Real:
     /// The ray-origin offset of one coordinate `self` along the normal's component `n`
     /// (`super::geometry::offset_component`: integer ULPs, a fixed step near the origin).
     fn offset_along(self, n: Self) -> Self;
+    /// How many lanes (at most 8).
+    const LANES: usize;
+    /// The lanes, in the first [`Real::LANES`] entries (for work done one lane at a time).
+    fn to_lanes(self) -> [f32; 8];
+    /// The first [`Real::LANES`] entries of `v` as lanes.
+    fn with_lanes(self, v: [f32; 8]) -> Self;
+    /// The mask's lanes as bits 0..LANES (lane `i` true sets bit `i`).
+    fn mask_bits(m: Self::Mask) -> u32;
+    /// Bits 0..LANES of `bits` as a mask.
+    fn mask_of_bits(self, bits: u32) -> Self::Mask;
 
     #[inline(always)]
     fn gt(self, o: Self) -> Self::Mask {
@@ -164,6 +174,23 @@ impl Real for f32 {
     #[inline(always)]
     fn select(m: bool, a: Self, b: Self) -> Self {
         if m { a } else { b }
+    }
+    const LANES: usize = 1;
+    #[inline(always)]
+    fn to_lanes(self) -> [f32; 8] {
+        [self, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    }
+    #[inline(always)]
+    fn with_lanes(self, v: [f32; 8]) -> Self {
+        v[0]
+    }
+    #[inline(always)]
+    fn mask_bits(m: bool) -> u32 {
+        u32::from(m)
+    }
+    #[inline(always)]
+    fn mask_of_bits(self, bits: u32) -> bool {
+        bits & 1 != 0
     }
 }
 

@@ -18,6 +18,7 @@ pub mod microfacet;
 pub mod sampler;
 pub mod sampling;
 pub mod scene;
+pub mod spherical;
 pub mod wavefront;
 pub mod wide;
 

@@ -6,9 +6,10 @@
 //! for `u` exactly 0 or just below 1.
 
 use super::math::{self, Real};
+use super::spherical;
 use super::wide::{Avx2, SimdLevel};
 use glam::{Vec2, Vec3A};
-use std::f32::consts::{FRAC_1_PI, FRAC_PI_4, PI, TAU};
+use std::f32::consts::{FRAC_1_PI, FRAC_PI_4, TAU};
 
 /// The largest float below 1 (pbrt's `OneMinusEpsilon`).
 pub const ONE_MINUS_EPSILON: f32 = 1.0 - f32::EPSILON / 2.0;
@@ -25,27 +26,6 @@ pub const MAX_SPHERICAL_SAMPLE_AREA: f32 = 6.22;
 #[inline]
 fn safe_sqrt(x: f32) -> f32 {
     x.max(0.0).sqrt()
-}
-
-#[inline]
-fn safe_asin(x: f32) -> f32 {
-    math::asin(x.clamp(-1.0, 1.0))
-}
-
-/// The angle between two unit vectors, accurate for nearly parallel and nearly opposite ones.
-#[inline]
-fn angle_between(v1: Vec3A, v2: Vec3A) -> f32 {
-    if v1.dot(v2) < 0.0 {
-        PI - 2.0 * safe_asin((v1 + v2).length() / 2.0)
-    } else {
-        2.0 * safe_asin((v2 - v1).length() / 2.0)
-    }
-}
-
-/// `v` minus its component along unit vector `w`.
-#[inline]
-fn gram_schmidt(v: Vec3A, w: Vec3A) -> Vec3A {
-    v - v.dot(w) * w
 }
 
 #[inline]
@@ -210,7 +190,7 @@ pub fn sample_uniform_triangle(u: Vec2) -> [f32; 3] {
 /// Strackee's formula, accurate for small triangles).
 #[inline]
 pub fn spherical_triangle_area(a: Vec3A, b: Vec3A, c: Vec3A) -> f32 {
-    (2.0 * math::atan2(a.dot(b.cross(c)), 1.0 + a.dot(b) + a.dot(c) + b.dot(c))).abs()
+    spherical::area(a.to_array(), b.to_array(), c.to_array())
 }
 
 /// Solid angle subtended by the triangle `v` seen from `p` (0 if `p` is a vertex). Light
@@ -218,98 +198,35 @@ pub fn spherical_triangle_area(a: Vec3A, b: Vec3A, c: Vec3A) -> f32 {
 /// [`MAX_SPHERICAL_SAMPLE_AREA`] to know which strategy [`sample_spherical_triangle`] used.
 #[inline]
 pub fn triangle_solid_angle(v: [Vec3A; 3], p: Vec3A) -> f32 {
-    SphericalTriangle::new(v, p).map_or(0.0, |s| s.area)
+    SphericalTriangle::new(v, p).map_or(0.0, |s| s.area())
 }
 
 /// The triangle `v` projected onto the unit sphere around `p`: its vertices' directions and its
-/// area (the solid angle), made once for both the choice of strategy and the sample.
+/// area (the solid angle), made once for both the choice of strategy and the sample (one
+/// sample of [`spherical`]'s, which also samples 8 in lanes).
 #[derive(Clone, Copy, Debug)]
-pub struct SphericalTriangle {
-    a: Vec3A,
-    b: Vec3A,
-    c: Vec3A,
-    /// The solid angle ([`triangle_solid_angle`]).
-    pub area: f32,
-}
+pub struct SphericalTriangle(spherical::Projection<f32>);
 
 impl SphericalTriangle {
     /// `None` where `p` is a vertex.
     #[inline]
     pub fn new(v: [Vec3A; 3], p: Vec3A) -> Option<Self> {
-        let (a, b, c) =
-            ((v[0] - p).normalize_or_zero(), (v[1] - p).normalize_or_zero(), (v[2] - p).normalize_or_zero());
-        if a == Vec3A::ZERO || b == Vec3A::ZERO || c == Vec3A::ZERO {
-            return None;
-        }
-        Some(Self { a, b, c, area: spherical_triangle_area(a, b, c) })
+        let s = spherical::project(v.map(|v| v.to_array()), p.to_array());
+        s.ok.then_some(Self(s))
+    }
+
+    /// The solid angle ([`triangle_solid_angle`]).
+    #[inline]
+    pub fn area(&self) -> f32 {
+        self.0.area
     }
 
     /// [`sample_spherical_triangle`] of the triangle `v` seen from `p`, this its projection
     /// (whatever its area).
+    #[inline]
     pub fn sample(&self, v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f32; 3], f32)> {
-        let Self { a, b, c, area } = *self;
-        // Normals of the great circles through each pair of vertices.
-        let (n_ab, n_bc, n_ca) =
-            (a.cross(b).normalize_or_zero(), b.cross(c).normalize_or_zero(), c.cross(a).normalize_or_zero());
-        if n_ab == Vec3A::ZERO || n_bc == Vec3A::ZERO || n_ca == Vec3A::ZERO {
-            return None;
-        }
-        // The scalar part runs in f64: for thin or grazing triangles (an interior angle near 0 or
-        // pi) the closed form for cos b' cancels catastrophically in f32, and the sampled density
-        // visibly departs from uniform (see the barycentric chi-square tests).
-        use std::f64::consts::PI as PI64;
-        // Interior angles at the vertices.
-        let alpha = f64::from(angle_between(n_ab, -n_ca));
-        let beta = f64::from(angle_between(n_bc, -n_ab));
-        let gamma = f64::from(angle_between(n_ca, -n_bc));
-
-        // Uniformly sample the area A' of the sub-triangle (a, b, c'), as the angle sum A' + pi.
-        let ap_pi = PI64 + f64::from(u.x) * (alpha + beta + gamma - PI64);
-
-        // c' lies on the arc from a to c; b' is the length of the arc (a, c') (side opposite b).
-        let (sin_alpha, cos_alpha) = math::sin_cos_f64(alpha);
-        let (sin_ap, cos_ap) = math::sin_cos_f64(ap_pi);
-        let sin_phi = sin_ap * cos_alpha - cos_ap * sin_alpha;
-        let cos_phi = cos_ap * cos_alpha + sin_ap * sin_alpha;
-        let k1 = cos_phi + cos_alpha;
-        let k2 = sin_phi - sin_alpha * f64::from(a.dot(b));
-        let cos_bp = (k2 + (k2 * cos_phi - k1 * sin_phi) * cos_alpha) / ((k2 * sin_phi + k1 * cos_phi) * sin_alpha);
-        if !cos_bp.is_finite() {
-            return None;
-        }
-        let cos_bp = cos_bp.clamp(-1.0, 1.0);
-        let sin_bp = (1.0 - cos_bp * cos_bp).max(0.0).sqrt();
-        let cp = cos_bp as f32 * a + sin_bp as f32 * gram_schmidt(c, a).normalize_or_zero();
-
-        // Sample the arc from b towards c' uniformly in cos theta. 1 - cos theta is computed from the
-        // half-angle, 2 sin^2(theta / 2), which keeps its precision for short arcs.
-        let half = 0.5 * angle_between(b, cp.normalize_or_zero());
-        let sin_half = math::sin(half);
-        let one_minus_cos = u.y * 2.0 * sin_half * sin_half;
-        let cos_theta = 1.0 - one_minus_cos;
-        let sin_theta = safe_sqrt(one_minus_cos * (2.0 - one_minus_cos));
-        let w = cos_theta * b + sin_theta * gram_schmidt(cp, b).normalize_or_zero();
-
-        // Barycentrics of the ray (p, w) with the triangle (Moller-Trumbore).
-        let (e1, e2) = (v[1] - v[0], v[2] - v[0]);
-        let s1 = w.cross(e2);
-        let divisor = s1.dot(e1);
-        if divisor == 0.0 || !divisor.is_finite() {
-            return None;
-        }
-        let inv_divisor = 1.0 / divisor;
-        let s = p - v[0];
-        let mut b1 = (s.dot(s1) * inv_divisor).clamp(0.0, 1.0);
-        let mut b2 = (w.dot(s.cross(e1)) * inv_divisor).clamp(0.0, 1.0);
-        if !(b1.is_finite() && b2.is_finite()) {
-            return None;
-        }
-        let sum = b1 + b2;
-        if sum > 1.0 {
-            b1 /= sum;
-            b2 /= sum;
-        }
-        Some(([(1.0 - b1 - b2).max(0.0), b1, b2], 1.0 / area))
+        let s = spherical::sample(v.map(|v| v.to_array()), p.to_array(), &self.0, [u.x, u.y], true);
+        s.ok.then_some((s.b, s.pdf))
     }
 }
 
@@ -323,7 +240,7 @@ impl SphericalTriangle {
 /// the caller then samples by area.
 pub fn sample_spherical_triangle(v: [Vec3A; 3], p: Vec3A, u: Vec2) -> Option<([f32; 3], f32)> {
     let s = SphericalTriangle::new(v, p)?;
-    if !(MIN_SPHERICAL_SAMPLE_AREA..=MAX_SPHERICAL_SAMPLE_AREA).contains(&s.area) {
+    if !(MIN_SPHERICAL_SAMPLE_AREA..=MAX_SPHERICAL_SAMPLE_AREA).contains(&s.area()) {
         return None;
     }
     s.sample(v, p, u)

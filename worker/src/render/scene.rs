@@ -6,7 +6,7 @@ use super::geometry::{offset_ray_origin, shadow_segment};
 use super::light::{EnvironmentLight, Light, LightLanes, LightLeSample, LightLiSample, LightSampleContext};
 use super::math;
 use super::sampler::hash_u64;
-use super::sampling::{Distribution1D, sample_uniform_triangle};
+use super::sampling::Distribution1D;
 use super::wide::SimdLevel;
 use glam::{Vec2, Vec3, Vec3A, Vec4};
 use pathfarm_common::job::LightSampling;
@@ -673,9 +673,10 @@ impl RenderScene {
     }
 
     /// Whether [`RenderScene::sample_light_at_many`] samples this scene's lights in lanes: every
-    /// light a triangle, none moving, area sampling, and a CPU with AVX2.
+    /// light a triangle, none moving, and a CPU with AVX2 (by area or by solid angle).
     pub fn samples_lights_in_lanes(&self, mode: LightSampling) -> bool {
-        self.triangle_lights_only && mode == LightSampling::Area && self.simd_level() == SimdLevel::Avx2
+        let _ = mode;
+        self.triangle_lights_only && self.simd_level() == SimdLevel::Avx2
     }
 
     /// [`RenderScene::sample_light_at`] of each (point, light selection number, point number,
@@ -708,14 +709,14 @@ impl RenderScene {
                 let light = self.lights.get(index).filter(|_| pmf > 0.0);
                 let pick = match light {
                     Some(Light::Triangle { v, n, area, two_sided, .. }) => {
-                        lanes.set(lane, v, *n, *area, *two_sided, p, sample_uniform_triangle(u));
+                        lanes.set(lane, v, *n, *area, *two_sided, p, u);
                         Some((index as u32, pmf))
                     }
                     _ => None,
                 };
                 out.picks.push(pick);
             }
-            out.lanes.push(avx2.triangle_samples(&lanes));
+            out.lanes.push(avx2.triangle_samples(&lanes, mode == LightSampling::SolidAngle));
         }
     }
 
@@ -796,6 +797,7 @@ fn beer_lambert(sigma: Vec3A) -> Vec3A {
 mod tests {
     use super::*;
     use crate::render::chi2::TestRng;
+    use crate::render::sampling::{MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA, triangle_solid_angle};
     use pathfarm_common::job::LightSampling;
     use pathfarm_common::scene::demo::{GltfBuilder, emitter};
     use pathfarm_common::scene::{LoadOptions, load_scene_from_slice};
@@ -839,9 +841,10 @@ mod tests {
     }
 
     /// Light samples taken 8 lanes at a time (`sample_light_at_many`) are the one-at-a-time
-    /// samples, bit for bit: from points below the lights, beside them, above them (behind
-    /// one-sided lights), on their plane and at their vertices (zero distance), with one-sided
-    /// and two-sided lights.
+    /// samples, bit for bit, by area and by solid angle: from points below the lights, beside
+    /// them, above them (behind one-sided lights), on their plane and at their vertices (zero
+    /// distance), near and far (solid angles in and out of the range sampled by solid angle),
+    /// with one-sided and two-sided lights.
     #[test]
     fn light_samples_in_lanes_are_the_single_samples() {
         for two_sided in [false, true] {
@@ -853,7 +856,13 @@ mod tests {
     }
 
     fn light_samples_in_lanes_match(scene: &RenderScene) {
-        if !scene.samples_lights_in_lanes(LightSampling::Area) {
+        for mode in [LightSampling::Area, LightSampling::SolidAngle] {
+            light_samples_in_lanes_match_in(scene, mode);
+        }
+    }
+
+    fn light_samples_in_lanes_match_in(scene: &RenderScene, mode: LightSampling) {
+        if !scene.samples_lights_in_lanes(mode) {
             eprintln!("this CPU has no AVX2: no lanes to compare");
             return;
         }
@@ -887,16 +896,25 @@ mod tests {
             })
         };
         let mut got = LightBatch::default();
-        scene.sample_light_at_many(queries.iter().copied(), LightSampling::Area, &mut got);
+        scene.sample_light_at_many(queries.iter().copied(), mode, &mut got);
         assert!(got.get(scene, queries.len()).is_none());
-        let mut found = 0;
+        let (mut found, mut by_solid_angle) = (0, 0);
         for (n, &(p, u_select, u, time)) in queries.iter().enumerate() {
             let ctx = LightSampleContext { p, n: Vec3A::ZERO };
-            let want = scene.sample_light_at(&ctx, u_select, u, LightSampling::Area, time);
-            assert_eq!(bits(&got.get(scene, n)), bits(&want), "{p} {u_select} {u}");
+            let want = scene.sample_light_at(&ctx, u_select, u, mode, time);
+            assert_eq!(bits(&got.get(scene, n)), bits(&want), "{mode:?}: {p} {u_select} {u}");
             found += usize::from(want.is_some());
+            if let Some((i, ..)) = want
+                && let Light::Triangle { v, .. } = scene.lights[i]
+                && (MIN_SPHERICAL_SAMPLE_AREA..MAX_SPHERICAL_SAMPLE_AREA).contains(&triangle_solid_angle(v, p))
+            {
+                by_solid_angle += 1;
+            }
         }
         assert!(found > queries.len() / 4 && found < queries.len() * 3 / 4, "{found} samples of {}", queries.len());
+        // Both strategies are met (about 7% of the samples by solid angle: the lights are small,
+        // most of them seen from afar).
+        assert!(by_solid_angle > found / 20 && by_solid_angle < found * 19 / 20, "{by_solid_angle} of {found}");
     }
 
     #[test]

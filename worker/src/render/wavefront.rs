@@ -8,9 +8,10 @@
 //! found, the environment, the depth limit); the bounce's random numbers for every path that
 //! goes on, drawn at once ([`Sampler::bounce_draws_many`]: 8-wide Owen scrambles where the CPU
 //! has AVX2), and their diffuse directions ([`cosine_hemisphere_many`], 8 lanes); where every
-//! light is a static triangle and sampling is by area, their light samples, 8 lanes at a time
-//! ([`RenderScene::sample_light_at_many`]: a square root and two divisions per sample, which one
-//! path at a time left waiting); shading, light sampling and BSDF sampling with Russian
+//! light is a static triangle, their light samples, 8 lanes at a time
+//! ([`RenderScene::sample_light_at_many`]: by area, a square root and two divisions per sample,
+//! which one path at a time left waiting; by solid angle, [`super::spherical`]'s arcsines and
+//! sines); shading, light sampling and BSDF sampling with Russian
 //! roulette (which queue a shadow ray and the next ray);
 //! one batched any-hit query for the queued shadow rays. Dead paths leave the list of live ones
 //! (compaction), so later stages touch only live paths.
@@ -24,7 +25,9 @@
 //! bit reversal and conversions in lanes) took it to 10.9k, the ray-origin offset in SSE2
 //! lanes to 10.6k, the light samples in lanes to 10.5k and the bounce draws' transpose to
 //! 10.2k (0.058 to 0.051 s over the session that made these last steps); the plain Lambertian
-//! bounces in lanes ([`super::lambert`]) took it to 8.9k (0.766 to 0.718 s on `tiny long`).
+//! bounces in lanes ([`super::lambert`]) took it to 8.9k (0.766 to 0.718 s on `tiny long`), and
+//! small scenes' rays in sorted packets (`accel`) to 8.3k (0.658 s). By solid angle (the jobs'
+//! default), the light samples in lanes took `tiny solid long` from 1.41 s to 0.81 s.
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
@@ -321,13 +324,13 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 scene.sample_light_at_many(queries, params.light_sampling, &mut self.light_samples);
             }
             // Shading stage: BSDF, light sample, scattering, roulette. Paths at plain Lambertian
-            // hits go 8 at a time in lanes where every light is a triangle (the same bits:
-            // `lambert` is written once for both); the others one at a time.
+            // hits go 8 at a time in lanes where the light samples were taken ahead (the same
+            // bits: `lambert` is written once for both); the others one at a time.
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
             self.lambert.clear();
-            let lanes = (scene.triangle_lights_only()
+            let lanes = (ahead
                 && scene.has_plain_lambert()
                 && matches!(params.mis, MisHeuristic::Power | MisHeuristic::Balance))
             .then(|| scene.avx2())
@@ -353,11 +356,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 }
             }
             if let Some(avx2) = lanes {
-                if ahead {
-                    self.lambert_bounces::<true>(avx2, scene, params);
-                } else {
-                    self.lambert_bounces::<false>(avx2, scene, params);
-                }
+                self.lambert_bounces(avx2, scene, params);
             }
             // Shadow stage.
             if !self.shadows.is_empty() {
@@ -379,7 +378,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
     /// The shading stage of the paths in `lambert`, 8 at a time in lanes: [`scatter`]'s effects
     /// on each path, from [`super::lambert::bounce`] (the same bits).
     #[inline(never)]
-    fn lambert_bounces<const AHEAD: bool>(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
+    fn lambert_bounces(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
         let power = params.mis == MisHeuristic::Power;
         for chunk in self.lambert.chunks(8) {
             let lanes = &mut *self.lambert_lanes;
@@ -394,17 +393,9 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 set3(&mut lanes.beta, j, path.beta);
                 lanes.eta_scale[j] = path.eta_scale;
                 lanes.light[j] = 0.0;
-                // The light sample: taken ahead in lanes, or here as `nee_sample` takes it (from
-                // the normal `shade` turns toward the viewer).
+                // The light sample, taken ahead in lanes.
                 let draws = &self.draws[l.n as usize];
-                let light = if AHEAD {
-                    self.light_samples.get(scene, l.n as usize)
-                } else {
-                    let ng = if si.ng.dot(-path.ray.d) > 0.0 { si.ng } else { -si.ng };
-                    let ctx = LightSampleContext { p: si.p, n: ng };
-                    scene.sample_light_at(&ctx, draws.d1[1], draws.d2[0], params.light_sampling, path.time)
-                };
-                if let Some((_, ls, pmf)) = light {
+                if let Some((_, ls, pmf)) = self.light_samples.get(scene, l.n as usize) {
                     lanes.light[j] = 1.0;
                     set3(&mut lanes.ls_l, j, ls.l);
                     set3(&mut lanes.ls_wi, j, ls.wi);

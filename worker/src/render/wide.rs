@@ -522,6 +522,29 @@ mod lanes {
         fn select(m: M32x8, a: Self, b: Self) -> Self {
             F32x8(unsafe { _mm256_blendv_ps(b.0, a.0, m.0) })
         }
+        const LANES: usize = 8;
+        #[inline(always)]
+        fn to_lanes(self) -> [f32; 8] {
+            self.to_array()
+        }
+        #[inline(always)]
+        fn with_lanes(self, v: [f32; 8]) -> Self {
+            // SAFETY: an unaligned load of 8 f32 from an array.
+            F32x8(unsafe { _mm256_loadu_ps(v.as_ptr()) })
+        }
+        #[inline(always)]
+        fn mask_bits(m: M32x8) -> u32 {
+            m.bits()
+        }
+        #[inline(always)]
+        fn mask_of_bits(self, bits: u32) -> M32x8 {
+            // Lane `i` holds bit `i` alone; where `bits` has it, the lane is all ones.
+            M32x8(unsafe {
+                let lane_bit = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+                let set = _mm256_and_si256(_mm256_set1_epi32(bits as i32), lane_bit);
+                _mm256_castsi256_ps(_mm256_cmpeq_epi32(set, lane_bit))
+            })
+        }
         /// `super::super::geometry::offset_component` in lanes: the same operations as the SSE2
         /// `super::offset_along`, 8 wide.
         #[inline(always)]
@@ -559,11 +582,17 @@ impl Avx2 {
     /// `super::light::TriangleSample` of 8 triangle-light samples at once, in a function
     /// compiled for AVX2 (the scalar sample's bits in every lane).
     #[inline(always)]
-    pub fn triangle_samples(self, lanes: &super::light::LightLanes) -> super::light::LightLaneSamples {
+    pub fn triangle_samples(
+        self,
+        lanes: &super::light::LightLanes,
+        solid_angle: bool,
+    ) -> super::light::LightLaneSamples {
         #[cfg(target_arch = "x86_64")]
         #[target_feature(enable = "avx2")]
-        fn kernel(avx2: Avx2, l: &super::light::LightLanes) -> super::light::LightLaneSamples {
+        fn kernel(avx2: Avx2, l: &super::light::LightLanes, solid_angle: bool) -> super::light::LightLaneSamples {
             use super::math::Real;
+            use super::sampling::{MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA};
+            use super::spherical;
             // No closures: see `accel::Sheared::new`.
             let v = [
                 [avx2.f32x8(&l.v[0][0]), avx2.f32x8(&l.v[0][1]), avx2.f32x8(&l.v[0][2])],
@@ -575,7 +604,24 @@ impl Avx2 {
             let b = [avx2.f32x8(&l.b[0]), avx2.f32x8(&l.b[1]), avx2.f32x8(&l.b[2])];
             let area = avx2.f32x8(&l.area);
             let two_sided = avx2.f32x8(&l.two_sided).gt(area.splat(0.0));
-            let t = super::light::TriangleSample::at(v, n, area, two_sided, p, b, None);
+            let t = if solid_angle {
+                // `Light::sample_li`: by solid angle where the spherical triangle's area is in
+                // range (a sample that then fails is no sample), else by area.
+                let s = spherical::project(v, p);
+                let sa = s.area;
+                let by_solid_angle = s.ok
+                    & sa.abs().lt(sa.splat(f32::INFINITY))
+                    & sa.ge(sa.splat(MIN_SPHERICAL_SAMPLE_AREA))
+                    & sa.lt(sa.splat(MAX_SPHERICAL_SAMPLE_AREA));
+                let u = [avx2.f32x8(&l.u[0]), avx2.f32x8(&l.u[1])];
+                let sample = spherical::sample(v, p, &s, u, by_solid_angle);
+                let b = super::lambert::select3(by_solid_angle, sample.b, b);
+                let t =
+                    super::light::TriangleSample::at(v, n, area, two_sided, p, b, Some((by_solid_angle, sample.pdf)));
+                super::light::TriangleSample { ok: t.ok & (!by_solid_angle | sample.ok), ..t }
+            } else {
+                super::light::TriangleSample::at(v, n, area, two_sided, p, b, None)
+            };
             super::light::LightLaneSamples {
                 ok: t.ok.bits(),
                 b: [t.b[0].to_array(), t.b[1].to_array(), t.b[2].to_array()],
@@ -587,11 +633,11 @@ impl Avx2 {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has AVX2.
         unsafe {
-            kernel(self, lanes)
+            kernel(self, lanes, solid_angle)
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = lanes;
+            let _ = (lanes, solid_angle);
             unreachable!("no AVX2 proof exists on this architecture")
         }
     }
