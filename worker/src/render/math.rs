@@ -76,16 +76,16 @@ pub trait Real:
     /// The ray-origin offset of one coordinate `self` along the normal's component `n`
     /// (`super::geometry::offset_component`: integer ULPs, a fixed step near the origin).
     fn offset_along(self, n: Self) -> Self;
-    /// How many lanes (at most 8).
-    const LANES: usize;
-    /// The lanes, in the first [`Real::LANES`] entries (for work done one lane at a time).
-    fn to_lanes(self) -> [f32; 8];
-    /// The first [`Real::LANES`] entries of `v` as lanes.
-    fn with_lanes(self, v: [f32; 8]) -> Self;
-    /// The mask's lanes as bits 0..LANES (lane `i` true sets bit `i`).
-    fn mask_bits(m: Self::Mask) -> u32;
-    /// Bits 0..LANES of `bits` as a mask.
+    /// Bits 0..8 of `bits` as a mask (lane `i` true where bit `i` is set; `f32`: bit 0).
     fn mask_of_bits(self, bits: u32) -> Self::Mask;
+    /// The lanes as f64: `f64` for `f32`, and 4 lanes of it for 8 lanes of `f32`.
+    type F64: Real64;
+    /// How many [`Real::F64`] values hold the lanes (1 or 2).
+    const HALVES: usize;
+    /// The lanes converted (exactly) to f64, in [`Real::HALVES`] values (lanes 0..4, then 4..8).
+    fn widen(self) -> [Self::F64; 2];
+    /// The first [`Real::HALVES`] values' lanes rounded to f32 (to nearest, as `as f32`).
+    fn narrow(self, w: [Self::F64; 2]) -> Self;
 
     #[inline(always)]
     fn gt(self, o: Self) -> Self::Mask {
@@ -175,22 +175,19 @@ impl Real for f32 {
     fn select(m: bool, a: Self, b: Self) -> Self {
         if m { a } else { b }
     }
-    const LANES: usize = 1;
-    #[inline(always)]
-    fn to_lanes(self) -> [f32; 8] {
-        [self, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-    }
-    #[inline(always)]
-    fn with_lanes(self, v: [f32; 8]) -> Self {
-        v[0]
-    }
-    #[inline(always)]
-    fn mask_bits(m: bool) -> u32 {
-        u32::from(m)
-    }
     #[inline(always)]
     fn mask_of_bits(self, bits: u32) -> bool {
         bits & 1 != 0
+    }
+    type F64 = f64;
+    const HALVES: usize = 1;
+    #[inline(always)]
+    fn widen(self) -> [f64; 2] {
+        [f64::from(self); 2]
+    }
+    #[inline(always)]
+    fn narrow(self, w: [f64; 2]) -> Self {
+        w[0] as f32
     }
 }
 
@@ -449,38 +446,128 @@ pub fn hypot(x: f32, y: f32) -> f32 {
     (x * x + y * y).sqrt() as f32
 }
 
-/// `(sin x, cos x)` in f64 for |x| <= 2^20: Cody-Waite reduction by pi/2 in two parts
-/// (fdlibm's `pio2_1`, `pio2_1t`) with the reduction's rounding error carried into fdlibm's
-/// `__kernel_sin` and `__kernel_cos`.
+/// `(sin x, cos x)` in f64 for |x| <= 2^20 ([`sin_cos_f64_lanes`]).
 pub fn sin_cos_f64(x: f64) -> (f64, f64) {
+    sin_cos_f64_lanes(x)
+}
+
+/// `(sin x, cos x)` in f64 for |x| <= 2^20, written once over [`Real64`]: Cody-Waite reduction
+/// by pi/2 in two parts (fdlibm's `pio2_1`, `pio2_1t`) with the reduction's rounding error
+/// carried into fdlibm's `__kernel_sin` and `__kernel_cos`, then the quadrant's swap and signs.
+#[inline(always)]
+pub fn sin_cos_f64_lanes<R: Real64>(x: R) -> (R, R) {
     const MAGIC: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52
     const PIO2_1: f64 = 1.570_796_326_734_125_614_17; // first 33 bits of pi/2
     const PIO2_1T: f64 = 6.077_100_506_506_192_249_32e-11; // pi/2 - PIO2_1
-    let n = (x * std::f64::consts::FRAC_2_PI + MAGIC) - MAGIC;
-    let hi = x - n * PIO2_1;
-    let r = hi - n * PIO2_1T;
-    let y = (hi - r) - n * PIO2_1T;
+    let c = |v: f64| x.splat(v);
+    // The nearest multiple n of pi/2, held in t's low mantissa bits (n mod 4 is the quadrant).
+    let t = x * c(std::f64::consts::FRAC_2_PI) + c(MAGIC);
+    let n = t - c(MAGIC);
+    let hi = x - n * c(PIO2_1);
+    let r = hi - n * c(PIO2_1T);
+    let y = (hi - r) - n * c(PIO2_1T);
     let z = r * r;
     let v = z * r;
-    let rs = 8.333_333_333_322_489_461_24e-3
-        + z * (-1.984_126_982_985_794_931_34e-4
-            + z * (2.755_731_370_707_006_767_89e-6
-                + z * (-2.505_076_025_340_686_341_95e-8 + z * 1.589_690_995_211_550_102_21e-10)));
-    let s = r - ((z * (0.5 * y - v * rs) - y) - v * -1.666_666_666_666_663_243_48e-1);
+    let rs = c(8.333_333_333_322_489_461_24e-3)
+        + z * (c(-1.984_126_982_985_794_931_34e-4)
+            + z * (c(2.755_731_370_707_006_767_89e-6)
+                + z * (c(-2.505_076_025_340_686_341_95e-8) + z * c(1.589_690_995_211_550_102_21e-10))));
+    let s = r - ((z * (c(0.5) * y - v * rs) - y) - v * c(-1.666_666_666_666_663_243_48e-1));
     let rc = z
-        * (4.166_666_666_666_660_190_37e-2
-            + z * (-1.388_888_888_887_410_957_49e-3
-                + z * (2.480_158_728_947_672_941_78e-5
-                    + z * (-2.755_731_435_139_066_330_35e-7
-                        + z * (2.087_572_321_298_174_827_90e-9 + z * -1.135_964_755_778_819_482_65e-11)))));
-    let hz = 0.5 * z;
-    let w = 1.0 - hz;
-    let c = w + (((1.0 - w) - hz) + (z * rc - r * y));
-    match (n as i64) & 3 {
-        0 => (s, c),
-        1 => (c, -s),
-        2 => (-s, -c),
-        _ => (-c, s),
+        * (c(4.166_666_666_666_660_190_37e-2)
+            + z * (c(-1.388_888_888_887_410_957_49e-3)
+                + z * (c(2.480_158_728_947_672_941_78e-5)
+                    + z * (c(-2.755_731_435_139_066_330_35e-7)
+                        + z * (c(2.087_572_321_298_174_827_90e-9) + z * c(-1.135_964_755_778_819_482_65e-11))))));
+    let hz = c(0.5) * z;
+    let w = c(1.0) - hz;
+    let cos = w + (((c(1.0) - w) - hz) + (z * rc - r * y));
+    // Quadrants 0..3: (s, c), (c, -s), (-s, -c), (-c, s).
+    let q = t.to_bits();
+    let bit = |k: i64| R::int_eq(q & t.int(k), t.int(k));
+    let odd = bit(1);
+    let sin_negative = bit(2);
+    let cos_negative = R::int_eq((q + t.int(1)) & t.int(2), t.int(2));
+    (R::select(odd, cos, s).negate_where(sin_negative), R::select(odd, s, cos).negate_where(cos_negative))
+}
+
+/// A number type the f64 lane-wise functions are written over: `f64`, or 4 lanes of it
+/// (`super::wide::F64x4`, AVX2), with the same rules as [`Real`] (every operation the
+/// lane-wise IEEE operation of `f64`).
+pub trait Real64:
+    Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self> + Neg<Output = Self>
+{
+    /// The 64-bit integers of the lanes (two's complement, wrapping).
+    type Int: Copy + Add<Output = Self::Int> + BitAnd<Output = Self::Int>;
+    type Mask: Copy + BitAnd<Output = Self::Mask> + BitOr<Output = Self::Mask> + Not<Output = Self::Mask>;
+
+    /// `v` in every lane.
+    fn splat(self, v: f64) -> Self;
+    /// `v` in every lane.
+    fn int(self, v: i64) -> Self::Int;
+    fn to_bits(self) -> Self::Int;
+    fn int_eq(a: Self::Int, b: Self::Int) -> Self::Mask;
+    fn sqrt(self) -> Self;
+    /// `self < o`, false where either is NaN.
+    fn lt(self, o: Self) -> Self::Mask;
+    /// `a` where `m` holds, else `b`.
+    fn select(m: Self::Mask, a: Self, b: Self) -> Self;
+    /// `-self` where `m` holds (the sign bit flipped), else `self`.
+    fn negate_where(self, m: Self::Mask) -> Self;
+    /// `|x|` (the sign bit cleared).
+    fn abs(self) -> Self;
+    /// The mask's lanes as bits (lane `i` true sets bit `i`).
+    fn mask_bits(m: Self::Mask) -> u32;
+
+    #[inline(always)]
+    fn gt(self, o: Self) -> Self::Mask {
+        o.lt(self)
+    }
+}
+
+impl Real64 for f64 {
+    type Int = i64;
+    type Mask = bool;
+
+    #[inline(always)]
+    fn splat(self, v: f64) -> Self {
+        v
+    }
+    #[inline(always)]
+    fn int(self, v: i64) -> i64 {
+        v
+    }
+    #[inline(always)]
+    fn to_bits(self) -> i64 {
+        f64::to_bits(self) as i64
+    }
+    #[inline(always)]
+    fn int_eq(a: i64, b: i64) -> bool {
+        a == b
+    }
+    #[inline(always)]
+    fn sqrt(self) -> Self {
+        f64::sqrt(self)
+    }
+    #[inline(always)]
+    fn lt(self, o: Self) -> bool {
+        self < o
+    }
+    #[inline(always)]
+    fn select(m: bool, a: Self, b: Self) -> Self {
+        if m { a } else { b }
+    }
+    #[inline(always)]
+    fn negate_where(self, m: bool) -> Self {
+        if m { -self } else { self }
+    }
+    #[inline(always)]
+    fn abs(self) -> Self {
+        f64::abs(self)
+    }
+    #[inline(always)]
+    fn mask_bits(m: bool) -> u32 {
+        u32::from(m)
     }
 }
 

@@ -4,10 +4,11 @@
 //! and 8 as AVX2 lanes (`RenderScene::sample_light_at_many`). Both do the same f32 operations
 //! in glam's order (`(x x' + y y') + z z'` dot products, `1 / sqrt` normalization), so a lane's
 //! sample is the scalar sample, bit for bit. The step that needs double precision (the arc to
-//! the sub-triangle's third vertex, `arc`) runs one lane at a time.
+//! the sub-triangle's third vertex, `arc`) is written once over `math::Real64`: `f64`, or 4
+//! lanes of it (the 8 lanes in two halves).
 
 use super::lambert::{dot, is_zero, neg, select3};
-use super::math::{self, Real};
+use super::math::{self, Real, Real64};
 
 /// A triangle's vertices projected onto the unit sphere around a point, and the spherical
 /// triangle's area (the triangle's solid angle).
@@ -141,22 +142,17 @@ pub fn sample<R: Real>(v: [[R; 3]; 3], p: [R; 3], s: &Projection<R>, u: [R; 2], 
     let alpha = angle_between(n_ab, neg(n_ca));
     let beta = angle_between(n_bc, neg(n_ab));
     let gamma = angle_between(n_ca, neg(n_bc));
-    // The arc from a to c' (the sub-triangle's third vertex), one lane at a time in f64.
-    let (alpha, beta, gamma, ab, u0) =
-        (alpha.to_lanes(), beta.to_lanes(), gamma.to_lanes(), dot(a, b).to_lanes(), u[0].to_lanes());
-    let (mut cos_bp, mut sin_bp) = ([0.0f32; 8], [0.0f32; 8]);
+    // The arc from a to c' (the sub-triangle's third vertex), in f64 (4 lanes at a time).
+    let (alpha, beta, gamma, ab, u0) = (alpha.widen(), beta.widen(), gamma.widen(), dot(a, b).widen(), u[0].widen());
+    let (mut cos_bp, mut sin_bp) = (alpha, alpha);
     let mut arcs = 0u32;
-    let todo = R::mask_bits(ok);
-    for i in 0..R::LANES.min(8) {
-        if todo & (1 << i) != 0
-            && let Some((cos, sin)) = arc(alpha[i], beta[i], gamma[i], ab[i], u0[i])
-        {
-            (cos_bp[i], sin_bp[i]) = (cos, sin);
-            arcs |= 1 << i;
-        }
+    for h in 0..R::HALVES.min(2) {
+        let (cos, sin, finite) = arc(alpha[h], beta[h], gamma[h], ab[h], u0[h]);
+        (cos_bp[h], sin_bp[h]) = (cos, sin);
+        arcs |= R::F64::mask_bits(finite) << (4 * h);
     }
     ok = ok & x.mask_of_bits(arcs);
-    let cp = add(scale(x.with_lanes(cos_bp), a), scale(x.with_lanes(sin_bp), normalize_or_zero(gram_schmidt(c, a))));
+    let cp = add(scale(x.narrow(cos_bp), a), scale(x.narrow(sin_bp), normalize_or_zero(gram_schmidt(c, a))));
 
     // The arc from b towards c', uniform in cos theta. 1 - cos theta is computed from the
     // half-angle, 2 sin^2(theta / 2), which keeps its precision for short arcs.
@@ -185,26 +181,28 @@ pub fn sample<R: Real>(v: [[R; 3]; 3], p: [R; 3], s: &Projection<R>, u: [R; 2], 
 
 /// The cosine and sine of the arc b' from `a` to the third vertex c' of the sub-triangle (a, b,
 /// c') whose area is the fraction `u0` of the whole (interior angles `alpha`, `beta`, `gamma`;
-/// `ab` the cosine of the side from a to b), or `None` where the closed form is not finite.
-/// In f64: for thin or grazing triangles (an interior angle near 0 or pi) the closed form for
-/// cos b' cancels catastrophically in f32, and the sampled density visibly departs from
-/// uniform (see the barycentric chi-square tests).
-fn arc(alpha: f32, beta: f32, gamma: f32, ab: f32, u0: f32) -> Option<(f32, f32)> {
-    use std::f64::consts::PI;
-    let (alpha, beta, gamma) = (f64::from(alpha), f64::from(beta), f64::from(gamma));
+/// `ab` the cosine of the side from a to b), and where they are good (the closed form is
+/// finite). In f64: for thin or grazing triangles (an interior angle near 0 or pi) the closed
+/// form for cos b' cancels catastrophically in f32, and the sampled density visibly departs
+/// from uniform (see the barycentric chi-square tests).
+#[inline(always)]
+fn arc<W: Real64>(alpha: W, beta: W, gamma: W, ab: W, u0: W) -> (W, W, W::Mask) {
+    let c = |v: f64| alpha.splat(v);
+    let pi = c(std::f64::consts::PI);
     // The sub-triangle's area A' sampled uniformly, as the angle sum A' + pi.
-    let ap_pi = PI + f64::from(u0) * (alpha + beta + gamma - PI);
-    let (sin_alpha, cos_alpha) = math::sin_cos_f64(alpha);
-    let (sin_ap, cos_ap) = math::sin_cos_f64(ap_pi);
+    let ap_pi = pi + u0 * (alpha + beta + gamma - pi);
+    let (sin_alpha, cos_alpha) = math::sin_cos_f64_lanes(alpha);
+    let (sin_ap, cos_ap) = math::sin_cos_f64_lanes(ap_pi);
     let sin_phi = sin_ap * cos_alpha - cos_ap * sin_alpha;
     let cos_phi = cos_ap * cos_alpha + sin_ap * sin_alpha;
     let k1 = cos_phi + cos_alpha;
-    let k2 = sin_phi - sin_alpha * f64::from(ab);
+    let k2 = sin_phi - sin_alpha * ab;
     let cos_bp = (k2 + (k2 * cos_phi - k1 * sin_phi) * cos_alpha) / ((k2 * sin_phi + k1 * cos_phi) * sin_alpha);
-    if !cos_bp.is_finite() {
-        return None;
-    }
-    let cos_bp = cos_bp.clamp(-1.0, 1.0);
-    let sin_bp = (1.0 - cos_bp * cos_bp).max(0.0).sqrt();
-    Some((cos_bp as f32, sin_bp as f32))
+    let finite = cos_bp.abs().lt(c(f64::INFINITY));
+    let (lo, hi) = (c(-1.0), c(1.0));
+    let cos_bp = W::select(cos_bp.lt(lo), lo, W::select(cos_bp.gt(hi), hi, cos_bp));
+    // 1 - cos^2 is never -0 (x - x rounds to +0), and not NaN where the arc is finite.
+    let one_minus = c(1.0) - cos_bp * cos_bp;
+    let sin_bp = W::select(one_minus.gt(c(0.0)), one_minus, c(0.0)).sqrt();
+    (cos_bp, sin_bp, finite)
 }

@@ -378,7 +378,7 @@ impl Avx2 {
 }
 
 #[cfg(target_arch = "x86_64")]
-pub use lanes::{F32x8, I32x8, M32x8};
+pub use lanes::{F32x8, F64x4, I32x8, M32x8};
 
 /// [`super::math::Real`] over 8 AVX2 lanes. Every operation is one AVX/AVX2 instruction doing the
 /// lane-wise IEEE operation of `f32` (no FMA, no approximate reciprocal), so a lane gives the
@@ -386,7 +386,7 @@ pub use lanes::{F32x8, I32x8, M32x8};
 /// [`Avx2`] proof, or from other values), so the operations are safe.
 #[cfg(target_arch = "x86_64")]
 mod lanes {
-    use super::super::math::Real;
+    use super::super::math::{Real, Real64};
     use std::arch::x86_64::*;
     use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Sub};
 
@@ -522,20 +522,6 @@ mod lanes {
         fn select(m: M32x8, a: Self, b: Self) -> Self {
             F32x8(unsafe { _mm256_blendv_ps(b.0, a.0, m.0) })
         }
-        const LANES: usize = 8;
-        #[inline(always)]
-        fn to_lanes(self) -> [f32; 8] {
-            self.to_array()
-        }
-        #[inline(always)]
-        fn with_lanes(self, v: [f32; 8]) -> Self {
-            // SAFETY: an unaligned load of 8 f32 from an array.
-            F32x8(unsafe { _mm256_loadu_ps(v.as_ptr()) })
-        }
-        #[inline(always)]
-        fn mask_bits(m: M32x8) -> u32 {
-            m.bits()
-        }
         #[inline(always)]
         fn mask_of_bits(self, bits: u32) -> M32x8 {
             // Lane `i` holds bit `i` alone; where `bits` has it, the lane is all ones.
@@ -574,6 +560,106 @@ mod lanes {
         #[inline(always)]
         fn max(self, o: Self) -> Self {
             F32x8(unsafe { _mm256_max_ps(o.0, self.0) })
+        }
+        type F64 = F64x4;
+        const HALVES: usize = 2;
+        /// `vcvtps2pd` of each half (exact).
+        #[inline(always)]
+        fn widen(self) -> [F64x4; 2] {
+            unsafe {
+                [
+                    F64x4(_mm256_cvtps_pd(_mm256_castps256_ps128(self.0))),
+                    F64x4(_mm256_cvtps_pd(_mm256_extractf128_ps::<1>(self.0))),
+                ]
+            }
+        }
+        /// `vcvtpd2ps` of each half (to nearest, as `as f32`).
+        #[inline(always)]
+        fn narrow(self, w: [F64x4; 2]) -> Self {
+            F32x8(unsafe { _mm256_set_m128(_mm256_cvtpd_ps(w[1].0), _mm256_cvtpd_ps(w[0].0)) })
+        }
+    }
+
+    /// 4 lanes of `f64` ([`Real64`]; made only from [`F32x8`] values, so the CPU has AVX2).
+    #[derive(Clone, Copy, Debug)]
+    pub struct F64x4(__m256d);
+    /// 4 lanes of `i64` (the bits of [`F64x4`]).
+    #[derive(Clone, Copy, Debug)]
+    pub struct I64x4(__m256i);
+    /// 4 truth values, each lane all ones (true) or all zeros.
+    #[derive(Clone, Copy, Debug)]
+    pub struct M64x4(__m256d);
+
+    binary!(F64x4, Add, add, _mm256_add_pd);
+    binary!(F64x4, Sub, sub, _mm256_sub_pd);
+    binary!(F64x4, Mul, mul, _mm256_mul_pd);
+    binary!(F64x4, Div, div, _mm256_div_pd);
+    binary!(I64x4, Add, add, _mm256_add_epi64);
+    binary!(I64x4, BitAnd, bitand, _mm256_and_si256);
+    binary!(M64x4, BitAnd, bitand, _mm256_and_pd);
+    binary!(M64x4, BitOr, bitor, _mm256_or_pd);
+
+    impl Neg for F64x4 {
+        type Output = F64x4;
+        /// The sign bit flipped, as `-x` does.
+        #[inline(always)]
+        fn neg(self) -> F64x4 {
+            F64x4(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
+        }
+    }
+
+    impl Not for M64x4 {
+        type Output = M64x4;
+        #[inline(always)]
+        fn not(self) -> M64x4 {
+            M64x4(unsafe { _mm256_xor_pd(self.0, _mm256_castsi256_pd(_mm256_set1_epi64x(-1))) })
+        }
+    }
+
+    impl Real64 for F64x4 {
+        type Int = I64x4;
+        type Mask = M64x4;
+
+        #[inline(always)]
+        fn splat(self, v: f64) -> Self {
+            F64x4(unsafe { _mm256_set1_pd(v) })
+        }
+        #[inline(always)]
+        fn int(self, v: i64) -> I64x4 {
+            I64x4(unsafe { _mm256_set1_epi64x(v) })
+        }
+        #[inline(always)]
+        fn to_bits(self) -> I64x4 {
+            I64x4(unsafe { _mm256_castpd_si256(self.0) })
+        }
+        #[inline(always)]
+        fn int_eq(a: I64x4, b: I64x4) -> M64x4 {
+            M64x4(unsafe { _mm256_castsi256_pd(_mm256_cmpeq_epi64(a.0, b.0)) })
+        }
+        #[inline(always)]
+        fn sqrt(self) -> Self {
+            F64x4(unsafe { _mm256_sqrt_pd(self.0) })
+        }
+        /// `_CMP_LT_OQ`: false where either is NaN, as `<`.
+        #[inline(always)]
+        fn lt(self, o: Self) -> M64x4 {
+            M64x4(unsafe { _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn select(m: M64x4, a: Self, b: Self) -> Self {
+            F64x4(unsafe { _mm256_blendv_pd(b.0, a.0, m.0) })
+        }
+        #[inline(always)]
+        fn negate_where(self, m: M64x4) -> Self {
+            F64x4(unsafe { _mm256_xor_pd(self.0, _mm256_and_pd(m.0, _mm256_set1_pd(-0.0))) })
+        }
+        #[inline(always)]
+        fn abs(self) -> Self {
+            F64x4(unsafe { _mm256_andnot_pd(_mm256_set1_pd(-0.0), self.0) })
+        }
+        #[inline(always)]
+        fn mask_bits(m: M64x4) -> u32 {
+            unsafe { _mm256_movemask_pd(m.0) as u32 }
         }
     }
 }
