@@ -24,7 +24,8 @@
 //! - [`atan2`]: <= 3 ulp; [`asin`], [`acos`]: <= 2 ulp; [`exp`]: <= 2 ulp (normal results;
 //!   subnormal results within one ulp of the smallest normal's spacing).
 //! - [`powf`], [`hypot`], [`sin_cos_f64`]: computed in `f64`; `powf` and `hypot` are within
-//!   one ulp (nearly always correctly rounded), `sin_cos_f64` within 2 ulp of f64.
+//!   one ulp (nearly always correctly rounded), `sin_cos_f64` within 2 ulp of f64 (one body
+//!   over [`Real64`]: `f64` or 4 AVX2 lanes of it).
 //!
 //! Polynomials: Cephes' single-precision minimax coefficients (Moshier) for the f32 kernels,
 //! fdlibm's for `sin_cos_f64`.
