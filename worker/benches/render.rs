@@ -4,6 +4,7 @@
 //! cargo bench -p pathfarm-worker --bench render            # everything
 //! cargo bench -p pathfarm-worker --bench render -- quick   # skip the Mitsuba comparison
 //! cargo bench -p pathfarm-worker --bench render -- sse2    # baseline kernels, not AVX2
+//! cargo bench -p pathfarm-worker --bench render -- avx2    # AVX2 kernels where the CPU has AVX-512
 //! cargo bench -p pathfarm-worker --bench render -- scalar  # path: one path at a time, not the wavefront
 //! ```
 //!
@@ -62,9 +63,16 @@ fn unit(x: u64) -> f32 {
     (hash(x) >> 40) as f32 / (1u64 << 24) as f32
 }
 
-/// The SIMD level the renders use: the CPU's best, or the baseline with the `sse2` argument.
+/// The SIMD level the renders use: the CPU's best, or the baseline with the `sse2` argument, or
+/// at most AVX2 with `avx2`.
 fn simd_level() -> SimdLevel {
-    if std::env::args().any(|a| a == "sse2") { SimdLevel::Baseline } else { SimdLevel::detect() }
+    if std::env::args().any(|a| a == "sse2") {
+        SimdLevel::Baseline
+    } else if std::env::args().any(|a| a == "avx2") {
+        SimdLevel::Avx2.min(SimdLevel::detect())
+    } else {
+        SimdLevel::detect()
+    }
 }
 
 /// The path kernel the renders use: the wavefront, or one path at a time with `scalar`.

@@ -291,7 +291,7 @@ fn wavefront_matches_scalar_bit_for_bit() {
                 nonzero * 4 > want.accum.sums.len()
             };
             assert!(lit_enough, "{}: {nonzero} lit pixels, a dark image", case.name);
-            for level in [SimdLevel::Baseline, SimdLevel::Avx2] {
+            for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
                 let Some(wavefront) = renderer(&case, PathKernel::Wavefront, level) else { continue };
                 let got = wavefront.render_unit(tile, pass);
                 assert!(got == want, "{} at {level:?}, tile {tile:?} pass {pass:?}: differs from li_path", case.name);
@@ -318,7 +318,7 @@ fn lane_wise_diffuse_directions_are_the_scalar_bits() {
     us.extend((0..n * n).map(|i| Vec2::new((i % n) as f32 / n as f32, (i / n) as f32 / n as f32)));
     let bits = |v: glam::Vec3A| v.to_array().map(f32::to_bits);
     let mut compared = 0;
-    for level in [SimdLevel::Baseline, SimdLevel::Avx2] {
+    for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
         for len in [us.len(), us.len() - 3] {
             let mut out = Vec::new();
             cosine_hemisphere_many(&us[..len], level, &mut out);

@@ -483,16 +483,13 @@ impl Accel {
 
     /// The SIMD level the queries use ([`SimdLevel::detect`] at construction).
     pub fn simd_level(&self) -> SimdLevel {
-        if self.avx2.is_some() { SimdLevel::Avx2 } else { SimdLevel::Baseline }
+        self.avx2.map_or(SimdLevel::Baseline, Avx2::level)
     }
 
-    /// Uses `level` for the queries where the CPU supports it (else the baseline): for tests and
+    /// Uses the best level up to `level` that the CPU supports for the queries: for tests and
     /// measurements that compare the kernels. Returns the level in use.
     pub fn set_simd_level(&mut self, level: SimdLevel) -> SimdLevel {
-        self.avx2 = match level {
-            SimdLevel::Avx2 => Avx2::new(),
-            SimdLevel::Baseline => None,
-        };
+        self.avx2 = Avx2::at(level);
         self.simd_level()
     }
 
@@ -1476,7 +1473,7 @@ mod tests {
             [Vec3A::new(1.0, 0.0, 0.0), Vec3A::new(1.0, 1.0, 0.0), Vec3A::new(0.0, 1.0, 0.0)],
         ];
         let mut accel = Accel::new(&tris);
-        for level in [SimdLevel::Baseline, SimdLevel::Avx2] {
+        for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
             accel.set_simd_level(level);
             for k in 1..16 {
                 let target = tris[0][1].lerp(tris[0][2], k as f32 / 16.0);
@@ -1907,8 +1904,8 @@ mod tests {
         h.map(|h| (h.t.to_bits(), h.prim, h.b1.to_bits(), h.b2.to_bits()))
     }
 
-    /// The AVX2 kernels (where the CPU has them) and the baseline give the same hits, bit for
-    /// bit, and the same as obvhs' traversal; for static and moving triangles.
+    /// The AVX2 and AVX-512 kernels (where the CPU has them) and the baseline give the same
+    /// hits, bit for bit, and the same as obvhs' traversal; for static and moving triangles.
     #[test]
     fn simd_levels_give_bit_identical_hits() {
         let tris = soup(3000, 1);
@@ -1919,18 +1916,26 @@ mod tests {
         assert_eq!(base_m.set_simd_level(SimdLevel::Baseline), SimdLevel::Baseline);
         let has_avx2 = wide.set_simd_level(SimdLevel::Avx2) == SimdLevel::Avx2;
         wide_m.set_simd_level(SimdLevel::Avx2);
+        // The AVX-512 level where the CPU has it (else AVX2 again).
+        let (mut wide4, mut wide4_m) = (Accel::new(&tris), Accel::new_moving(&tris, &moved));
+        wide4.set_simd_level(SimdLevel::Avx512);
+        wide4_m.set_simd_level(SimdLevel::Avx512);
         let (mut hits, mut blocked) = (0, 0);
         for (i, (o, d, t_max)) in crate::render::wide::test_rays(3000).into_iter().enumerate() {
             let want = base.intersect(o, d, t_max);
             assert_eq!(bits(want), bits(reference_intersect(&base, o, d, t_max)), "ray {o} {d} {t_max}");
             assert_eq!(bits(wide.intersect(o, d, t_max)), bits(want), "ray {o} {d} {t_max}");
+            assert_eq!(bits(wide4.intersect(o, d, t_max)), bits(want), "avx512: ray {o} {d} {t_max}");
             let occluded = base.occluded(o, d, t_max);
             assert_eq!(occluded, want.is_some(), "ray {o} {d} {t_max}");
             assert_eq!(wide.occluded(o, d, t_max), occluded);
+            assert_eq!(wide4.occluded(o, d, t_max), occluded);
             let time = (i % 5) as f32 / 4.0;
             let want_m = base_m.intersect_at(o, d, t_max, time);
             assert_eq!(bits(wide_m.intersect_at(o, d, t_max, time)), bits(want_m));
             assert_eq!(wide_m.occluded_at(o, d, t_max, time), base_m.occluded_at(o, d, t_max, time));
+            assert_eq!(bits(wide4_m.intersect_at(o, d, t_max, time)), bits(want_m));
+            assert_eq!(wide4_m.occluded_at(o, d, t_max, time), base_m.occluded_at(o, d, t_max, time));
             hits += usize::from(want.is_some());
             blocked += usize::from(occluded);
         }

@@ -248,8 +248,8 @@ impl Renderer {
         self.scene.simd_level()
     }
 
-    /// Uses `level` where the CPU supports it (else the baseline): images are bit-identical
-    /// either way; for tests and measurements. Returns the level in use.
+    /// Uses the best level up to `level` that the CPU supports: images are bit-identical at
+    /// every level; for tests and measurements. Returns the level in use.
     pub fn set_simd_level(&mut self, level: wide::SimdLevel) -> wide::SimdLevel {
         self.scene.set_simd_level(level)
     }
@@ -454,7 +454,7 @@ impl Renderer {
             values.clear();
             wf.trace(&self.scene, params, batch, &start, &mut values);
             let accumulate = Accumulate { accs: &mut *accs, x0: tile.x0, batch, values: &values };
-            match wide::Avx2::new().filter(|_| self.scene.simd_level() == wide::SimdLevel::Avx2) {
+            match self.scene.avx2() {
                 Some(avx2) => avx2.run_kernel(accumulate),
                 None => wide::V3Kernel::call(accumulate),
             }

@@ -465,7 +465,7 @@ impl Sampler for SobolSampler {
     where
         Self: 'a,
     {
-        let Some(avx2) = (level == super::wide::SimdLevel::Avx2).then(super::wide::Avx2::new).flatten() else {
+        let Some(avx2) = super::wide::Avx2::at(level) else {
             out.extend(lanes.map(|s| s.get_pixel_2d()));
             return;
         };
@@ -499,7 +499,7 @@ impl Sampler for SobolSampler {
     ) where
         Self: 'a,
     {
-        let Some(avx2) = (level == super::wide::SimdLevel::Avx2).then(super::wide::Avx2::new).flatten() else {
+        let Some(avx2) = super::wide::Avx2::at(level) else {
             out.extend(lanes.map(|s| s.bounce_draws()));
             return;
         };
@@ -690,7 +690,7 @@ mod tests {
                     AnySampler::Independent(_) => None,
                 })
                 .collect();
-            for level in [SimdLevel::Baseline, SimdLevel::Avx2] {
+            for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
                 let mut many = Vec::new();
                 AnySampler::bounce_draws_many(lanes.iter(), level, &mut many);
                 let mut many_sobol = Vec::new();

@@ -97,9 +97,9 @@ impl CosineSample {
 }
 
 /// [`sample_cosine_hemisphere`] of every `u`, appended to `out` in order: 8 at a time in AVX2
-/// lanes where `level` is [`SimdLevel::Avx2`], one at a time otherwise (the bits are the same).
+/// lanes where `level` has them ([`Avx2::at`]), one at a time otherwise (the bits are the same).
 pub fn cosine_hemisphere_many(us: &[Vec2], level: SimdLevel, out: &mut Vec<CosineSample>) {
-    let Some(avx2) = (level == SimdLevel::Avx2).then(Avx2::new).flatten() else {
+    let Some(avx2) = Avx2::at(level) else {
         out.extend(us.iter().map(|&u| CosineSample { u, w: sample_cosine_hemisphere(u) }));
         return;
     };

@@ -350,12 +350,13 @@ impl RenderScene {
         self.accel.simd_level()
     }
 
-    /// The proof of AVX2 where the scene runs its AVX2 kernels (its SIMD level is AVX2).
+    /// The proof of AVX2 (at the scene's level) where the scene runs its AVX2 kernels.
     pub fn avx2(&self) -> Option<super::wide::Avx2> {
-        (self.simd_level() == super::wide::SimdLevel::Avx2).then(super::wide::Avx2::new).flatten()
+        super::wide::Avx2::at(self.simd_level())
     }
 
-    /// Uses `level` for the ray queries where the CPU supports it; returns the level in use.
+    /// Uses the best level up to `level` that the CPU supports for the scene's kernels; returns
+    /// the level in use.
     pub fn set_simd_level(&mut self, level: super::wide::SimdLevel) -> super::wide::SimdLevel {
         self.accel.set_simd_level(level)
     }
@@ -676,7 +677,7 @@ impl RenderScene {
     /// light a triangle, none moving, and a CPU with AVX2 (by area or by solid angle).
     pub fn samples_lights_in_lanes(&self, mode: LightSampling) -> bool {
         let _ = mode;
-        self.triangle_lights_only && self.simd_level() == SimdLevel::Avx2
+        self.triangle_lights_only && self.simd_level() != SimdLevel::Baseline
     }
 
     /// [`RenderScene::sample_light_at`] of each (point, light selection number, point number,
@@ -693,7 +694,7 @@ impl RenderScene {
         out.lanes.clear();
         out.picks.clear();
         out.single.clear();
-        let lanes = self.samples_lights_in_lanes(mode).then(super::wide::Avx2::new).flatten();
+        let lanes = self.avx2().filter(|_| self.samples_lights_in_lanes(mode));
         let Some(avx2) = lanes else {
             out.single.extend(queries.map(|(p, u_select, u, time)| {
                 self.sample_light_at(&LightSampleContext { p, n: Vec3A::ZERO }, u_select, u, mode, time)

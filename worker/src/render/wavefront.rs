@@ -226,9 +226,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
     // in the bounce loop do not move with it).
     #[inline(never)]
     fn start_paths(&mut self, samples: &[(UVec2, u32)], camera: &CameraStage<'_, impl Fn() -> S>, level: SimdLevel) {
-        let lanes = (level == SimdLevel::Avx2 && camera.shutter.is_none() && camera.camera.is_pinhole())
-            .then(Avx2::new)
-            .flatten();
+        let lanes = Avx2::at(level).filter(|_| camera.shutter.is_none() && camera.camera.is_pinhole());
         // Each path's sampler is a copy of one positioned at its sample: a pixel's samples follow
         // one another, and a sampler keeps what depends on the pixel alone (Sobol's pixel hash)
         // from one sample to the next (the same state as a fresh sampler positioned there).
