@@ -342,7 +342,7 @@ pub struct PixelAccum {
 
 impl PixelAccum {
     /// Adds one sample (radiance clamped and rounded as [`to_fixed`] says).
-    #[inline]
+    #[inline(always)]
     pub fn add(&mut self, s: &SampleValue) {
         let rgb = s.radiance.map(|v| if v.is_finite() { v.clamp(0.0, MAX_SAMPLE_VALUE) } else { 0.0 });
         let lum = luminance(rgb);
