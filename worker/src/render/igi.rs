@@ -225,7 +225,8 @@ pub fn vpl_terms<R: Real>(
     f: [R; 3],
     beta: [R; 3],
 ) -> VplTerm<R> {
-    use super::lambert::{dot, is_zero, neg, shadow_segment};
+    use super::lambert::shadow_segment;
+    use super::vec3::{dot, is_zero, neg};
     let zero = wo_z.splat(0.0);
     let d = [p[0] - x.p[0], p[1] - x.p[1], p[2] - x.p[2]];
     let d2 = dot(d, d);

@@ -11,6 +11,7 @@
 //! both ways, with back faces, vertex colours, both heuristics and roulette, and compares bits).
 
 use super::math::Real;
+use super::vec3::{dot, is_zero, neg, select3};
 use pathfarm_common::scene::{Material, MaterialModel};
 use std::f32::consts::FRAC_1_PI;
 
@@ -81,29 +82,6 @@ pub struct LambertOut<R: Real> {
     pub pdf: R,
     pub ray_o: [R; 3],
     pub ray_d: [R; 3],
-}
-
-/// glam's `Vec3A::dot`: `(x x' + y y') + z z'`.
-#[inline(always)]
-pub(super) fn dot<R: Real>(a: [R; 3], b: [R; 3]) -> R {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline(always)]
-pub(super) fn neg<R: Real>(a: [R; 3]) -> [R; 3] {
-    [-a[0], -a[1], -a[2]]
-}
-
-#[inline(always)]
-pub(super) fn select3<R: Real>(m: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
-    [R::select(m, a[0], b[0]), R::select(m, a[1], b[1]), R::select(m, a[2], b[2])]
-}
-
-/// Where all three are zero (glam's `== Vec3A::ZERO`).
-#[inline(always)]
-pub(super) fn is_zero<R: Real>(a: [R; 3]) -> R::Mask {
-    let zero = a[0].splat(0.0);
-    a[0].eq(zero) & a[1].eq(zero) & a[2].eq(zero)
 }
 
 /// SSE's `maxps(a, b)`: `a > b ? a : b`.

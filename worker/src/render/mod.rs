@@ -19,6 +19,7 @@ pub mod sampler;
 pub mod sampling;
 pub mod scene;
 pub mod spherical;
+mod vec3;
 pub mod wavefront;
 pub mod wide;
 

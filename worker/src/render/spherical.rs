@@ -7,8 +7,8 @@
 //! the sub-triangle's third vertex, `arc`) is written once over `math::Real64`: `f64`, or 4
 //! lanes of it (the 8 lanes in two halves).
 
-use super::lambert::{dot, is_zero, neg, select3};
 use super::math::{self, Real, Real64};
+use super::vec3::{add, cross, dot, finite, is_zero, length, neg, normalize_or_zero, scale, select3, sub};
 
 /// A triangle's vertices projected onto the unit sphere around a point, and the spherical
 /// triangle's area (the triangle's solid angle).
@@ -31,49 +31,6 @@ pub struct SphericalSample<R: Real> {
     pub b: [R; 3],
     /// `1 / area`.
     pub pdf: R,
-}
-
-#[inline(always)]
-fn sub<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-#[inline(always)]
-fn add<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-/// `s * v` (glam's `f32 * Vec3A`).
-#[inline(always)]
-fn scale<R: Real>(s: R, v: [R; 3]) -> [R; 3] {
-    [s * v[0], s * v[1], s * v[2]]
-}
-
-/// glam's `Vec3A::cross` (its SSE2 form: `a.y b.z - b.y a.z`, ...).
-#[inline(always)]
-fn cross<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
-    [a[1] * b[2] - b[1] * a[2], a[2] * b[0] - b[2] * a[0], a[0] * b[1] - b[0] * a[1]]
-}
-
-#[inline(always)]
-fn length<R: Real>(v: [R; 3]) -> R {
-    dot(v, v).sqrt()
-}
-
-/// Where `x` is neither infinite nor NaN.
-#[inline(always)]
-fn finite<R: Real>(x: R) -> R::Mask {
-    x.abs().lt(x.splat(f32::INFINITY))
-}
-
-/// glam's `Vec3A::normalize_or_zero`: `v * (1 / |v|)` where that factor is finite and positive,
-/// else zero.
-#[inline(always)]
-fn normalize_or_zero<R: Real>(v: [R; 3]) -> [R; 3] {
-    let zero = v[0].splat(0.0);
-    let rcp = v[0].splat(1.0) / length(v);
-    let ok = finite(rcp) & rcp.gt(zero);
-    select3(ok, scale(rcp, v), [zero; 3])
 }
 
 /// `f32::clamp`: `lo` below it, `hi` above it, NaN stays NaN.

@@ -755,7 +755,7 @@ impl Avx2 {
                     & sa.lt(sa.splat(MAX_SPHERICAL_SAMPLE_AREA));
                 let u = [avx2.f32x8(&l.u[0]), avx2.f32x8(&l.u[1])];
                 let sample = spherical::sample(v, p, &s, u, by_solid_angle);
-                let b = super::lambert::select3(by_solid_angle, sample.b, b);
+                let b = super::vec3::select3(by_solid_angle, sample.b, b);
                 let t =
                     super::light::TriangleSample::at(v, n, area, two_sided, p, b, Some((by_solid_angle, sample.pdf)));
                 super::light::TriangleSample { ok: t.ok & (!by_solid_angle | sample.ok), ..t }
