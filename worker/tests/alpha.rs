@@ -223,3 +223,63 @@ fn shadow_rays_and_light_paths_see_alpha() {
     let lit = img.rgb.iter().filter(|p| p[0] > 0.0).count() as f64 / (w * w) as f64;
     assert!((0.3..0.7).contains(&lit), "lit fraction {lit}");
 }
+
+#[test]
+fn batched_queries_see_alpha_as_single_ones() {
+    // The wavefront's batched queries (`intersect_many`, `occluded_many`: the batch's closest
+    // hits at once, cut-out ones continued alone) give each ray exactly its single query's
+    // answer, through a BLEND cover (stochastic, 0.5) and a MASK checker cover stacked above a
+    // floor: rays from above, below and between the layers, some stopping short.
+    use pathfarm_worker::render::accel::RayQuery;
+    use pathfarm_worker::render::scene::RenderScene;
+    let mut blend = lambert(0.3);
+    blend.alpha_mode = AlphaMode::Blend;
+    blend.base_color.w = 0.5;
+    let mut scene = shadow_scene(Some(blend));
+    let mut mask = lambert(0.6);
+    mask.alpha_mode = AlphaMode::Mask { cutoff: 0.5 };
+    mask.base_color_texture = Some(TextureRef { texture: 0, tex_coord: 0, transform: TextureTransform::default() });
+    let mut upper = quad_z("mask", Vec3::new(0.0, 0.0, 1.0), 3.0, 2);
+    for p in &mut upper.positions {
+        *p = Vec3::new(p.x, p.z, -p.y);
+    }
+    scene.meshes.push(upper);
+    scene.materials.push(mask);
+    let rs = RenderScene::new(&scene);
+    // A fixed hash of (ray, component) to [0, 1).
+    let unit = |i: u32, k: u32| {
+        let mut x = u64::from(i) << 8 | u64::from(k);
+        x = (x ^ (x >> 31)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        x = (x ^ (x >> 29)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        ((x ^ (x >> 32)) >> 40) as f32 / (1u32 << 24) as f32
+    };
+    let rays: Vec<RayQuery> = (0..3000u32)
+        .map(|i| {
+            let o = glam::Vec3A::new(
+                unit(i, 1) * 6.0 - 3.0,
+                [3.0, 1.5, 0.5, -1.0][(i % 4) as usize],
+                unit(i, 2) * 6.0 - 3.0,
+            );
+            let d = glam::Vec3A::new(unit(i, 3) - 0.5, if i % 4 == 3 { 1.0 } else { -1.0 }, unit(i, 4) - 0.5);
+            let t_max = if i % 5 == 0 { 1.2 } else { f32::INFINITY };
+            RayQuery { o, d, t_max, time: 0.0 }
+        })
+        .collect();
+    let (mut hits, mut surfaces, mut blocked) = (Vec::new(), Vec::new(), Vec::new());
+    rs.intersect_many(&rays, &mut hits, &mut surfaces);
+    rs.occluded_many(&rays, &mut blocked);
+    let (mut through, mut stopped) = (0, 0);
+    for (k, r) in rays.iter().enumerate() {
+        let one = rs.intersect_at(r.o, r.d, r.t_max, r.time);
+        let key = |s: &Option<pathfarm_worker::render::scene::SurfaceInteraction>| {
+            s.as_ref().map(|s| (s.prim, s.t.to_bits(), s.p.to_array().map(f32::to_bits)))
+        };
+        assert_eq!(key(&surfaces[k]), key(&one), "ray {k}: {r:?}");
+        assert_eq!(blocked[k], rs.occluded_at(r.o, r.d, r.t_max, r.time), "ray {k}: {r:?}");
+        let first = hits[k].map(|h| h.prim);
+        through += usize::from(one.is_some() && first != one.as_ref().map(|s| s.prim));
+        stopped += usize::from(blocked[k]);
+    }
+    // Rays that went on through a cut-out surface, and rays blocked: both cases were met.
+    assert!(through > 100 && stopped > 300, "{through} through a cut-out, {stopped} blocked");
+}

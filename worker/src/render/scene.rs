@@ -371,11 +371,25 @@ impl RenderScene {
     /// absent at the hit point are passed through (glTF MASK and BLEND).
     pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<SurfaceInteraction> {
         let hit = self.accel.intersect_at(o, d, t_max, time)?;
+        self.surface_through_alpha(&hit, o, d, t_max, time)
+    }
+
+    /// The surface a ray `o + t d` (`t < t_max`, at `time`) meets, given its closest hit `hit`:
+    /// that one where it is present, else the first present one behind the cut-out layers
+    /// (alpha), each found by a closest-hit query from just beyond the last.
+    fn surface_through_alpha(
+        &self,
+        hit: &Hit,
+        o: Vec3A,
+        d: Vec3A,
+        t_max: f32,
+        time: f32,
+    ) -> Option<SurfaceInteraction> {
         if !self.has_alpha || self.present(hit.prim, hit.b1, hit.b2) {
-            return Some(self.surface(&hit, time));
+            return Some(self.surface(hit, time));
         }
         let (mut o, mut t_max, mut t0) = (o, t_max, 0.0f32);
-        let mut si = self.surface(&hit, time);
+        let mut si = self.surface(hit, time);
         for _ in 0..MAX_ALPHA_LAYERS {
             // Continue from just beyond the absent surface; t stays measured from the origin.
             let next = offset_ray_origin(si.p, si.ng, d);
@@ -401,14 +415,19 @@ impl RenderScene {
         out: &mut Vec<Option<SurfaceInteraction>>,
     ) {
         out.clear();
-        if self.has_alpha {
-            out.extend(rays.iter().map(|r| self.intersect_at(r.o, r.d, r.t_max, r.time)));
-            return;
-        }
         self.accel.intersect_many(rays, hits);
         // Each slot is written in place: a mapped `Option` would be built apart and copied
         // whole (about 150 bytes, a `memcpy` call per ray).
         out.resize(rays.len(), None);
+        if self.has_alpha {
+            // The batch's closest hits as above; a ray whose hit is cut out goes on alone.
+            for ((h, r), slot) in hits.iter().zip(rays).zip(out.iter_mut()) {
+                if let Some(h) = h {
+                    *slot = self.surface_through_alpha(h, r.o, r.d, r.t_max, r.time);
+                }
+            }
+            return;
+        }
         for ((h, r), slot) in hits.iter().zip(rays).zip(out.iter_mut()) {
             if let Some(h) = h {
                 self.surface_into(h, r.time, slot);
@@ -420,8 +439,13 @@ impl RenderScene {
     /// each exactly [`RenderScene::occluded_at`] of its ray.
     pub fn occluded_many(&self, rays: &[RayQuery], blocked: &mut Vec<bool>) {
         if self.has_alpha {
+            // `occluded_at`'s closest hits for the batch at once; cut-out ones go on alone.
+            let mut hits = Vec::with_capacity(rays.len());
+            self.accel.intersect_many(rays, &mut hits);
             blocked.clear();
-            blocked.extend(rays.iter().map(|r| self.occluded_at(r.o, r.d, r.t_max, r.time)));
+            blocked.extend(hits.iter().zip(rays).map(|(h, r)| {
+                h.as_ref().is_some_and(|h| self.surface_through_alpha(h, r.o, r.d, r.t_max, r.time).is_some())
+            }));
             return;
         }
         self.accel.occluded_many(rays, blocked);
