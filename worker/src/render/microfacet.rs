@@ -189,6 +189,18 @@ impl MicrofacetDistribution {
     }
 }
 
+/// The albedo tables of [`GgxAlbedo`] and [`SheenAlbedo`] as their quadratures compute them
+/// (`compute`), embedded as `f32` bits: the quadratures take about 0.3 s, which every process
+/// that shades a glTF material paid at its first hit (a CLI render of a one-triangle scene: 0.19
+/// s of 0.2). The test `embedded_albedo_tables_are_the_computed_ones` computes them again and,
+/// where they differ, writes the new file to `target/albedo_tables.rs`.
+mod albedo_tables;
+
+/// `f32`s from their bits.
+fn floats(bits: &[u32]) -> Vec<f32> {
+    bits.iter().map(|&b| f32::from_bits(b)).collect()
+}
+
 /// GGX roughness below which a lobe is treated as a perfect (delta) reflection, as pbrt-v4's
 /// `EffectivelySmooth` and Mitsuba do: such a lobe is too narrow to evaluate or to light by
 /// next-event estimation, and only sampling it finds what it reflects.
@@ -223,10 +235,15 @@ pub struct GgxAlbedo {
 }
 
 impl GgxAlbedo {
-    /// The tables, computed once per process.
+    /// The tables (the embedded ones, [`albedo_tables`]).
     pub fn get() -> &'static Self {
         static TABLES: std::sync::OnceLock<GgxAlbedo> = std::sync::OnceLock::new();
-        TABLES.get_or_init(Self::compute)
+        TABLES.get_or_init(Self::embedded)
+    }
+
+    fn embedded() -> Self {
+        use albedo_tables::{GGX_AVG1, GGX_AVG5, GGX_E1, GGX_E5};
+        Self { e1: floats(&GGX_E1), e5: floats(&GGX_E5), avg1: floats(&GGX_AVG1), avg5: floats(&GGX_AVG5) }
     }
 
     fn compute() -> Self {
@@ -520,10 +537,14 @@ pub struct SheenAlbedo {
 }
 
 impl SheenAlbedo {
-    /// The table, computed once per process.
+    /// The table (the embedded one, [`albedo_tables`]).
     pub fn get() -> &'static Self {
         static TABLE: std::sync::OnceLock<SheenAlbedo> = std::sync::OnceLock::new();
-        TABLE.get_or_init(Self::compute)
+        TABLE.get_or_init(Self::embedded)
+    }
+
+    fn embedded() -> Self {
+        Self { e: floats(&albedo_tables::SHEEN_E) }
     }
 
     fn roughness_at(r: usize) -> f32 {
@@ -705,6 +726,45 @@ pub(crate) mod tests {
         let r = gold.evaluate(1.0);
         assert!(r.x > 0.9 && r.z < 0.5 && r.z > 0.2, "gold {r}");
         assert!((gold.evaluate(1e-4) - Vec3A::ONE).abs().max_element() < 1e-2);
+    }
+
+    /// The embedded tables are what the quadratures compute today (within 1e-6: the same code,
+    /// and a different build may round a `powi` otherwise). Where they are not, the new file
+    /// is written to `target/albedo_tables.rs`, to be copied over
+    /// `worker/src/render/microfacet/albedo_tables.rs` (then `cargo fmt`).
+    #[test]
+    fn embedded_albedo_tables_are_the_computed_ones() {
+        let (ggx, sheen) = (GgxAlbedo::compute(), SheenAlbedo::compute());
+        let tables: [(&str, &[f32], Vec<f32>); 5] = [
+            ("GGX_E1", &ggx.e1, GgxAlbedo::embedded().e1),
+            ("GGX_E5", &ggx.e5, GgxAlbedo::embedded().e5),
+            ("GGX_AVG1", &ggx.avg1, GgxAlbedo::embedded().avg1),
+            ("GGX_AVG5", &ggx.avg5, GgxAlbedo::embedded().avg5),
+            ("SHEEN_E", &sheen.e, SheenAlbedo::embedded().e),
+        ];
+        let same = |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-6);
+        if tables.iter().all(|(_, computed, embedded)| same(computed, embedded)) {
+            return;
+        }
+        let mut src = String::from(
+            "//! The albedo tables of `GgxAlbedo` and `SheenAlbedo` (`f32` bits), as their `compute` makes\n\
+             //! them: written by the test `embedded_albedo_tables_are_the_computed_ones`; do not edit.\n",
+        );
+        for (name, computed, _) in &tables {
+            src += &format!("\npub(super) const {name}: [u32; {}] = [\n", computed.len());
+            for row in computed.chunks(8) {
+                let row: Vec<String> = row.iter().map(|v| format!("0x{:08x}", v.to_bits())).collect();
+                src += &format!("    {},\n", row.join(", "));
+            }
+            src += "];\n";
+        }
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/albedo_tables.rs");
+        let written = std::fs::write(&path, src).is_ok();
+        panic!(
+            "the embedded albedo tables differ from the computed ones; {} (copy it over \
+             worker/src/render/microfacet/albedo_tables.rs, then cargo fmt)",
+            if written { format!("the new file is {}", path.display()) } else { "could not write the new file".into() }
+        );
     }
 
     #[test]
