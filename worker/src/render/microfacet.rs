@@ -212,6 +212,7 @@ const ALBEDO_COS: usize = 40;
 /// ... and perceptual roughness `sqrt(alpha)`, both uniform on [0, 1].
 const ALBEDO_ROUGHNESS: usize = 32;
 /// Quadrature points per table entry along each of the two sample dimensions.
+#[cfg(test)]
 const ALBEDO_QUADRATURE: usize = 64;
 
 /// Directional albedos of the isotropic GGX microfacet lobe `D G / (4 |cos_o| |cos_i|)`
@@ -235,7 +236,7 @@ pub struct GgxAlbedo {
 }
 
 impl GgxAlbedo {
-    /// The tables (the embedded ones, [`albedo_tables`]).
+    /// The tables (embedded: `albedo_tables`).
     pub fn get() -> &'static Self {
         static TABLES: std::sync::OnceLock<GgxAlbedo> = std::sync::OnceLock::new();
         TABLES.get_or_init(Self::embedded)
@@ -246,6 +247,8 @@ impl GgxAlbedo {
         Self { e1: floats(&GGX_E1), e5: floats(&GGX_E5), avg1: floats(&GGX_AVG1), avg5: floats(&GGX_AVG5) }
     }
 
+    /// The tables by their quadrature (what [`albedo_tables`] holds).
+    #[cfg(test)]
     fn compute() -> Self {
         let n = ALBEDO_COS * ALBEDO_ROUGHNESS;
         let (mut e1, mut e5) = (vec![0.0f32; n], vec![0.0f32; n]);
@@ -527,6 +530,7 @@ const SHEEN_COS: usize = 32;
 const SHEEN_ROUGHNESS: usize = 16;
 /// Quadrature of one entry: `x_i` (with `mu_i = x_i^2`) by `phi` in [0, pi] (the lobe is
 /// symmetric about the plane of incidence).
+#[cfg(test)]
 const SHEEN_QUADRATURE: (usize, usize) = (96, 48);
 
 /// Directional albedo `E(mu, roughness)` of the white [`Sheen`] lobe, tabulated at start-up by a
@@ -537,7 +541,7 @@ pub struct SheenAlbedo {
 }
 
 impl SheenAlbedo {
-    /// The table (the embedded one, [`albedo_tables`]).
+    /// The table (embedded: `albedo_tables`).
     pub fn get() -> &'static Self {
         static TABLE: std::sync::OnceLock<SheenAlbedo> = std::sync::OnceLock::new();
         TABLE.get_or_init(Self::embedded)
@@ -547,10 +551,13 @@ impl SheenAlbedo {
         Self { e: floats(&albedo_tables::SHEEN_E) }
     }
 
+    #[cfg(test)]
     fn roughness_at(r: usize) -> f32 {
         SHEEN_MIN_ROUGHNESS + (1.0 - SHEEN_MIN_ROUGHNESS) * r as f32 / (SHEEN_ROUGHNESS - 1) as f32
     }
 
+    /// The table by its quadrature (what [`albedo_tables`] holds).
+    #[cfg(test)]
     fn compute() -> Self {
         let mut e = vec![0.0f32; SHEEN_COS * SHEEN_ROUGHNESS];
         let (nx, np) = SHEEN_QUADRATURE;
