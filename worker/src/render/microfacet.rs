@@ -196,9 +196,15 @@ impl MicrofacetDistribution {
 /// where they differ, writes the new file to `target/albedo_tables.rs`.
 mod albedo_tables;
 
-/// `f32`s from their bits.
-fn floats(bits: &[u32]) -> Vec<f32> {
-    bits.iter().map(|&b| f32::from_bits(b)).collect()
+/// `f32`s from their bits (at compile time).
+const fn floats<const N: usize>(bits: &[u32; N]) -> [f32; N] {
+    let mut out = [0.0f32; N];
+    let mut i = 0;
+    while i < N {
+        out[i] = f32::from_bits(bits[i]);
+        i += 1;
+    }
+    out
 }
 
 /// GGX roughness below which a lobe is treated as a perfect (delta) reflection, as pbrt-v4's
@@ -229,20 +235,24 @@ const ALBEDO_QUADRATURE: usize = 64;
 /// exact averages of the interpolated table, so that a lobe `(1 - E(mu_o))(1 - E(mu_i)) / (pi (1 - E_avg))`
 /// reflects exactly `1 - E(mu_o)`.
 pub struct GgxAlbedo {
-    e1: Vec<f32>,
-    e5: Vec<f32>,
-    avg1: Vec<f32>,
-    avg5: Vec<f32>,
+    e1: [f32; ALBEDO_COS * ALBEDO_ROUGHNESS],
+    e5: [f32; ALBEDO_COS * ALBEDO_ROUGHNESS],
+    avg1: [f32; ALBEDO_ROUGHNESS],
+    avg5: [f32; ALBEDO_ROUGHNESS],
 }
+
+/// The embedded GGX tables, made at compile time.
+static GGX_ALBEDO: GgxAlbedo = GgxAlbedo::embedded();
+/// The embedded sheen table, made at compile time.
+static SHEEN_ALBEDO: SheenAlbedo = SheenAlbedo::embedded();
 
 impl GgxAlbedo {
     /// The tables (embedded: `albedo_tables`).
     pub fn get() -> &'static Self {
-        static TABLES: std::sync::OnceLock<GgxAlbedo> = std::sync::OnceLock::new();
-        TABLES.get_or_init(Self::embedded)
+        &GGX_ALBEDO
     }
 
-    fn embedded() -> Self {
+    const fn embedded() -> Self {
         use albedo_tables::{GGX_AVG1, GGX_AVG5, GGX_E1, GGX_E5};
         Self { e1: floats(&GGX_E1), e5: floats(&GGX_E5), avg1: floats(&GGX_AVG1), avg5: floats(&GGX_AVG5) }
     }
@@ -250,8 +260,7 @@ impl GgxAlbedo {
     /// The tables by their quadrature (what [`albedo_tables`] holds).
     #[cfg(test)]
     fn compute() -> Self {
-        let n = ALBEDO_COS * ALBEDO_ROUGHNESS;
-        let (mut e1, mut e5) = (vec![0.0f32; n], vec![0.0f32; n]);
+        let (mut e1, mut e5) = ([0.0f32; ALBEDO_COS * ALBEDO_ROUGHNESS], [0.0f32; ALBEDO_COS * ALBEDO_ROUGHNESS]);
         for r in 0..ALBEDO_ROUGHNESS {
             let roughness = r as f32 / (ALBEDO_ROUGHNESS - 1) as f32;
             let ggx = MicrofacetDistribution::ggx(roughness * roughness);
@@ -285,33 +294,31 @@ impl GgxAlbedo {
                 e5[r * ALBEDO_COS + c] = (s5 / q).min(1.0) as f32;
             }
         }
-        let average = |e: &[f32]| -> Vec<f32> {
-            (0..ALBEDO_ROUGHNESS)
-                .map(|r| {
-                    let row = &e[r * ALBEDO_COS..(r + 1) * ALBEDO_COS];
-                    let h = 1.0 / (ALBEDO_COS - 1) as f64;
-                    // With mu = x^2, 2 mu E dmu = 4 x^3 E(x) dx, a quintic on each segment of the
-                    // piecewise-linear E(x): three-point Gauss-Legendre is exact.
-                    let gauss = [(-(0.6f64.sqrt()), 5.0 / 9.0), (0.0, 8.0 / 9.0), (0.6f64.sqrt(), 5.0 / 9.0)];
-                    let sum: f64 = row
-                        .windows(2)
-                        .enumerate()
-                        .map(|(k, pair)| {
-                            let (ea, eb) = (f64::from(pair[0]), f64::from(pair[1]));
-                            let mid = (k as f64 + 0.5) * h;
-                            gauss
-                                .iter()
-                                .map(|&(t, w)| {
-                                    let x = mid + 0.5 * h * t;
-                                    let e = ea + (eb - ea) * (0.5 + 0.5 * t);
-                                    w * 0.5 * h * 4.0 * x * x * x * e
-                                })
-                                .sum::<f64>()
-                        })
-                        .sum();
-                    sum as f32
-                })
-                .collect()
+        let average = |e: &[f32]| -> [f32; ALBEDO_ROUGHNESS] {
+            std::array::from_fn(|r| {
+                let row = &e[r * ALBEDO_COS..(r + 1) * ALBEDO_COS];
+                let h = 1.0 / (ALBEDO_COS - 1) as f64;
+                // With mu = x^2, 2 mu E dmu = 4 x^3 E(x) dx, a quintic on each segment of the
+                // piecewise-linear E(x): three-point Gauss-Legendre is exact.
+                let gauss = [(-(0.6f64.sqrt()), 5.0 / 9.0), (0.0, 8.0 / 9.0), (0.6f64.sqrt(), 5.0 / 9.0)];
+                let sum: f64 = row
+                    .windows(2)
+                    .enumerate()
+                    .map(|(k, pair)| {
+                        let (ea, eb) = (f64::from(pair[0]), f64::from(pair[1]));
+                        let mid = (k as f64 + 0.5) * h;
+                        gauss
+                            .iter()
+                            .map(|&(t, w)| {
+                                let x = mid + 0.5 * h * t;
+                                let e = ea + (eb - ea) * (0.5 + 0.5 * t);
+                                w * 0.5 * h * 4.0 * x * x * x * e
+                            })
+                            .sum::<f64>()
+                    })
+                    .sum();
+                sum as f32
+            })
         };
         let (avg1, avg5) = (average(&e1), average(&e5));
         Self { e1, e5, avg1, avg5 }
@@ -537,17 +544,16 @@ const SHEEN_QUADRATURE: (usize, usize) = (96, 48);
 /// deterministic midpoint quadrature, interpolated bilinearly; the albedo scaling of the layers
 /// under a sheen (glTF's `1 - max(sheenColor) E(mu)`) reads it.
 pub struct SheenAlbedo {
-    e: Vec<f32>,
+    e: [f32; SHEEN_COS * SHEEN_ROUGHNESS],
 }
 
 impl SheenAlbedo {
     /// The table (embedded: `albedo_tables`).
     pub fn get() -> &'static Self {
-        static TABLE: std::sync::OnceLock<SheenAlbedo> = std::sync::OnceLock::new();
-        TABLE.get_or_init(Self::embedded)
+        &SHEEN_ALBEDO
     }
 
-    fn embedded() -> Self {
+    const fn embedded() -> Self {
         Self { e: floats(&albedo_tables::SHEEN_E) }
     }
 
@@ -559,7 +565,7 @@ impl SheenAlbedo {
     /// The table by its quadrature (what [`albedo_tables`] holds).
     #[cfg(test)]
     fn compute() -> Self {
-        let mut e = vec![0.0f32; SHEEN_COS * SHEEN_ROUGHNESS];
+        let mut e = [0.0f32; SHEEN_COS * SHEEN_ROUGHNESS];
         let (nx, np) = SHEEN_QUADRATURE;
         for r in 0..SHEEN_ROUGHNESS {
             let sheen = Sheen::new(Self::roughness_at(r));
@@ -742,12 +748,13 @@ pub(crate) mod tests {
     #[test]
     fn embedded_albedo_tables_are_the_computed_ones() {
         let (ggx, sheen) = (GgxAlbedo::compute(), SheenAlbedo::compute());
-        let tables: [(&str, &[f32], Vec<f32>); 5] = [
-            ("GGX_E1", &ggx.e1, GgxAlbedo::embedded().e1),
-            ("GGX_E5", &ggx.e5, GgxAlbedo::embedded().e5),
-            ("GGX_AVG1", &ggx.avg1, GgxAlbedo::embedded().avg1),
-            ("GGX_AVG5", &ggx.avg5, GgxAlbedo::embedded().avg5),
-            ("SHEEN_E", &sheen.e, SheenAlbedo::embedded().e),
+        let (g, s) = (GgxAlbedo::get(), SheenAlbedo::get());
+        let tables: [(&str, &[f32], &[f32]); 5] = [
+            ("GGX_E1", &ggx.e1, &g.e1),
+            ("GGX_E5", &ggx.e5, &g.e5),
+            ("GGX_AVG1", &ggx.avg1, &g.avg1),
+            ("GGX_AVG5", &ggx.avg5, &g.avg5),
+            ("SHEEN_E", &sheen.e, &s.e),
         ];
         let same = |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-6);
         if tables.iter().all(|(_, computed, embedded)| same(computed, embedded)) {
