@@ -33,6 +33,7 @@ use super::wide::{Avx2, Baseline, NodeTest, SimdLevel, V3Kernel};
 use glam::{UVec2, Vec3A};
 use obvhs::faststack::FastStack;
 use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, cwbvh::Traversal, cwbvh::builder::build_cwbvh, ray::Ray};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 /// A closest hit: distance, triangle index (as given to [`Accel::new`]) and barycentrics of
@@ -76,6 +77,17 @@ pub struct Accel {
     /// The union of the root's children's quantized boxes (per axis: lowest min, highest max;
     /// `None` where the root has no child): a packet tests it first (see `trace_packet`).
     root_union: Option<[[f32; 2]; 3]>,
+    /// The sorted packets' triangle tests so far and the rays they tested (see
+    /// [`Accel::sorted_packets`]).
+    packet_tests: AtomicU64,
+    packet_lanes: AtomicU64,
+}
+
+/// A packet traversal's triangle tests and the rays they tested in all ([`trace_packet`]).
+#[derive(Clone, Copy, Default)]
+pub(super) struct PacketStats {
+    tests: u32,
+    lanes: u32,
 }
 
 /// What the 8-wide triangle test needs: the proof of AVX2 and the triangles as lanes.
@@ -325,7 +337,8 @@ impl V3Kernel for IntersectMany<'_> {
             // rest one by one. The hits are the same either way. (Small scenes sort them into
             // packets instead: above.)
             let n = accel.packet_len(&rays[i..]);
-            if n >= MIN_PACKET && accel.trace_packet::<false>(avx2, &rays[i..i + n], hits) {
+            if n >= MIN_PACKET && accel.trace_packet::<false>(avx2, &rays[i..i + n], hits, &mut PacketStats::default())
+            {
                 i += n;
                 continue;
             }
@@ -443,6 +456,8 @@ impl Accel {
                 avx2: Avx2::new(),
                 soa: None,
                 root_union: None,
+                packet_tests: AtomicU64::new(0),
+                packet_lanes: AtomicU64::new(0),
             };
         }
         // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
@@ -469,7 +484,17 @@ impl Accel {
             close.map(|_| prim_ids.iter().map(|&i| close_of(i as usize).unwrap_or(tris[i as usize])).collect());
         let soa = tris_close.is_none().then(|| Box::new(soa_of(&ordered)));
         let root_union = bvh.nodes.first().and_then(quantized_union);
-        Self { bvh: Some(bvh), tris: ordered, prim_ids, tris_close, avx2: Avx2::new(), soa, root_union }
+        Self {
+            bvh: Some(bvh),
+            tris: ordered,
+            prim_ids,
+            tris_close,
+            avx2: Avx2::new(),
+            soa,
+            root_union,
+            packet_tests: AtomicU64::new(0),
+            packet_lanes: AtomicU64::new(0),
+        }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -638,12 +663,19 @@ impl Accel {
     }
 
     /// Whether a batch of `n` rays goes through the BVH in packets of rays sorted by octant and
-    /// dominant axis, however incoherent (see [`SORTED_PACKET_TRIANGLES`]): in a small BVH the
-    /// rays of a packet visit mostly the same leaves anyway, and a packet tests each leaf
-    /// triangle for all of them at once.
+    /// dominant axis, however incoherent: where the rays of a packet visit mostly the same
+    /// leaves, a packet tests each leaf triangle for several of them at once. Always in small
+    /// scenes (see [`SORTED_PACKET_TRIANGLES`]); in larger ones (up to
+    /// [`SORTED_ADAPTIVE_TRIANGLES`]) while the packets' triangle tests so far serve enough rays
+    /// each ([`sorting_pays`]). Either way every ray gets its single-ray hit, so the choice
+    /// (which depends on the order the threads traced their batches) changes no bit of an image.
     #[inline(always)]
     fn sorted_packets(&self, n: usize) -> bool {
-        self.tris_close.is_none() && self.tris.len() <= SORTED_PACKET_TRIANGLES && n <= SORTED_BATCH
+        if self.tris_close.is_some() || n > SORTED_BATCH || self.tris.len() > SORTED_ADAPTIVE_TRIANGLES {
+            return false;
+        }
+        let (tests, lanes) = (self.packet_tests.load(Relaxed), self.packet_lanes.load(Relaxed));
+        sorting_pays(self.tris.len(), tests, lanes)
     }
 
     /// The hits of `rays` (at most [`SORTED_BATCH`]), each in its place, traced in packets of
@@ -682,6 +714,7 @@ impl Accel {
         hits.resize(rays.len(), None);
         let mut packet = [RayQuery { o: Vec3A::ZERO, d: Vec3A::ZERO, t_max: 0.0, time: 0.0 }; PACKET];
         let mut packet_hits: Vec<Option<Hit>> = Vec::with_capacity(PACKET);
+        let mut stats = PacketStats::default();
         let mut begin = 0usize;
         for &end in &start[..24] {
             let end = usize::from(end);
@@ -694,7 +727,7 @@ impl Accel {
                         packet[j] = rays[usize::from(i)];
                     }
                     packet_hits.clear();
-                    if self.trace_packet::<ANY>(avx2, &packet[..n], &mut packet_hits) {
+                    if self.trace_packet::<ANY>(avx2, &packet[..n], &mut packet_hits, &mut stats) {
                         for (j, &i) in idx.iter().enumerate() {
                             hits[usize::from(i)] = packet_hits[j];
                         }
@@ -714,24 +747,35 @@ impl Accel {
             }
             begin = end;
         }
+        // Once per batch (the counters are shared by the threads).
+        if self.tris.len() > SORTED_PACKET_TRIANGLES {
+            self.packet_tests.fetch_add(u64::from(stats.tests), Relaxed);
+            self.packet_lanes.fetch_add(u64::from(stats.lanes), Relaxed);
+        }
     }
 
     /// [`trace_packet`] for the packet's dominant axis; `false` where it did not trace them.
     /// `ANY`: shadow rays (see [`trace_packet`]).
     #[inline(always)]
-    fn trace_packet<const ANY: bool>(&self, avx2: Avx2, rays: &[RayQuery], hits: &mut Vec<Option<Hit>>) -> bool {
+    fn trace_packet<const ANY: bool>(
+        &self,
+        avx2: Avx2,
+        rays: &[RayQuery],
+        hits: &mut Vec<Option<Hit>>,
+        stats: &mut PacketStats,
+    ) -> bool {
         #[cfg(target_arch = "x86_64")]
         {
             match rays.first().map(|r| dominant_axis(r.d)) {
-                Some(0) => avx2.trace_packet::<ANY, 1, 2, 0>(self, rays, hits),
-                Some(1) => avx2.trace_packet::<ANY, 2, 0, 1>(self, rays, hits),
-                Some(_) => avx2.trace_packet::<ANY, 0, 1, 2>(self, rays, hits),
+                Some(0) => avx2.trace_packet::<ANY, 1, 2, 0>(self, rays, hits, stats),
+                Some(1) => avx2.trace_packet::<ANY, 2, 0, 1>(self, rays, hits, stats),
+                Some(_) => avx2.trace_packet::<ANY, 0, 1, 2>(self, rays, hits, stats),
                 None => true,
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = (avx2, rays, hits);
+            let _ = (avx2, rays, hits, stats);
             false
         }
     }
@@ -1057,6 +1101,27 @@ const BLOCKED: Hit = Hit { t: 0.0, prim: u32::MAX, b1: 0.0, b2: 0.0 };
 /// Cornell box with spheres (2,572 triangles) 2% slower, its packets' rays parting too soon.
 const SORTED_PACKET_TRIANGLES: usize = 256;
 
+/// The most triangles for which a batch's rays may go through the BVH in sorted packets, while
+/// they pay ([`sorting_pays`]).
+const SORTED_ADAPTIVE_TRIANGLES: usize = 65_536;
+
+/// The sorted packets' triangle tests after which [`sorting_pays`] judges them.
+const SORTED_TRIAL_TESTS: u64 = 1 << 16;
+
+/// The fewest rays per triangle test (in tenths) with which sorted packets pay above
+/// [`SORTED_PACKET_TRIANGLES`]. Measured (`pathfarm-worker render`, 256x256x32, 2 threads): the
+/// Cornell box with spheres (2,572 triangles) tests 2.41 rays per packet triangle test and
+/// renders 2-3% slower in sorted packets; the corpus' `cornellBox_nvpro` (16.7k) tests 2.78 and
+/// renders 7% faster (1.61-1.65 -> 1.49-1.51 s); the Mitsuba Cornell box tests 3.20.
+const SORTED_MIN_LANES_X10: u64 = 26;
+
+/// Whether sorted packets pay in a scene of `tris` triangles whose packets so far made `tests`
+/// triangle tests for `lanes` rays in all: always in small scenes, else while on trial or while
+/// each test serves enough rays.
+fn sorting_pays(tris: usize, tests: u64, lanes: u64) -> bool {
+    tris <= SORTED_PACKET_TRIANGLES || tests < SORTED_TRIAL_TESTS || lanes * 10 >= tests * SORTED_MIN_LANES_X10
+}
+
 /// The largest batch traced in sorted packets (a power of two).
 const SORTED_BATCH: usize = 256;
 
@@ -1102,6 +1167,7 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
     accel: &Accel,
     rays: &[RayQuery],
     hits: &mut Vec<Option<Hit>>,
+    stats: &mut PacketStats,
 ) -> bool {
     let Some(bvh) = accel.bvh.as_ref() else {
         hits.extend(rays.iter().map(|_| None));
@@ -1173,7 +1239,7 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
         oct_inv4: u32::from(!(first.x < 0.0)) << 2 | u32::from(!(first.y < 0.0)) << 1 | u32::from(!(first.z < 0.0)),
     };
     let mut best: [Option<(u32, f32, f32)>; PACKET] = [None; PACKET];
-    if !packet_traverse::<ANY, KX, KY, KZ>(avx2, accel, bvh, &p, active, &mut t_max, &mut best) {
+    if !packet_traverse::<ANY, KX, KY, KZ>(avx2, accel, bvh, &p, active, &mut t_max, &mut best, stats) {
         return false;
     }
     for i in 0..n {
@@ -1205,6 +1271,7 @@ const PACKET_STACK: usize = 96;
 /// `Sheared::new`).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn packet_traverse<const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
     avx2: Avx2,
     accel: &Accel,
@@ -1213,6 +1280,7 @@ fn packet_traverse<const ANY: bool, const KX: usize, const KY: usize, const KZ: 
     active: u32,
     t_max: &mut [f32; PACKET],
     best: &mut [Option<(u32, f32, f32)>; PACKET],
+    stats: &mut PacketStats,
 ) -> bool {
     let l = p.shear_sz;
     let oct = p.oct_inv4 & 0x7;
@@ -1303,6 +1371,8 @@ fn packet_traverse<const ANY: bool, const KX: usize, const KY: usize, const KZ: 
                 continue;
             }
             let slot = node.primitive_base_idx + offset as u32;
+            stats.tests += 1;
+            stats.lanes += rays.count_ones();
             let changed = packet_triangle(avx2, accel, p, slot, rays, tmax_lanes, t_max, best);
             if ANY {
                 done |= changed;
@@ -1898,6 +1968,42 @@ mod tests {
             hit > n / 4 && shadowed > n / 8 && shadowed < n - n / 8,
             "too one-sided to tell: {hit}, {shadowed} of {n}"
         );
+    }
+
+    /// Above 256 triangles sorted packets run while they pay: on trial for their first
+    /// `SORTED_TRIAL_TESTS` triangle tests, then while each serves at least 2.6 rays; each ray's
+    /// hit is its single-ray hit either way (the soup's incoherent rays: sorted packets on trial,
+    /// then off).
+    #[test]
+    fn sorted_packets_run_above_256_triangles_while_they_pay() {
+        assert!(sorting_pays(SORTED_PACKET_TRIANGLES, u64::MAX / 100, 0), "small scenes always sort");
+        let trial = SORTED_TRIAL_TESTS;
+        assert!(sorting_pays(300, trial - 1, 0), "on trial");
+        assert!(sorting_pays(300, 10 * trial, 26 * trial), "2.6 rays a test pay");
+        assert!(!sorting_pays(300, 10 * trial, 26 * trial - 1), "fewer do not");
+        let mut accel = Accel::new(&soup(3000, 9));
+        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
+            return;
+        }
+        assert!(accel.sorted_packets(SORTED_BATCH), "on trial at first");
+        let rays: Vec<RayQuery> = (0..40_000u64)
+            .map(|k| {
+                let u = |j: u64| crate::render::wide::unit(k * 8 + j) * 2.0 - 1.0;
+                RayQuery { o: Vec3A::new(u(0), u(1), u(2)), d: Vec3A::new(u(3), u(4), u(5)), t_max: 10.0, time: 0.0 }
+            })
+            .collect();
+        let mut got = Vec::new();
+        let mut sorted_batches = 0;
+        for batch in rays.chunks(SORTED_BATCH) {
+            sorted_batches += usize::from(accel.sorted_packets(batch.len()));
+            accel.intersect_many(batch, &mut got);
+            for (r, h) in batch.iter().zip(&got) {
+                assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {}", r.o, r.d);
+            }
+        }
+        let (tests, lanes) = (accel.packet_tests.load(Relaxed), accel.packet_lanes.load(Relaxed));
+        assert!(tests >= trial, "{tests} packet triangle tests");
+        assert!(sorted_batches > 0 && !accel.sorted_packets(SORTED_BATCH), "{lanes} rays in {tests} tests");
     }
 
     fn bits(h: Option<Hit>) -> Option<(u32, u32, u32, u32)> {
