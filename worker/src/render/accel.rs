@@ -83,9 +83,11 @@ pub struct Accel {
     packet_lanes: AtomicU64,
 }
 
-/// A packet traversal's triangle tests and the rays they tested in all ([`trace_packet`]).
+/// A packet traversal's triangle tests and the rays they tested in all ([`trace_packet`]),
+/// counted where `count` is set (sorted packets on trial).
 #[derive(Clone, Copy, Default)]
 pub(super) struct PacketStats {
+    count: bool,
     tests: u32,
     lanes: u32,
 }
@@ -714,7 +716,9 @@ impl Accel {
         hits.resize(rays.len(), None);
         let mut packet = [RayQuery { o: Vec3A::ZERO, d: Vec3A::ZERO, t_max: 0.0, time: 0.0 }; PACKET];
         let mut packet_hits: Vec<Option<Hit>> = Vec::with_capacity(PACKET);
-        let mut stats = PacketStats::default();
+        // Counted only while on trial: then the counts are final, and so is the choice.
+        let count = self.tris.len() > SORTED_PACKET_TRIANGLES && self.packet_tests.load(Relaxed) < SORTED_TRIAL_TESTS;
+        let mut stats = PacketStats { count, ..PacketStats::default() };
         let mut begin = 0usize;
         for &end in &start[..24] {
             let end = usize::from(end);
@@ -748,7 +752,7 @@ impl Accel {
             begin = end;
         }
         // Once per batch (the counters are shared by the threads).
-        if self.tris.len() > SORTED_PACKET_TRIANGLES {
+        if count {
             self.packet_tests.fetch_add(u64::from(stats.tests), Relaxed);
             self.packet_lanes.fetch_add(u64::from(stats.lanes), Relaxed);
         }
@@ -1115,9 +1119,10 @@ const SORTED_TRIAL_TESTS: u64 = 1 << 16;
 /// renders 7% faster (1.61-1.65 -> 1.49-1.51 s); the Mitsuba Cornell box tests 3.20.
 const SORTED_MIN_LANES_X10: u64 = 26;
 
-/// Whether sorted packets pay in a scene of `tris` triangles whose packets so far made `tests`
-/// triangle tests for `lanes` rays in all: always in small scenes, else while on trial or while
-/// each test serves enough rays.
+/// Whether sorted packets pay in a scene of `tris` triangles whose packets made `tests` triangle
+/// tests for `lanes` rays in all (counted while on trial, a little beyond it as the threads'
+/// batches end): always in small scenes, else while on trial or where each test served enough
+/// rays.
 fn sorting_pays(tris: usize, tests: u64, lanes: u64) -> bool {
     tris <= SORTED_PACKET_TRIANGLES || tests < SORTED_TRIAL_TESTS || lanes * 10 >= tests * SORTED_MIN_LANES_X10
 }
@@ -1239,7 +1244,13 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
         oct_inv4: u32::from(!(first.x < 0.0)) << 2 | u32::from(!(first.y < 0.0)) << 1 | u32::from(!(first.z < 0.0)),
     };
     let mut best: [Option<(u32, f32, f32)>; PACKET] = [None; PACKET];
-    if !packet_traverse::<ANY, KX, KY, KZ>(avx2, accel, bvh, &p, active, &mut t_max, &mut best, stats) {
+    // The counting traversal is a copy of its own: the other counts nothing, at no cost.
+    let traced = if stats.count {
+        packet_traverse::<ANY, true, KX, KY, KZ>(avx2, accel, bvh, &p, active, &mut t_max, &mut best, stats)
+    } else {
+        packet_traverse::<ANY, false, KX, KY, KZ>(avx2, accel, bvh, &p, active, &mut t_max, &mut best, stats)
+    };
+    if !traced {
         return false;
     }
     for i in 0..n {
@@ -1272,7 +1283,7 @@ const PACKET_STACK: usize = 96;
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn packet_traverse<const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
+fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY: usize, const KZ: usize>(
     avx2: Avx2,
     accel: &Accel,
     bvh: &CwBvh,
@@ -1371,8 +1382,10 @@ fn packet_traverse<const ANY: bool, const KX: usize, const KY: usize, const KZ: 
                 continue;
             }
             let slot = node.primitive_base_idx + offset as u32;
-            stats.tests += 1;
-            stats.lanes += rays.count_ones();
+            if COUNT {
+                stats.tests += 1;
+                stats.lanes += rays.count_ones();
+            }
             let changed = packet_triangle(avx2, accel, p, slot, rays, tmax_lanes, t_max, best);
             if ANY {
                 done |= changed;

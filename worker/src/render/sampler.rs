@@ -516,12 +516,28 @@ impl Sampler for SobolSampler {
             let mut seeds2 = [[[0u32; 8]; 3]; 2];
             for (lane, s) in chunk.iter().enumerate() {
                 index[lane] = s.index;
-                let (one, two) = repeat_or(&mut last, (s.pixel_hash, s.dim), || s.bounce_seeds());
+            }
+            let first = chunk.first().map(|s| (s.pixel_hash, s.dim));
+            if chunk.len() == 8 && chunk.iter().all(|s| Some((s.pixel_hash, s.dim)) == first) {
+                // One pixel's paths at one bounce (the common case: a pixel's samples follow
+                // one another): the same seeds in every lane, written as whole rows.
+                let (one, two) = repeat_or(&mut last, (chunk[0].pixel_hash, chunk[0].dim), || chunk[0].bounce_seeds());
                 for k in 0..BOUNCE_1D.len() {
-                    (seeds1[k][0][lane], seeds1[k][1][lane]) = (one[k][0], one[k][1]);
+                    seeds1[k] = [[one[k][0]; 8], [one[k][1]; 8]];
                 }
                 for k in 0..BOUNCE_2D.len() {
-                    (seeds2[k][0][lane], seeds2[k][1][lane], seeds2[k][2][lane]) = (two[k][0], two[k][1], two[k][2]);
+                    seeds2[k] = [[two[k][0]; 8], [two[k][1]; 8], [two[k][2]; 8]];
+                }
+            } else {
+                for (lane, s) in chunk.iter().enumerate() {
+                    let (one, two) = repeat_or(&mut last, (s.pixel_hash, s.dim), || s.bounce_seeds());
+                    for k in 0..BOUNCE_1D.len() {
+                        (seeds1[k][0][lane], seeds1[k][1][lane]) = (one[k][0], one[k][1]);
+                    }
+                    for k in 0..BOUNCE_2D.len() {
+                        (seeds2[k][0][lane], seeds2[k][1][lane], seeds2[k][2][lane]) =
+                            (two[k][0], two[k][1], two[k][2]);
+                    }
                 }
             }
             // Row `r` of the requests' values (lanes), transposed: lane `i`'s 8 numbers in a
