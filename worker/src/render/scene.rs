@@ -443,9 +443,7 @@ impl RenderScene {
             let mut hits = Vec::with_capacity(rays.len());
             self.accel.intersect_many(rays, &mut hits);
             blocked.clear();
-            blocked.extend(hits.iter().zip(rays).map(|(h, r)| {
-                h.as_ref().is_some_and(|h| self.surface_through_alpha(h, r.o, r.d, r.t_max, r.time).is_some())
-            }));
+            blocked.extend(hits.iter().zip(rays).map(|(h, r)| h.is_some_and(|h| self.blocks(&h, r))));
             return;
         }
         self.accel.occluded_many(rays, blocked);
@@ -456,7 +454,14 @@ impl RenderScene {
         if !self.has_alpha {
             return self.accel.occluded_at(o, d, t_max, time);
         }
-        self.intersect_at(o, d, t_max, time).is_some()
+        let r = RayQuery { o, d, t_max, time };
+        self.accel.intersect_at(o, d, t_max, time).is_some_and(|h| self.blocks(&h, &r))
+    }
+
+    /// Whether the ray `r`, whose closest hit is `hit`, meets something present: `hit` itself,
+    /// or a surface behind its cut-out layers (alpha).
+    fn blocks(&self, hit: &Hit, r: &RayQuery) -> bool {
+        self.present(hit.prim, hit.b1, hit.b2) || self.surface_through_alpha(hit, r.o, r.d, r.t_max, r.time).is_some()
     }
 
     /// Whether triangle `prim` is present at barycentrics (b1, b2): always for opaque materials;

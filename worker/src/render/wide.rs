@@ -58,6 +58,7 @@ impl SimdLevel {
 
 /// Declares the kernel `$body` twice, as `v3` (compiled for x86-64-v3) and `v4` (compiled for
 /// x86-64-v4), for [`Avx2::run_kernel`] and the other entry points to pick by the proof's level.
+#[cfg(target_arch = "x86_64")]
 macro_rules! leveled {
     ($(#[$attr:meta])* fn $(<$(const $g:ident: $gt:ty),+>)? ($($arg:ident: $ty:ty),* $(,)?) -> $ret:ty $body:block) => {
         $(#[$attr])*
