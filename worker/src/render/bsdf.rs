@@ -266,6 +266,33 @@ impl Bxdf {
         }
     }
 
+    /// `(f(wo, wi), pdf(wo, wi))`, the same values, with what the two share computed once (the
+    /// glTF lobe's half vector, `D`, albedos and lobe probability): next-event estimation needs
+    /// both for each light sample.
+    pub fn f_pdf(&self, wo: Vec3A, wi: Vec3A) -> (Vec3A, f32) {
+        let Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } = *self else {
+            return (self.f(wo, wi), self.pdf(wo, wi));
+        };
+        if !same_hemisphere(wo, wi) {
+            return (Vec3A::ZERO, 0.0);
+        }
+        let (wo, wi) = upper(wo, wi);
+        let Some(wm) = half_vector(wo, wi) else { return (Vec3A::ZERO, 0.0) };
+        let s = specular_factor.clamp(0.0, 1.0);
+        let ggx = MicrofacetDistribution::ggx(alpha);
+        let albedo = GltfAlbedo::new(base_color, alpha, s);
+        let o = albedo.at(wo.z);
+        let d = ggx.d(wm);
+        let f = if !(wo.z > 0.0) || !(wi.z > 0.0) {
+            Vec3A::ZERO
+        } else {
+            gltf_f_with(base_color, metallic, s, &ggx, d, &albedo, &o, wo, wi, wm)
+        };
+        let p_spec = gltf_specular_probability_with(base_color, metallic, &albedo, &o, wo.z);
+        let spec = microfacet_pdf_with(&ggx, wo, wm, || d);
+        (f, p_spec * spec + (1.0 - p_spec) * wi.z * FRAC_1_PI)
+    }
+
     /// The solid-angle density with which [`Bxdf::sample_f`] returns `wi`. Zero for delta lobes.
     pub fn pdf(&self, wo: Vec3A, wi: Vec3A) -> f32 {
         if let Self::RoughDielectric { eta, tint, alpha } = *self {
@@ -594,11 +621,17 @@ fn rough_thin(eta: f32, tint: Vec3A, alpha: f32, wo: Vec3A, wi: Vec3A) -> Option
 
 /// Density of `wi = reflect(wo, wm)` when `wm` is drawn from `distribution` (upper-side `wo`).
 fn microfacet_pdf(distribution: &MicrofacetDistribution, wo: Vec3A, wm: Vec3A) -> f32 {
+    microfacet_pdf_with(distribution, wo, wm, || distribution.d(wm))
+}
+
+/// [`microfacet_pdf`] with `D(wm)` from `d`.
+#[inline]
+fn microfacet_pdf_with(distribution: &MicrofacetDistribution, wo: Vec3A, wm: Vec3A, d: impl FnOnce() -> f32) -> f32 {
     let cos = wo.dot(wm);
     if !(cos > 0.0) {
         return 0.0;
     }
-    distribution.pdf_wm(wo, wm) / (4.0 * cos)
+    distribution.pdf_wm_with(wo, wm, d) / (4.0 * cos)
 }
 
 /// Torrance-Sparrow reflection for upper-side `wo`, `wi` and their half vector `wm`.
@@ -632,15 +665,36 @@ fn gltf_f(
     if !(cos_o > 0.0) || !(cos_i > 0.0) {
         return Vec3A::ZERO;
     }
-    let m = metallic.clamp(0.0, 1.0);
     let s = specular_factor.clamp(0.0, 1.0);
     let ggx = MicrofacetDistribution::ggx(alpha);
-    let spec = ggx.d(wm) * ggx.g(wo, wi, wm) / (4.0 * cos_o * cos_i);
+    let albedo = GltfAlbedo::new(base_color, alpha, s);
+    gltf_f_with(base_color, metallic, s, &ggx, ggx.d(wm), &albedo, &albedo.at(cos_o), wo, wi, wm)
+}
+
+/// [`gltf_f`] from what it shares with [`gltf_specular_probability`] and the pdf at one `wo`
+/// (`s` the clamped specular factor, `d` = `D(wm)`, `o` = `albedo.at(wo.z)`), for upper-side
+/// directions.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn gltf_f_with(
+    base_color: Vec3A,
+    metallic: f32,
+    s: f32,
+    ggx: &MicrofacetDistribution,
+    d: f32,
+    albedo: &GltfAlbedo,
+    o: &GltfAlbedoAt,
+    wo: Vec3A,
+    wi: Vec3A,
+    wm: Vec3A,
+) -> Vec3A {
+    let (cos_o, cos_i) = (wo.z, wi.z);
+    let m = metallic.clamp(0.0, 1.0);
+    let spec = d * ggx.g(wo, wi, wm) / (4.0 * cos_o * cos_i);
     let schlick = (1.0 - wo.dot(wm).abs().min(1.0)).powi(5);
     let fd = s * (DIELECTRIC_F0 + (1.0 - DIELECTRIC_F0) * schlick);
     let fm = base_color + (Vec3A::ONE - base_color) * schlick;
-    let albedo = GltfAlbedo::new(base_color, alpha, s);
-    let (o, i) = (albedo.at(cos_o), albedo.at(cos_i));
+    let i = albedo.at(cos_i);
     let dielectric = base_color * (FRAC_1_PI * o.diffuse * i.diffuse / albedo.diffuse_avg) + Vec3A::splat(fd * spec);
     let ms = albedo.f_ms * (FRAC_1_PI * o.ms * i.ms / albedo.ms_avg);
     dielectric * (1.0 - m) + (fm * spec + ms) * m
@@ -703,12 +757,22 @@ impl GltfAlbedo {
 /// with the Fresnel factor at normal-to-`wo` incidence), kept within [0.1, 0.9] while both are
 /// present, so that neither is starved where the estimate is poor.
 fn gltf_specular_probability(base_color: Vec3A, metallic: f32, alpha: f32, specular_factor: f32, cos_o: f32) -> f32 {
+    let albedo = GltfAlbedo::new(base_color, alpha, specular_factor.clamp(0.0, 1.0));
+    gltf_specular_probability_with(base_color, metallic, &albedo, &albedo.at(cos_o), cos_o)
+}
+
+/// [`gltf_specular_probability`] from the albedos and their values at `cos_o` (`o`).
+#[inline]
+fn gltf_specular_probability_with(
+    base_color: Vec3A,
+    metallic: f32,
+    albedo: &GltfAlbedo,
+    o: &GltfAlbedoAt,
+    cos_o: f32,
+) -> f32 {
     let m = metallic.clamp(0.0, 1.0);
-    let s = specular_factor.clamp(0.0, 1.0);
     let schlick = (1.0 - cos_o.abs().min(1.0)).powi(5);
     let fm = base_color + (Vec3A::ONE - base_color) * schlick;
-    let albedo = GltfAlbedo::new(base_color, alpha, s);
-    let o = albedo.at(cos_o);
     let spec = (1.0 - m) * o.e_d + m * o.e * fm.element_sum() / 3.0;
     let ms = if albedo.f_ms == Vec3A::ZERO { 0.0 } else { o.ms * albedo.f_ms.element_sum() / 3.0 };
     let diffuse = (1.0 - m) * o.diffuse * base_color.element_sum() / 3.0 + m * ms;
@@ -956,6 +1020,20 @@ impl Bsdf {
         }
         bs.wi = self.frame.from_local(bs.wi);
         Some(bs)
+    }
+
+    /// `(f(wo, wi), pdf(wo, wi))` for world-space directions: the same values, what they share
+    /// computed once ([`Bxdf::f_pdf`]).
+    pub fn f_pdf(&self, wo: Vec3A, wi: Vec3A) -> (Vec3A, f32) {
+        let wo = self.frame.to_local(wo);
+        if wo.z == 0.0 {
+            return (Vec3A::ZERO, 0.0);
+        }
+        let wi = self.frame.to_local(wi);
+        match &self.layers {
+            Some(l) => (l.f(&self.bxdf, wo, wi), l.pdf(&self.bxdf, wo, wi)),
+            None => self.bxdf.f_pdf(wo, wi),
+        }
     }
 
     /// The density of [`Bsdf::sample_f`] returning world-space `wi`.
@@ -1692,6 +1770,33 @@ pub(crate) mod tests {
                 assert!((fa - fb).abs().max_element() <= 1e-4 * fb.max_element(), "{name}: not two-sided");
             }
         }
+    }
+
+    /// `f_pdf` is `(f, pdf)` bit for bit: every smooth case and glTF lobes of every kind (rough,
+    /// smooth, metal, no specular), random directions on both sides and the degenerate ones.
+    #[test]
+    fn f_pdf_is_f_and_pdf() {
+        let mut cases = smooth_cases();
+        for (metallic, roughness, specular) in [(0.0, 0.5, 1.0), (1.0, 0.3, 1.0), (0.4, 0.05, 0.5), (0.0, 0.9, 0.0)] {
+            let name = format!("gltf metallic {metallic} roughness {roughness} specular {specular}");
+            cases.push((name, Bxdf::gltf(Vec3A::new(0.8, 0.4, 0.2), metallic, roughness, specular)));
+        }
+        cases.push(("glass".into(), Bxdf::Dielectric { eta: 1.5, tint: Vec3A::ONE }));
+        let mut rng = TestRng::new(1001);
+        let bits = |(f, pdf): (Vec3A, f32)| (f.to_array().map(f32::to_bits), pdf.to_bits());
+        let mut gltf_nonzero = 0;
+        for (name, bxdf) in &cases {
+            let mut dirs: Vec<Vec3A> =
+                (0..400).map(|_| dir(2.0 * rng.uniform() - 1.0, 2.0 * PI * rng.uniform())).collect();
+            dirs.extend([Vec3A::Z, -Vec3A::Z, dir(0.0, 0.7), dir(1e-7, 2.0)]);
+            for pair in dirs.windows(2) {
+                let (wo, wi) = (pair[0], pair[1]);
+                let got = bxdf.f_pdf(wo, wi);
+                assert_eq!(bits(got), bits((bxdf.f(wo, wi), bxdf.pdf(wo, wi))), "{name}: {wo} {wi}");
+                gltf_nonzero += usize::from(matches!(bxdf, Bxdf::GltfMetalRough { .. }) && got.1 > 0.0);
+            }
+        }
+        assert!(gltf_nonzero > 500, "{gltf_nonzero} glTF pairs with a density");
     }
 
     #[test]

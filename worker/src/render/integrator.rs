@@ -76,7 +76,7 @@ pub fn sample_ld(
     if !scene.unoccluded_at(p, sh.ng, &nee.ls, time) {
         return Vec3A::ZERO;
     }
-    nee.contribution(sh, wo, params)
+    nee.contribution(params)
 }
 
 /// A light sample of next-event estimation that can contribute (BSDF value nonzero), before
@@ -89,20 +89,21 @@ pub struct NeeSample {
     /// Probability of the light's selection.
     pub pmf: f32,
     pub delta: bool,
+    /// The BSDF's density toward the light (for the MIS weight; 0 for a delta light, which
+    /// has none).
+    pub bsdf_pdf: f32,
 }
 
 impl NeeSample {
-    /// The contribution (without the path throughput) if the shadow ray is unoccluded. `sh`
-    /// and `wo` are those [`nee_sample`] was given (whose BSDF exists).
+    /// The contribution (without the path throughput) if the shadow ray is unoccluded.
     #[inline]
-    pub fn contribution(&self, sh: &Shading, wo: Vec3A, params: &PathParams) -> Vec3A {
+    pub fn contribution(&self, params: &PathParams) -> Vec3A {
         let (f, ls, pmf) = (self.f, &self.ls, self.pmf);
         let light_pdf = pmf * ls.pdf;
         if self.delta {
             return f * ls.l / pmf;
         }
-        let bsdf_pdf = sh.bsdf.as_ref().map_or(0.0, |b| b.pdf(wo, ls.wi));
-        let w = mis_weight(params.mis, light_pdf, bsdf_pdf);
+        let w = mis_weight(params.mis, light_pdf, self.bsdf_pdf);
         f * ls.l * (w / light_pdf)
     }
 }
@@ -151,11 +152,14 @@ pub fn nee_with_light(
     if ls.l == Vec3A::ZERO || !(same_side || bsdf.bxdf.has_transmission() && ls.wi.dot(sh.ng) != 0.0) {
         return None;
     }
-    let f = bsdf.f(wo, ls.wi) * ls.wi.dot(bsdf.frame.z).abs();
+    // The BSDF's density too, where the MIS weight will need it (what the two share is made
+    // once).
+    let (f, bsdf_pdf) = if delta { (bsdf.f(wo, ls.wi), 0.0) } else { bsdf.f_pdf(wo, ls.wi) };
+    let f = f * ls.wi.dot(bsdf.frame.z).abs();
     if f == Vec3A::ZERO {
         return None;
     }
-    Some(NeeSample { ls, f, pmf, delta })
+    Some(NeeSample { ls, f, pmf, delta, bsdf_pdf })
 }
 
 /// Samples the BSDF for the next path segment (one 1D and one 2D sample, in that order) and

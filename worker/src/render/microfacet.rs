@@ -163,11 +163,17 @@ impl MicrofacetDistribution {
     /// `D(wm) cos(theta_m)` for Blinn, the Ashikhmin-Shirley sampler's own density, and the
     /// distribution of visible normals `G1(wo, wm) max(0, wo.wm) D(wm) / |cos(theta_o)|` for GGX.
     pub fn pdf_wm(&self, wo: Vec3A, wm: Vec3A) -> f32 {
+        self.pdf_wm_with(wo, wm, || self.d(wm))
+    }
+
+    /// [`MicrofacetDistribution::pdf_wm`] with `D(wm)` from `d` (a value made already).
+    #[inline]
+    pub fn pdf_wm_with(&self, wo: Vec3A, wm: Vec3A, d: impl FnOnce() -> f32) -> f32 {
         if !(wm.z > 0.0) {
             return 0.0;
         }
         match *self {
-            Self::Blinn { .. } => self.d(wm) * wm.z,
+            Self::Blinn { .. } => d() * wm.z,
             Self::AshikhminShirley { exponent_x, exponent_y } => {
                 let (ex, ey) = (exponent_x.max(0.0), exponent_y.max(0.0));
                 ((ex + 1.0) * (ey + 1.0)).sqrt()
@@ -183,7 +189,7 @@ impl MicrofacetDistribution {
                 if !(cos_m > 0.0) {
                     return 0.0;
                 }
-                self.g1(w, wm) / w.z * self.d(wm) * cos_m
+                self.g1(w, wm) / w.z * d() * cos_m
             }
         }
     }

@@ -541,7 +541,7 @@ fn scatter<S: Sampler>(
         match nee {
             Some(nee) => {
                 let (o, d, t_max) = RenderScene::shadow_ray(si.p, sh.ng, &nee.ls);
-                let c = nee.contribution(&sh, wo, params);
+                let c = nee.contribution(params);
                 shadow = Some((RayQuery { o, d, t_max, time }, (path.beta, c)));
             }
             None => path.l += path.beta * Vec3A::ZERO,
