@@ -365,7 +365,11 @@ impl Bxdf {
                 Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::GLOSSY_REFLECTION, eta: 1.0 })
             }
             Self::GltfMetalRough { base_color, metallic, alpha, specular_factor } => {
-                let p_spec = gltf_specular_probability(base_color, metallic, alpha, specular_factor, wo_up.z);
+                // What the lobe probability, the pdf and `f` share, made once (as `f_pdf` does).
+                let s = specular_factor.clamp(0.0, 1.0);
+                let albedo = GltfAlbedo::new(base_color, alpha, s);
+                let o = albedo.at(wo_up.z);
+                let p_spec = gltf_specular_probability_with(base_color, metallic, &albedo, &o, wo_up.z);
                 let ggx = MicrofacetDistribution::ggx(alpha);
                 let wi = if uc < p_spec {
                     reflect(wo_up, ggx.sample_wm(wo_up, u))
@@ -376,12 +380,17 @@ impl Bxdf {
                     return None;
                 }
                 let wm = half_vector(wo_up, wi)?;
-                let spec = microfacet_pdf(&ggx, wo_up, wm);
+                let d = ggx.d(wm);
+                let spec = microfacet_pdf_with(&ggx, wo_up, wm, || d);
                 let pdf = p_spec * spec + (1.0 - p_spec) * wi.z * FRAC_1_PI;
                 if !(pdf > 0.0) || !pdf.is_finite() {
                     return None;
                 }
-                let f = gltf_f(base_color, metallic, alpha, specular_factor, wo_up, wi, wm);
+                let f = if !(wo_up.z > 0.0) {
+                    Vec3A::ZERO
+                } else {
+                    gltf_f_with(base_color, metallic, s, &ggx, d, &albedo, &o, wo_up, wi, wm)
+                };
                 Some(BsdfSample { f, wi: unflip(wi), pdf, flags: LobeFlags::GLOSSY_REFLECTION, eta: 1.0 })
             }
             Self::GltfSmoothBase { r, specular_factor } => {
@@ -1797,6 +1806,18 @@ pub(crate) mod tests {
             }
         }
         assert!(gltf_nonzero > 500, "{gltf_nonzero} glTF pairs with a density");
+        // A glTF lobe's sample carries its direction's `f` and `pdf`, bit for bit.
+        let mut sampled = 0;
+        for (name, bxdf) in cases.iter().filter(|(_, b)| matches!(b, Bxdf::GltfMetalRough { .. })) {
+            for _ in 0..2000 {
+                let wo = dir(2.0 * rng.uniform() - 1.0, 2.0 * PI * rng.uniform());
+                let (uc, u) = (rng.uniform(), rng.uniform_2d());
+                let Some(bs) = bxdf.sample_f(wo, uc, u) else { continue };
+                assert_eq!(bits((bs.f, bs.pdf)), bits(bxdf.f_pdf(wo, bs.wi)), "{name}: {wo} {uc} {u}");
+                sampled += 1;
+            }
+        }
+        assert!(sampled > 4000, "{sampled} glTF samples");
     }
 
     #[test]
