@@ -519,6 +519,15 @@ impl RenderScene {
         let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
         let (b1, b2) = (hit.b1, hit.b2);
         let b0 = 1.0 - b1 - b2;
+        if close.is_none()
+            && mesh.uv0.is_none()
+            && mesh.uv1.is_none()
+            && mesh.colors.is_none()
+            && mesh.tangents.is_none()
+            && let Some(si) = Self::plain_surface(mesh, idx, hit, [b0, b1, b2])
+        {
+            return si;
+        }
         // A vertex attribute at the ray's time (the open pose when nothing moves).
         let at_time = |open: Option<Vec3>, close: Option<Vec3>| -> Option<Vec3A> {
             let a = Vec3A::from(open?);
@@ -577,6 +586,41 @@ impl RenderScene {
             b1,
             b2,
         }
+    }
+
+    /// [`RenderScene::surface_value`] of a hit on a mesh that does not move and has no vertex
+    /// attribute beyond positions and normals (the same operations, without the general case's
+    /// attribute checks): `None` where an index is out of range (the general case decides).
+    #[inline(always)]
+    fn plain_surface(mesh: &Mesh, idx: [usize; 3], hit: &Hit, b: [f32; 3]) -> Option<SurfaceInteraction> {
+        let [b0, b1, b2] = b;
+        let pos = &mesh.positions;
+        let (p0, p1, p2) =
+            (Vec3A::from(*pos.get(idx[0])?), Vec3A::from(*pos.get(idx[1])?), Vec3A::from(*pos.get(idx[2])?));
+        let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
+        let p = p0 * b0 + p1 * b1 + p2 * b2;
+        let ns = match &mesh.normals {
+            Some(n) => {
+                let (n0, n1, n2) =
+                    (Vec3A::from(*n.get(idx[0])?), Vec3A::from(*n.get(idx[1])?), Vec3A::from(*n.get(idx[2])?));
+                let ns = (n0 * b0 + n1 * b1 + n2 * b2).normalize_or_zero();
+                if ns != Vec3A::ZERO { ns } else { ng }
+            }
+            None => ng,
+        };
+        Some(SurfaceInteraction {
+            p,
+            t: hit.t,
+            ng,
+            ns,
+            uv: [Vec2::ZERO; 2],
+            color: glam::Vec4::ONE,
+            tangent: None,
+            prim: hit.prim,
+            material: mesh.material as u32,
+            b1: hit.b1,
+            b2: hit.b2,
+        })
     }
 
     /// Beer-Lambert transmittance of the segment a ray in direction `d` travelled to reach
