@@ -3,6 +3,7 @@
 
 use super::accel::{Accel, Hit, RayQuery, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
+use super::lambert::{LambertLanes, set3};
 use super::light::{EnvironmentLight, Light, LightLanes, LightLeSample, LightLiSample, LightSampleContext};
 use super::math;
 use super::sampler::hash_u64;
@@ -68,6 +69,42 @@ impl LightBatch {
         let Light::Triangle { n: normal, le, .. } = *light else { return None };
         let s = self.lanes.get(n / 8)?.get(n % 8, le, normal)?;
         Some((index as usize, scene.on_emitter(light, s)?, pmf))
+    }
+
+    /// The `n`-th point's light sample written into lane `lane` of `out` (the values
+    /// [`LightBatch::get`] gives, read from the lanes they were made in): whether there is one.
+    /// Lanes without one keep old values.
+    #[inline(always)]
+    pub fn write_lane(&self, scene: &RenderScene, n: usize, out: &mut LambertLanes, lane: usize) -> bool {
+        let lane = lane & 7;
+        if scene.has_alpha || scene.has_emission_texture || !self.single.is_empty() {
+            // Alpha and emission textures act on each sample (`on_emitter`).
+            let Some((_, ls, pmf)) = self.get(scene, n) else { return false };
+            set3(&mut out.ls_l, lane, ls.l);
+            set3(&mut out.ls_wi, lane, ls.wi);
+            out.ls_pdf[lane] = ls.pdf;
+            out.pmf[lane] = pmf;
+            set3(&mut out.p_light, lane, ls.p_light);
+            // Triangle lights' samples all have their normal.
+            set3(&mut out.n_light, lane, ls.n_light.unwrap_or(Vec3A::ZERO));
+            return true;
+        }
+        let Some(Some((index, pmf))) = self.picks.get(n).copied() else { return false };
+        let Some(&Light::Triangle { n: normal, le, .. }) = scene.lights.get(index as usize) else { return false };
+        let Some(s) = self.lanes.get(n / 8) else { return false };
+        let k = n % 8;
+        if s.ok & (1 << k) == 0 {
+            return false;
+        }
+        set3(&mut out.ls_l, lane, le);
+        for a in 0..3 {
+            out.ls_wi[a][lane] = s.wi[a][k];
+            out.p_light[a][lane] = s.p[a][k];
+        }
+        out.ls_pdf[lane] = s.pdf[k];
+        out.pmf[lane] = pmf;
+        set3(&mut out.n_light, lane, normal);
+        true
     }
 }
 

@@ -130,12 +130,21 @@ pub struct CameraStage<'a, F> {
     pub shutter: Option<&'a dyn Fn(f32) -> Camera>,
 }
 
-/// A path of [`Wavefront::lambert`].
+/// A path in a lane of [`Wavefront::lambert_lanes`]: its index and its bounce's first
+/// dimension.
+#[derive(Clone, Copy, Default)]
 struct LambertPath {
-    n: u32,
     path: u32,
-    k: u32,
-    r: Vec3A,
+    base: u32,
+}
+
+/// What the lanes of [`super::lambert`] write back to: the paths, and the stage's shadow rays
+/// and next live paths.
+struct LambertSink<'a, S> {
+    paths: &'a mut [PathState<S>],
+    shadows: &'a mut Vec<PendingShadow>,
+    shadow_rays: &'a mut Vec<RayQuery>,
+    next_live: &'a mut Vec<u32>,
 }
 
 /// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
@@ -168,12 +177,12 @@ pub struct Wavefront<S> {
     shadows: Vec<PendingShadow>,
     shadow_rays: Vec<RayQuery>,
     blocked: Vec<bool>,
-    /// The shading paths at plain Lambertian hits (position in `shading`, path, position in
-    /// `live`) with their reflectance, bounced 8 at a time in lanes ([`super::lambert`]), and
-    /// the lanes' inputs (reused: lanes past a short chunk's end keep old values, and their
-    /// results are dropped).
-    lambert: Vec<LambertPath>,
+    /// The shading paths at plain Lambertian hits, bounced 8 at a time in lanes
+    /// ([`super::lambert`]): the lanes' inputs, filled as the shading stage meets them (reused:
+    /// lanes past a short chunk's end keep old values, and their results are dropped), and
+    /// their paths.
     lambert_lanes: Box<LambertLanes>,
+    lambert: [LambertPath; 8],
 }
 
 impl<S: Sampler> Default for Wavefront<S> {
@@ -194,8 +203,8 @@ impl<S: Sampler> Default for Wavefront<S> {
             shadows: Vec::with_capacity(BATCH),
             shadow_rays: Vec::with_capacity(BATCH),
             blocked: Vec::with_capacity(BATCH),
-            lambert: Vec::with_capacity(BATCH),
             lambert_lanes: Box::default(),
+            lambert: [LambertPath::default(); 8],
         }
     }
 }
@@ -327,34 +336,63 @@ impl<S: Sampler + Clone> Wavefront<S> {
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
-            self.lambert.clear();
             let lanes = (ahead
                 && scene.has_plain_lambert()
                 && matches!(params.mis, MisHeuristic::Power | MisHeuristic::Balance))
             .then(|| scene.avx2())
             .flatten();
+            let mut sink = LambertSink {
+                paths: &mut self.paths,
+                shadows: &mut self.shadows,
+                shadow_rays: &mut self.shadow_rays,
+                next_live: &mut self.next_live,
+            };
+            let mut in_lanes = 0;
             for (n, ((&k, draws), cosine)) in self.shading.iter().zip(&self.draws).zip(&self.cosines).enumerate() {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
-                let path = &mut self.paths[i as usize];
-                if lanes.is_some()
+                let path = &mut sink.paths[i as usize];
+                if let Some(avx2) = lanes
                     && let Some(r) = scene.plain_lambert_at(si, -path.ray.d)
                 {
-                    self.lambert.push(LambertPath { n: n as u32, path: i, k, r });
+                    // Into the next lane; 8 full lanes bounce at once.
+                    let lane_paths = &mut self.lambert;
+                    let lanes = &mut *self.lambert_lanes;
+                    set3(&mut lanes.p, in_lanes, si.p);
+                    set3(&mut lanes.ng, in_lanes, si.ng);
+                    set3(&mut lanes.ns, in_lanes, si.ns);
+                    set3(&mut lanes.d, in_lanes, path.ray.d);
+                    set3(&mut lanes.r, in_lanes, r);
+                    set3(&mut lanes.beta, in_lanes, path.beta);
+                    lanes.eta_scale[in_lanes] = path.eta_scale;
+                    // The light sample, taken ahead in lanes.
+                    let light = self.light_samples.write_lane(scene, n, lanes, in_lanes);
+                    lanes.light[in_lanes] = if light { 1.0 } else { 0.0 };
+                    set3(&mut lanes.cosine, in_lanes, cosine.w);
+                    lanes.roulette[in_lanes] = if path.depth + 1 >= params.rr_depth { 1.0 } else { 0.0 };
+                    lanes.u_rr[in_lanes] = draws.d1[3];
+                    lane_paths[in_lanes] = LambertPath { path: i, base: draws.base };
+                    in_lanes += 1;
+                    if in_lanes == 8 {
+                        lambert_bounces(avx2, lanes, &lane_paths[..], params, &mut sink);
+                        in_lanes = 0;
+                    }
                     continue;
                 }
                 let light = ahead.then_some((&self.light_samples, n));
                 let pending = scatter(scene, params, path, si, draws, cosine, light);
                 if let Some((ray, shadow)) = pending.shadow {
-                    self.shadow_rays.push(ray);
-                    self.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
+                    sink.shadow_rays.push(ray);
+                    sink.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
                 }
                 if pending.alive {
-                    self.next_live.push(i);
+                    sink.next_live.push(i);
                 }
             }
-            if let Some(avx2) = lanes {
-                self.lambert_bounces(avx2, scene, params);
+            if let Some(avx2) = lanes
+                && in_lanes > 0
+            {
+                lambert_bounces(avx2, &self.lambert_lanes, &self.lambert[..in_lanes], params, &mut sink);
             }
             // Shadow stage.
             if !self.shadows.is_empty() {
@@ -372,77 +410,45 @@ impl<S: Sampler + Clone> Wavefront<S> {
     }
 }
 
-impl<S: Sampler + Clone> Wavefront<S> {
-    /// The shading stage of the paths in `lambert`, 8 at a time in lanes: [`scatter`]'s effects
-    /// on each path, from [`super::lambert::bounce`] (the same bits).
-    #[inline(never)]
-    fn lambert_bounces(&mut self, avx2: Avx2, scene: &RenderScene, params: &PathParams) {
-        let power = params.mis == MisHeuristic::Power;
-        for chunk in self.lambert.chunks(8) {
-            let lanes = &mut *self.lambert_lanes;
-            for (j, l) in chunk.iter().enumerate() {
-                let path = &self.paths[l.path as usize];
-                let Some(si) = self.surfaces[l.k as usize].as_ref() else { continue };
-                set3(&mut lanes.p, j, si.p);
-                set3(&mut lanes.ng, j, si.ng);
-                set3(&mut lanes.ns, j, si.ns);
-                set3(&mut lanes.d, j, path.ray.d);
-                set3(&mut lanes.r, j, l.r);
-                set3(&mut lanes.beta, j, path.beta);
-                lanes.eta_scale[j] = path.eta_scale;
-                lanes.light[j] = 0.0;
-                // The light sample, taken ahead in lanes.
-                let draws = &self.draws[l.n as usize];
-                if let Some((_, ls, pmf)) = self.light_samples.get(scene, l.n as usize) {
-                    lanes.light[j] = 1.0;
-                    set3(&mut lanes.ls_l, j, ls.l);
-                    set3(&mut lanes.ls_wi, j, ls.wi);
-                    lanes.ls_pdf[j] = ls.pdf;
-                    lanes.pmf[j] = pmf;
-                    set3(&mut lanes.p_light, j, ls.p_light);
-                    // Triangle lights' samples all have their normal.
-                    set3(&mut lanes.n_light, j, ls.n_light.unwrap_or(Vec3A::ZERO));
-                }
-                set3(&mut lanes.cosine, j, self.cosines[l.n as usize].w);
-                lanes.roulette[j] = if path.depth + 1 >= params.rr_depth { 1.0 } else { 0.0 };
-                lanes.u_rr[j] = draws.d1[3];
-            }
-            let out = avx2.lambert_bounces(lanes, power);
-            for (j, l) in chunk.iter().enumerate() {
-                let (i, r) = (l.path, l.r);
-                let Some(si) = self.surfaces[l.k as usize].as_ref() else { continue };
-                let base = self.draws[l.n as usize].base;
-                let path = &mut self.paths[i as usize];
-                if path.depth == 0 {
-                    path.out.albedo = r.to_array();
-                    path.out.normal = get3(&out.ns, j).to_array();
-                }
-                if out.shadow & (1 << j) != 0 {
-                    let (o, d) = (get3(&out.shadow_o, j), get3(&out.shadow_d, j));
-                    self.shadow_rays.push(RayQuery { o, d, t_max: out.shadow_t_max[j], time: path.time });
-                    self.shadows.push(PendingShadow {
-                        path: i,
-                        beta: path.beta,
-                        contribution: get3(&out.contribution, j),
-                    });
-                } else {
-                    path.l += path.beta * Vec3A::ZERO;
-                }
-                if out.alive & (1 << j) == 0 {
-                    continue;
-                }
-                // The numbers the bounce read: 7, and roulette's.
-                let roulette = path.depth + 1 >= params.rr_depth;
-                path.sampler.set_dimension(base + if roulette { 8 } else { 7 });
-                path.beta = get3(&out.beta, j);
-                path.specular_bounce = false;
-                path.prev_bsdf_pdf = out.pdf[j];
-                path.prev_ctx = LightSampleContext { p: si.p, n: get3(&out.ng, j) };
-                path.depth += 1;
-                path.ray = Ray::new(get3(&out.ray_o, j), get3(&out.ray_d, j));
-                self.next_live.push(i);
-            }
+/// The shading stage of up to 8 paths at plain Lambertian hits, in the lanes of `lanes` (lane
+/// `j`: `paths[j]`): [`scatter`]'s effects on each path, from [`super::lambert::bounce`] (the
+/// same bits).
+#[inline(never)]
+fn lambert_bounces<S: Sampler>(
+    avx2: Avx2,
+    lanes: &LambertLanes,
+    paths: &[LambertPath],
+    params: &PathParams,
+    sink: &mut LambertSink<'_, S>,
+) {
+    let out = avx2.lambert_bounces(lanes, params.mis == MisHeuristic::Power);
+    for (j, l) in paths.iter().enumerate().take(8) {
+        let i = l.path;
+        let path = &mut sink.paths[i as usize];
+        if path.depth == 0 {
+            path.out.albedo = get3(&lanes.r, j).to_array();
+            path.out.normal = get3(&out.ns, j).to_array();
         }
+        if out.shadow & (1 << j) != 0 {
+            let (o, d) = (get3(&out.shadow_o, j), get3(&out.shadow_d, j));
+            sink.shadow_rays.push(RayQuery { o, d, t_max: out.shadow_t_max[j], time: path.time });
+            sink.shadows.push(PendingShadow { path: i, beta: path.beta, contribution: get3(&out.contribution, j) });
+        } else {
+            path.l += path.beta * Vec3A::ZERO;
+        }
+        if out.alive & (1 << j) == 0 {
+            continue;
+        }
+        // The numbers the bounce read: 7, and roulette's.
+        let roulette = path.depth + 1 >= params.rr_depth;
+        path.sampler.set_dimension(l.base + if roulette { 8 } else { 7 });
+        path.beta = get3(&out.beta, j);
+        path.specular_bounce = false;
+        path.prev_bsdf_pdf = out.pdf[j];
+        path.prev_ctx = LightSampleContext { p: get3(&lanes.p, j), n: get3(&out.ng, j) };
+        path.depth += 1;
+        path.ray = Ray::new(get3(&out.ray_o, j), get3(&out.ray_d, j));
+        sink.next_live.push(i);
     }
 }
 
