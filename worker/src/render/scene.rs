@@ -556,41 +556,12 @@ impl RenderScene {
         let idx = mesh.indices[tr.tri as usize].map(|i| i as usize);
         let (b1, b2) = (hit.b1, hit.b2);
         let b0 = 1.0 - b1 - b2;
-        if close.is_none()
-            && mesh.uv0.is_none()
-            && mesh.uv1.is_none()
-            && mesh.colors.is_none()
-            && mesh.tangents.is_none()
-            && let Some(si) = Self::plain_surface(mesh, idx, hit, [b0, b1, b2])
-        {
-            return si;
-        }
-        // A vertex attribute at the ray's time (the open pose when nothing moves).
-        let at_time = |open: Option<Vec3>, close: Option<Vec3>| -> Option<Vec3A> {
-            let a = Vec3A::from(open?);
-            Some(match close {
-                Some(c) => a.lerp(Vec3A::from(c), time),
-                None => a,
-            })
+        // Where the mesh does not move, its positions and normals as they are (the same values
+        // as `at_time` gives them, without its checks).
+        let (p, ng, ns) = match close.is_none().then(|| Self::static_geometry(mesh, idx, [b0, b1, b2])).flatten() {
+            Some(geometry) => geometry,
+            None => Self::moving_geometry(mesh, close, idx, [b0, b1, b2], time),
         };
-        let pos = |i: usize| {
-            let c = close.and_then(|c| c.positions.get(idx[i]).copied());
-            at_time(mesh.positions.get(idx[i]).copied(), c).unwrap_or_default()
-        };
-        let (p0, p1, p2) = (pos(0), pos(1), pos(2));
-        let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
-        // Interpolate the hit point from the vertices: more accurate than o + t d.
-        let p = p0 * b0 + p1 * b1 + p2 * b2;
-        let ns = mesh
-            .normals
-            .as_ref()
-            .and_then(|n| {
-                let cn = close.and_then(|c| c.normals.as_ref());
-                let get = |i: usize| at_time(n.get(idx[i]).copied(), cn.and_then(|cn| cn.get(idx[i]).copied()));
-                Some((get(0)? * b0 + get(1)? * b1 + get(2)? * b2).normalize_or_zero())
-            })
-            .filter(|n| *n != Vec3A::ZERO)
-            .unwrap_or(ng);
         let interp_uv = |uv: &Option<Vec<Vec2>>| {
             uv.as_ref()
                 .and_then(|uv| Some(*uv.get(idx[0])? * b0 + *uv.get(idx[1])? * b1 + *uv.get(idx[2])? * b2))
@@ -625,16 +596,18 @@ impl RenderScene {
         }
     }
 
-    /// [`RenderScene::surface_value`] of a hit on a mesh that does not move and has no vertex
-    /// attribute beyond positions and normals (the same operations, without the general case's
-    /// attribute checks): `None` where an index is out of range (the general case decides).
+    /// A hit's point, geometric normal and shading normal (`ng` where the mesh has none, or
+    /// they interpolate to zero) at barycentrics `b` of triangle `idx` of a mesh that does not
+    /// move: `None` where an index is out of range (then [`RenderScene::moving_geometry`]
+    /// decides, as before).
     #[inline(always)]
-    fn plain_surface(mesh: &Mesh, idx: [usize; 3], hit: &Hit, b: [f32; 3]) -> Option<SurfaceInteraction> {
+    fn static_geometry(mesh: &Mesh, idx: [usize; 3], b: [f32; 3]) -> Option<(Vec3A, Vec3A, Vec3A)> {
         let [b0, b1, b2] = b;
         let pos = &mesh.positions;
         let (p0, p1, p2) =
             (Vec3A::from(*pos.get(idx[0])?), Vec3A::from(*pos.get(idx[1])?), Vec3A::from(*pos.get(idx[2])?));
         let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
+        // Interpolate the hit point from the vertices: more accurate than o + t d.
         let p = p0 * b0 + p1 * b1 + p2 * b2;
         let ns = match &mesh.normals {
             Some(n) => {
@@ -645,19 +618,46 @@ impl RenderScene {
             }
             None => ng,
         };
-        Some(SurfaceInteraction {
-            p,
-            t: hit.t,
-            ng,
-            ns,
-            uv: [Vec2::ZERO; 2],
-            color: glam::Vec4::ONE,
-            tangent: None,
-            prim: hit.prim,
-            material: mesh.material as u32,
-            b1: hit.b1,
-            b2: hit.b2,
-        })
+        Some((p, ng, ns))
+    }
+
+    /// [`RenderScene::static_geometry`] at shutter time `time` of a mesh whose shutter-close
+    /// pose is `close` (missing vertices count as the origin, missing normals as none).
+    #[inline(always)]
+    fn moving_geometry(
+        mesh: &Mesh,
+        close: Option<&Mesh>,
+        idx: [usize; 3],
+        b: [f32; 3],
+        time: f32,
+    ) -> (Vec3A, Vec3A, Vec3A) {
+        let [b0, b1, b2] = b;
+        // A vertex attribute at the ray's time (the open pose when nothing moves).
+        let at_time = |open: Option<Vec3>, close: Option<Vec3>| -> Option<Vec3A> {
+            let a = Vec3A::from(open?);
+            Some(match close {
+                Some(c) => a.lerp(Vec3A::from(c), time),
+                None => a,
+            })
+        };
+        let pos = |i: usize| {
+            let c = close.and_then(|c| c.positions.get(idx[i]).copied());
+            at_time(mesh.positions.get(idx[i]).copied(), c).unwrap_or_default()
+        };
+        let (p0, p1, p2) = (pos(0), pos(1), pos(2));
+        let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
+        let p = p0 * b0 + p1 * b1 + p2 * b2;
+        let ns = mesh
+            .normals
+            .as_ref()
+            .and_then(|n| {
+                let cn = close.and_then(|c| c.normals.as_ref());
+                let get = |i: usize| at_time(n.get(idx[i]).copied(), cn.and_then(|cn| cn.get(idx[i]).copied()));
+                Some((get(0)? * b0 + get(1)? * b1 + get(2)? * b2).normalize_or_zero())
+            })
+            .filter(|n| *n != Vec3A::ZERO)
+            .unwrap_or(ng);
+        (p, ng, ns)
     }
 
     /// Beer-Lambert transmittance of the segment a ray in direction `d` travelled to reach
