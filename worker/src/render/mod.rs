@@ -338,22 +338,40 @@ impl Renderer {
         // The wavefront's buffers are made once per rayon job, not per row (the bench's `tiny
         // large`: 0.125-0.126 s -> 0.123-0.125 s), and only for the wavefront.
         let no_wavefront = || None::<Wavefront<S>>;
-        let rows: Vec<(Vec<film::PixelSums>, Vec<Splat>)> = (tile.y0..tile.y1)
-            .into_par_iter()
-            .map_init(no_wavefront, |wf, y| {
-                if let (Integrator::Path(params), PathKernel::Wavefront) = (&self.integrator, self.path_kernel) {
+        let wavefront = match (&self.integrator, self.path_kernel) {
+            (Integrator::Path(params), PathKernel::Wavefront) => Some(params),
+            _ => None,
+        };
+        // The wavefront traces rows in groups with a full batch of samples or more (a pass of
+        // few samples per pixel left a row's batches short: per-bounce stage costs spread over
+        // fewer paths, and small scenes' sorted packets less full); the others row by row.
+        let group = match wavefront {
+            Some(_) => wavefront::BATCH.div_ceil((tile.width() as usize * pass.spp() as usize).max(1)).max(1) as u32,
+            None => 1,
+        };
+        let groups: Vec<(u32, u32)> =
+            (tile.y0..tile.y1).step_by(group as usize).map(|y| (y, (y + group).min(tile.y1))).collect();
+        // Each group's pixels are written in place into the tile's sums (row-major).
+        let width = tile.width() as usize;
+        let mut accum = TileAccum { rect: tile, sums: vec![film::PixelSums::default(); tile.pixel_count()] };
+        let splats: Vec<Vec<Splat>> = accum
+            .sums
+            .par_chunks_mut(width * group as usize)
+            .zip(groups)
+            .map_init(no_wavefront, |wf, (out, (y, y_end))| {
+                if let Some(params) = wavefront {
                     let wf = wf.get_or_insert_with(Wavefront::default);
-                    return (self.path_row_wavefront(wf, tile, pass, mask, y, params, &new_sampler), Vec::new());
+                    self.path_rows_wavefront(wf, tile, pass, mask, y..y_end, params, &new_sampler, out);
+                    return Vec::new();
                 }
                 let mut sampler = new_sampler();
-                let mut row = Vec::with_capacity(tile.width() as usize);
                 let mut splats = Vec::new();
                 let mut paths = Subpaths::default();
                 let mut igi_scratch = IgiScratch::default();
-                for x in tile.x0..tile.x1 {
+                for (x, pixel_out) in (tile.x0..tile.x1).zip(out.iter_mut()) {
                     if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
-                        // A converged block: no samples, nothing added by the merge.
-                        row.push(film::PixelSums::default());
+                        // A converged block: no samples, nothing added by the merge (its sums
+                        // stay zero).
                         continue;
                     }
                     // The unit's samples of this pixel, AOVs summed in f64, in sample order.
@@ -415,58 +433,59 @@ impl Renderer {
                         };
                         acc.add(&v);
                     }
-                    row.push(acc.finish());
+                    *pixel_out = acc.finish();
                 }
-                (row, splats)
+                splats
             })
             .collect();
-        let mut accum = TileAccum { rect: tile, sums: Vec::with_capacity(tile.pixel_count()) };
-        let mut splats = Vec::new();
-        for (src, sp) in rows {
-            accum.sums.extend_from_slice(&src);
-            splats.extend(sp);
-        }
-        (accum, splats)
+        (accum, splats.into_iter().flatten().collect())
     }
 }
 
 impl Renderer {
-    /// Row `y` of `tile` for the `path` integrator with the wavefront kernel: the row's samples
-    /// (pixel by pixel, each pixel's in sample order) in batches, each pixel's values folded in
-    /// sample order as the scalar loop folds them.
+    /// Rows `ys` of `tile` for the `path` integrator with the wavefront kernel: their samples
+    /// (row by row, pixel by pixel, each pixel's in sample order) in batches, each pixel's
+    /// values folded in sample order as the scalar loop folds them; the rows' sums written to
+    /// `out` (row-major; converged pixels left as they are). (A sample's value does not depend
+    /// on its batch, so neither do the sums.)
     #[allow(clippy::too_many_arguments)]
-    fn path_row_wavefront<S: Sampler + Clone>(
+    fn path_rows_wavefront<S: Sampler + Clone>(
         &self,
         wf: &mut Wavefront<S>,
         tile: TileRect,
         pass: Pass,
         mask: Option<&BlockMask>,
-        y: u32,
+        ys: std::ops::Range<u32>,
         params: &PathParams,
         new_sampler: &(impl Fn() -> S + Sync),
-    ) -> Vec<film::PixelSums> {
+        out: &mut [film::PixelSums],
+    ) {
         let camera_at = |time: f32| self.camera_at(time);
         let shutter: Option<&dyn Fn(f32) -> Camera> = self.shutter_cameras.as_ref().map(|_| &camera_at as _);
         let start = wavefront::CameraStage { new_sampler, camera: &self.camera, shutter };
-        let mut accs = vec![film::PixelAccum::default(); tile.width() as usize];
+        let width = tile.width() as usize;
+        let mut accs = vec![film::PixelAccum::default(); width * ys.len()];
         let mut batch: Vec<(UVec2, u32)> = Vec::with_capacity(wavefront::BATCH);
         let mut values = Vec::with_capacity(wavefront::BATCH);
+        let origin = UVec2::new(tile.x0, ys.start);
         let mut flush = |batch: &mut Vec<(UVec2, u32)>, accs: &mut [film::PixelAccum]| {
             values.clear();
             wf.trace(&self.scene, params, batch, &start, &mut values);
-            let accumulate = Accumulate { accs: &mut *accs, x0: tile.x0, batch, values: &values };
+            let accumulate = Accumulate { accs: &mut *accs, origin, width, batch, values: &values };
             match self.scene.avx2() {
                 Some(avx2) => avx2.run_kernel(accumulate),
                 None => wide::V3Kernel::call(accumulate),
             }
             batch.clear();
         };
-        let converged = |x: u32| mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0));
-        for x in (tile.x0..tile.x1).filter(|&x| !converged(x)) {
-            for s in pass.samples() {
-                batch.push((UVec2::new(x, y), s));
-                if batch.len() == wavefront::BATCH {
-                    flush(&mut batch, &mut accs);
+        let converged = |x: u32, y: u32| mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0));
+        for y in ys.clone() {
+            for x in (tile.x0..tile.x1).filter(|&x| !converged(x, y)) {
+                for s in pass.samples() {
+                    batch.push((UVec2::new(x, y), s));
+                    if batch.len() == wavefront::BATCH {
+                        flush(&mut batch, &mut accs);
+                    }
                 }
             }
         }
@@ -474,19 +493,23 @@ impl Renderer {
             flush(&mut batch, &mut accs);
         }
         // A converged block: no samples, nothing added by the merge (its sums stay zero).
-        (tile.x0..tile.x1)
-            .zip(&accs)
-            .map(|(x, a)| if converged(x) { film::PixelSums::default() } else { a.finish() })
-            .collect()
+        let pixels = ys.flat_map(|y| (tile.x0..tile.x1).map(move |x| (x, y)));
+        for (((x, y), a), o) in pixels.zip(&accs).zip(out) {
+            if !converged(x, y) {
+                *o = a.finish();
+            }
+        }
     }
 }
 
-/// Adds a batch's sample values to their pixels' accumulators (each pixel's in sample order).
-/// Run compiled for x86-64-v3 where the CPU has it: the optimizer then does the channels'
-/// conversions in AVX lanes (the same IEEE operations, so the same sums).
+/// Adds a batch's sample values to their pixels' accumulators (each pixel's in sample order):
+/// `accs` holds rows of `width` pixels from `origin`. Run compiled for x86-64-v3 where the CPU
+/// has it: the optimizer then does the channels' conversions in AVX lanes (the same IEEE
+/// operations, so the same sums).
 struct Accumulate<'a> {
     accs: &'a mut [film::PixelAccum],
-    x0: u32,
+    origin: UVec2,
+    width: usize,
     batch: &'a [(UVec2, u32)],
     values: &'a [film::SampleValue],
 }
@@ -496,7 +519,10 @@ impl wide::V3Kernel for Accumulate<'_> {
     #[inline(always)]
     fn call(self) {
         for ((pixel, _), v) in self.batch.iter().zip(self.values) {
-            if let Some(acc) = self.accs.get_mut(pixel.x.wrapping_sub(self.x0) as usize) {
+            let (x, y) = (pixel.x.wrapping_sub(self.origin.x) as usize, pixel.y.wrapping_sub(self.origin.y) as usize);
+            if x < self.width
+                && let Some(acc) = self.accs.get_mut(y * self.width + x)
+            {
                 acc.add(v);
             }
         }
