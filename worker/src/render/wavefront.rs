@@ -30,8 +30,10 @@
 //! default), the light samples in lanes took `tiny solid long` from 1.41 s to 0.75 s. Later, on
 //! another machine (AMD EPYC with AVX-512): hits on meshes with only positions and normals
 //! built without the general case's checks, Lambertian lanes filled as the shading stage meets
-//! them (light samples read from the lanes they were made in), and one packet stack per batch
-//! took `tiny` from 8.35k to 8.02k instructions per sample (0.882 to 0.83 s on `tiny long`).
+//! them (light samples read from the lanes they were made in), one packet stack per batch, and
+//! a tile's rows traced in groups of at least a batch (`Renderer::render_tile`: a 1-spp pass
+//! left a row's batches at 64 paths) took `tiny` from 8.35k to 7.89k instructions per sample
+//! (`tiny long` 0.855 to 0.821 s, min of 7 interleaved).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
