@@ -580,7 +580,8 @@ fn connect(
             c *= w.dot(qs.ns).abs() * w.dot(pt.ns).abs() / d2;
             // A connection inside an attenuating object (it reaches the back of pt's surface).
             if let Some(si) = &pt.si {
-                let along = SurfaceInteraction { t: d2.sqrt(), ..*si };
+                let mut along = *si;
+                along.t = d2.sqrt();
                 c *= scene.transmittance(&along, w);
             }
             if c != Vec3A::ZERO && !scene.visible_at(qs.p, qs.ng, pt.p, Some(pt.ng), time) {

@@ -52,7 +52,7 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
         ns = ng;
     }
     // Normal map: perturb the shading normal in the tangent frame.
-    if let (Some(nt), Some(t)) = (&m.normal_texture, si.tangent) {
+    if let (Some(nt), Some(t)) = (&m.normal_texture, si.tangent()) {
         let c = sample_texture(&scene.textures, nt, &si.uv);
         let tn = Vec3A::new((2.0 * c.x - 1.0) * m.normal_scale, (2.0 * c.y - 1.0) * m.normal_scale, 2.0 * c.z - 1.0);
         let tangent = Vec3A::from(t.xyz());
@@ -62,7 +62,7 @@ pub fn shade(scene: &RenderScene, si: &SurfaceInteraction, wo: Vec3A, u_lobe: f3
             ns = n;
         }
     }
-    let frame = match si.tangent {
+    let frame = match si.tangent() {
         Some(t) => Frame::from_xz(Vec3A::from(t.xyz()), ns),
         None => Frame::from_z(ns),
     };
