@@ -17,9 +17,11 @@
 //!    ratios, of wall-clock throughput and of throughput per CPU-second (all threads' CPU time:
 //!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
 //!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
-//!    and of Mitsuba's. Each timing, ours and Mitsuba's, is the median of several renders (3 of
-//!    the Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba
-//!    does; the figure for the farm's default progressive passes is printed beside it.
+//!    and of Mitsuba's. Then 3 rounds of ours and Mitsuba's llvm one right after the other,
+//!    and the median of the rounds' ratios (a shared machine's speed drifts less within a
+//!    round). Each timing, ours and Mitsuba's, is the median of several renders (3 of the
+//!    Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba does;
+//!    the figure for the farm's default progressive passes is printed beside it.
 //! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
 //!    Mitsuba's throughput on the same view when installed; the equal-time error there, each
 //!    renderer against its own 1,024-spp image (Mitsuba renders the glTF material with its
@@ -253,6 +255,33 @@ struct MitsubaRun {
     seconds: f64,
     samples_per_cpu_s: Option<f64>,
     exr: PathBuf,
+}
+
+/// Rounds of ours then Mitsuba's llvm_ad_rgb on the Cornell box (each the median of its
+/// renders), one right after the other: a shared machine's speed drifts over the minutes a
+/// bench takes, so the ratio within a round, and the median of the rounds' ratios, is the
+/// steadier figure.
+fn cornell_rounds(scene: &pathfarm_common::scene::Scene, s: &RenderSettings, samples: f64) {
+    const ROUNDS: usize = 3;
+    let mut ratios = Vec::new();
+    for round in 1..=ROUNDS {
+        let (t, _, _) = time_render_median(scene, s, CORNELL_REPEATS);
+        let Some(llvm) = mitsuba("llvm_ad_rgb", 64) else { return };
+        let ratio = samples / t / llvm.samples_per_s;
+        println!(
+            "round {round}: ours {:.2} M samples/s, mitsuba llvm_ad_rgb {:.2} M samples/s: {ratio:.2}",
+            samples / t / 1e6,
+            llvm.samples_per_s / 1e6
+        );
+        ratios.push(ratio);
+    }
+    ratios.sort_by(f64::total_cmp);
+    println!(
+        "ours / llvm_ad_rgb on the Cornell box, median of {ROUNDS} interleaved rounds: {:.2} ({:.2} - {:.2})",
+        ratios[ROUNDS / 2],
+        ratios[0],
+        ratios[ROUNDS - 1]
+    );
 }
 
 /// Runs the reference script.
@@ -567,6 +596,7 @@ fn main() {
         per_cpu_second(llvm.samples_per_cpu_s),
         ratios(&llvm)
     );
+    cornell_rounds(&scene, &one_pass(settings(64, path.clone())), samples);
     let (llvm_s, llvm_exr) = (llvm.seconds, llvm.exr);
     // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
     let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
