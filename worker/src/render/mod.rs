@@ -351,12 +351,13 @@ impl Renderer {
         };
         let groups: Vec<(u32, u32)> =
             (tile.y0..tile.y1).step_by(group as usize).map(|y| (y, (y + group).min(tile.y1))).collect();
-        // Each group's pixels are written in place into the tile's sums (row-major).
+        // Each group's pixels are written in place into the tile's sums (row-major; a chunk
+        // size of at least 1, as rayon needs, even for a tile without pixels).
         let width = tile.width() as usize;
         let mut accum = TileAccum { rect: tile, sums: vec![film::PixelSums::default(); tile.pixel_count()] };
         let splats: Vec<Vec<Splat>> = accum
             .sums
-            .par_chunks_mut(width * group as usize)
+            .par_chunks_mut((width * group as usize).max(1))
             .zip(groups)
             .map_init(no_wavefront, |wf, (out, (y, y_end))| {
                 if let Some(params) = wavefront {
