@@ -52,10 +52,12 @@ impl SurfaceInteraction {
     }
 }
 
+/// The tangent's flag keeps an absent surface within a surface's own size: two cache lines
+/// (less where glam's vectors are not 16-byte SIMD types).
 #[cfg(test)]
 #[test]
 fn a_surface_takes_two_cache_lines() {
-    assert_eq!(std::mem::size_of::<Option<SurfaceInteraction>>(), 128);
+    assert!(std::mem::size_of::<Option<SurfaceInteraction>>() <= 128);
 }
 
 /// Per-triangle lookup: which mesh and which triangle of it.
