@@ -619,27 +619,16 @@ impl RenderScene {
 
     /// A hit's point, geometric normal and shading normal (`ng` where the mesh has none, or
     /// they interpolate to zero) at barycentrics `b` of triangle `idx` of a mesh that does not
-    /// move: `None` where an index is out of range (then [`RenderScene::moving_geometry`]
-    /// decides, as before).
+    /// move: `None` where a position index is out of range (then
+    /// [`RenderScene::moving_geometry`] decides, as before).
     #[inline(always)]
     fn static_geometry(mesh: &Mesh, idx: [usize; 3], b: [f32; 3]) -> Option<(Vec3A, Vec3A, Vec3A)> {
-        let [b0, b1, b2] = b;
         let pos = &mesh.positions;
-        let (p0, p1, p2) =
-            (Vec3A::from(*pos.get(idx[0])?), Vec3A::from(*pos.get(idx[1])?), Vec3A::from(*pos.get(idx[2])?));
-        let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
-        // Interpolate the hit point from the vertices: more accurate than o + t d.
-        let p = p0 * b0 + p1 * b1 + p2 * b2;
-        let ns = match &mesh.normals {
-            Some(n) => {
-                let (n0, n1, n2) =
-                    (Vec3A::from(*n.get(idx[0])?), Vec3A::from(*n.get(idx[1])?), Vec3A::from(*n.get(idx[2])?));
-                let ns = (n0 * b0 + n1 * b1 + n2 * b2).normalize_or_zero();
-                if ns != Vec3A::ZERO { ns } else { ng }
-            }
-            None => ng,
-        };
-        Some((p, ng, ns))
+        let p = [Vec3A::from(*pos.get(idx[0])?), Vec3A::from(*pos.get(idx[1])?), Vec3A::from(*pos.get(idx[2])?)];
+        let n = mesh.normals.as_ref().and_then(|n| {
+            Some([Vec3A::from(*n.get(idx[0])?), Vec3A::from(*n.get(idx[1])?), Vec3A::from(*n.get(idx[2])?)])
+        });
+        Some(Self::geometry(p, n, b))
     }
 
     /// [`RenderScene::static_geometry`] at shutter time `time` of a mesh whose shutter-close
@@ -652,7 +641,6 @@ impl RenderScene {
         b: [f32; 3],
         time: f32,
     ) -> (Vec3A, Vec3A, Vec3A) {
-        let [b0, b1, b2] = b;
         // A vertex attribute at the ray's time (the open pose when nothing moves).
         let at_time = |open: Option<Vec3>, close: Option<Vec3>| -> Option<Vec3A> {
             let a = Vec3A::from(open?);
@@ -665,20 +653,28 @@ impl RenderScene {
             let c = close.and_then(|c| c.positions.get(idx[i]).copied());
             at_time(mesh.positions.get(idx[i]).copied(), c).unwrap_or_default()
         };
-        let (p0, p1, p2) = (pos(0), pos(1), pos(2));
-        let ng = (p1 - p0).cross(p2 - p0).normalize_or(Vec3A::Z);
-        let p = p0 * b0 + p1 * b1 + p2 * b2;
-        let ns = mesh
-            .normals
-            .as_ref()
-            .and_then(|n| {
-                let cn = close.and_then(|c| c.normals.as_ref());
-                let get = |i: usize| at_time(n.get(idx[i]).copied(), cn.and_then(|cn| cn.get(idx[i]).copied()));
-                Some((get(0)? * b0 + get(1)? * b1 + get(2)? * b2).normalize_or_zero())
-            })
+        let n = mesh.normals.as_ref().and_then(|n| {
+            let cn = close.and_then(|c| c.normals.as_ref());
+            let get = |i: usize| at_time(n.get(idx[i]).copied(), cn.and_then(|cn| cn.get(idx[i]).copied()));
+            Some([get(0)?, get(1)?, get(2)?])
+        });
+        Self::geometry([pos(0), pos(1), pos(2)], n, b)
+    }
+
+    /// The point, geometric normal and shading normal at barycentrics `b` of the triangle with
+    /// vertices `p` and vertex normals `n` (`ng` where there are none or they interpolate to
+    /// zero).
+    #[inline(always)]
+    fn geometry(p: [Vec3A; 3], n: Option<[Vec3A; 3]>, b: [f32; 3]) -> (Vec3A, Vec3A, Vec3A) {
+        let [b0, b1, b2] = b;
+        let ng = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or(Vec3A::Z);
+        // Interpolate the hit point from the vertices: more accurate than o + t d.
+        let point = p[0] * b0 + p[1] * b1 + p[2] * b2;
+        let ns = n
+            .map(|n| (n[0] * b0 + n[1] * b1 + n[2] * b2).normalize_or_zero())
             .filter(|n| *n != Vec3A::ZERO)
             .unwrap_or(ng);
-        (p, ng, ns)
+        (point, ng, ns)
     }
 
     /// Beer-Lambert transmittance of the segment a ray in direction `d` travelled to reach
