@@ -232,7 +232,6 @@ pub struct LightLanes {
     pub two_sided: [f32; 8],
     pub p: [[f32; 8]; 3],
     pub u: [[f32; 8]; 2],
-    pub b: [[f32; 8]; 3],
 }
 
 impl LightLanes {
@@ -240,14 +239,12 @@ impl LightLanes {
     #[allow(clippy::too_many_arguments)]
     pub fn set(&mut self, lane: usize, v: &[Vec3A; 3], n: Vec3A, area: f32, two_sided: bool, p: Vec3A, u: Vec2) {
         let lane = lane & 7;
-        let b = sample_uniform_triangle(u);
         for k in 0..3 {
             for (i, vertex) in v.iter().enumerate() {
                 self.v[i][k][lane] = vertex[k];
             }
             self.n[k][lane] = n[k];
             self.p[k][lane] = p[k];
-            self.b[k][lane] = b[k];
         }
         self.u[0][lane] = u.x;
         self.u[1][lane] = u.y;

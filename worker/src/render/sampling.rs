@@ -176,14 +176,19 @@ pub fn uniform_cone_pdf(cos_theta_max: f32) -> f32 {
 /// `1 / area`, or 2 in the `(b1, b2)` plane.
 #[inline]
 pub fn sample_uniform_triangle(u: Vec2) -> [f32; 3] {
-    let (b0, b1) = if u.x < u.y {
-        let b0 = u.x / 2.0;
-        (b0, u.y - b0)
-    } else {
-        let b1 = u.y / 2.0;
-        (u.x - b1, b1)
-    };
-    [b0, b1, (1.0 - b0 - b1).max(0.0)]
+    uniform_triangle([u.x, u.y])
+}
+
+/// [`sample_uniform_triangle`] written once over [`Real`] (the light samples in lanes take
+/// theirs 8 at a time): both halves of the warp computed, the one where `u.x < u.y` kept.
+#[inline(always)]
+pub fn uniform_triangle<R: Real>(u: [R; 2]) -> [R; 3] {
+    let half = u[0].splat(2.0);
+    let below = u[0].lt(u[1]);
+    let (b0_below, b1_above) = (u[0] / half, u[1] / half);
+    let b0 = R::select(below, b0_below, u[0] - b1_above);
+    let b1 = R::select(below, u[1] - b0_below, b1_above);
+    [b0, b1, (u[0].splat(1.0) - b0 - b1).max(u[0].splat(0.0))]
 }
 
 /// Solid angle of the spherical triangle of unit vectors `a`, `b`, `c` (Van Oosterom and

@@ -1006,7 +1006,15 @@ mod tests {
                 3 => corner[i % 3],
                 _ => Vec3A::new(x * 3.0, rng.uniform() * 4.0 - 2.0, z * 3.0),
             };
-            queries.push((p, rng.uniform(), rng.uniform_2d(), 0.0));
+            // The point's numbers: random, equal (the warp's two halves meet), and 0 and 1.
+            let u = match i % 7 {
+                0 => Vec2::splat(rng.uniform()),
+                1 => Vec2::new(0.0, rng.uniform()),
+                2 => Vec2::new(rng.uniform(), 0.0),
+                3 => Vec2::new(1.0 - f32::EPSILON / 2.0, rng.uniform()),
+                _ => rng.uniform_2d(),
+            };
+            queries.push((p, rng.uniform(), u, 0.0));
         }
         let bits = |s: &Option<(usize, LightLiSample, f32)>| {
             s.map(|(i, l, pmf)| {

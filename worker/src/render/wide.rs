@@ -744,7 +744,9 @@ impl Avx2 {
             ];
             let n = [avx2.f32x8(&l.n[0]), avx2.f32x8(&l.n[1]), avx2.f32x8(&l.n[2])];
             let p = [avx2.f32x8(&l.p[0]), avx2.f32x8(&l.p[1]), avx2.f32x8(&l.p[2])];
-            let b = [avx2.f32x8(&l.b[0]), avx2.f32x8(&l.b[1]), avx2.f32x8(&l.b[2])];
+            let u = [avx2.f32x8(&l.u[0]), avx2.f32x8(&l.u[1])];
+            // The point by area (`sample_uniform_triangle`), the fallback of solid angle.
+            let b = super::sampling::uniform_triangle(u);
             let area = avx2.f32x8(&l.area);
             let two_sided = avx2.f32x8(&l.two_sided).gt(area.splat(0.0));
             let t = if solid_angle {
@@ -756,7 +758,6 @@ impl Avx2 {
                     & sa.abs().lt(sa.splat(f32::INFINITY))
                     & sa.ge(sa.splat(MIN_SPHERICAL_SAMPLE_AREA))
                     & sa.lt(sa.splat(MAX_SPHERICAL_SAMPLE_AREA));
-                let u = [avx2.f32x8(&l.u[0]), avx2.f32x8(&l.u[1])];
                 let sample = spherical::sample(v, p, &s, u, by_solid_angle);
                 let b = super::vec3::select3(by_solid_angle, sample.b, b);
                 let t =
