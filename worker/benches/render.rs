@@ -257,19 +257,25 @@ struct MitsubaRun {
     exr: PathBuf,
 }
 
-/// Rounds of ours then Mitsuba's llvm_ad_rgb on the Cornell box (each the median of its
-/// renders), one right after the other: a shared machine's speed drifts over the minutes a
-/// bench takes, so the ratio within a round, and the median of the rounds' ratios, is the
-/// steadier figure.
-fn cornell_rounds(scene: &pathfarm_common::scene::Scene, s: &RenderSettings, samples: f64) {
+/// Rounds of ours then Mitsuba's llvm_ad_rgb on one scene (each the median of its renders),
+/// one right after the other: a shared machine's speed drifts over the minutes a bench takes,
+/// so the ratio within a round, and the median of the rounds' ratios, is the steadier figure.
+fn paired_rounds(
+    name: &str,
+    scene: &pathfarm_common::scene::Scene,
+    s: &RenderSettings,
+    repeats: usize,
+    llvm: impl Fn() -> Option<MitsubaRun>,
+) {
     const ROUNDS: usize = 3;
+    let samples = f64::from(s.width) * f64::from(s.height) * f64::from(s.spp);
     let mut ratios = Vec::new();
     for round in 1..=ROUNDS {
-        let (t, _, _) = time_render_median(scene, s, CORNELL_REPEATS);
-        let Some(llvm) = mitsuba("llvm_ad_rgb", 64) else { return };
+        let (t, _, _) = time_render_median(scene, s, repeats);
+        let Some(llvm) = llvm() else { return };
         let ratio = samples / t / llvm.samples_per_s;
         println!(
-            "round {round}: ours {:.2} M samples/s, mitsuba llvm_ad_rgb {:.2} M samples/s: {ratio:.2}",
+            "{name} round {round}: ours {:.2} M samples/s, mitsuba llvm_ad_rgb {:.2} M samples/s: {ratio:.2}",
             samples / t / 1e6,
             llvm.samples_per_s / 1e6
         );
@@ -277,7 +283,7 @@ fn cornell_rounds(scene: &pathfarm_common::scene::Scene, s: &RenderSettings, sam
     }
     ratios.sort_by(f64::total_cmp);
     println!(
-        "ours / llvm_ad_rgb on the Cornell box, median of {ROUNDS} interleaved rounds: {:.2} ({:.2} - {:.2})",
+        "ours / llvm_ad_rgb on {name}, median of {ROUNDS} interleaved rounds: {:.2} ({:.2} - {:.2})",
         ratios[ROUNDS / 2],
         ratios[0],
         ratios[ROUNDS - 1]
@@ -377,6 +383,10 @@ fn large_scene_figures(quick: bool) {
             llvm = Some(m);
         }
     }
+    let s_one = one_pass(large_scene_settings(spp));
+    paired_rounds("01_vertex_count_32bit", &scene, &s_one, LARGE_REPEATS, || {
+        mitsuba_with("llvm_ad_rgb", spp, spp, "vertex_count", LARGE_REPEATS, &gltf)
+    });
     // Equal-time error. Each renderer is compared with its own converged image (1,024 spp):
     // Mitsuba renders the glTF material with its `principled` BSDF, so the images differ.
     let Some(llvm) = llvm else { return };
@@ -596,7 +606,9 @@ fn main() {
         per_cpu_second(llvm.samples_per_cpu_s),
         ratios(&llvm)
     );
-    cornell_rounds(&scene, &one_pass(settings(64, path.clone())), samples);
+    paired_rounds("the Cornell box", &scene, &one_pass(settings(64, path.clone())), CORNELL_REPEATS, || {
+        mitsuba("llvm_ad_rgb", 64)
+    });
     let (llvm_s, llvm_exr) = (llvm.seconds, llvm.exr);
     // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
     let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
