@@ -269,25 +269,28 @@ fn paired_rounds(
 ) {
     const ROUNDS: usize = 3;
     let samples = f64::from(s.width) * f64::from(s.height) * f64::from(s.spp);
-    let mut ratios = Vec::new();
+    // Per wall-clock second, and per CPU-second where both sides measured it.
+    let (mut wall, mut cpu) = (Vec::new(), Vec::new());
     for round in 1..=ROUNDS {
-        let (t, _, _) = time_render_median(scene, s, repeats);
+        let (t, ours_cpu, _) = time_render_median(scene, s, repeats);
         let Some(llvm) = llvm() else { return };
         let ratio = samples / t / llvm.samples_per_s;
+        let cpu_ratio = ours_cpu.zip(llvm.samples_per_cpu_s).map(|(c, m)| samples / c / m);
         println!(
-            "{name} round {round}: ours {:.2} M samples/s, mitsuba llvm_ad_rgb {:.2} M samples/s: {ratio:.2}",
+            "{name} round {round}: ours {:.2} M samples/s, mitsuba llvm_ad_rgb {:.2} M samples/s: {ratio:.2}{}",
             samples / t / 1e6,
-            llvm.samples_per_s / 1e6
+            llvm.samples_per_s / 1e6,
+            cpu_ratio.map_or(String::new(), |r| format!(" (per CPU-second {r:.2})"))
         );
-        ratios.push(ratio);
+        wall.push(ratio);
+        cpu.extend(cpu_ratio);
     }
-    ratios.sort_by(f64::total_cmp);
-    println!(
-        "ours / llvm_ad_rgb on {name}, median of {ROUNDS} interleaved rounds: {:.2} ({:.2} - {:.2})",
-        ratios[ROUNDS / 2],
-        ratios[0],
-        ratios[ROUNDS - 1]
-    );
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        format!("{:.2} ({:.2} - {:.2})", v[v.len() / 2], v[0], v[v.len() - 1])
+    };
+    let cpu = if cpu.len() == ROUNDS { format!("; per CPU-second {}", median(&mut cpu)) } else { String::new() };
+    println!("ours / llvm_ad_rgb on {name}, median of {ROUNDS} interleaved rounds: {}{cpu}", median(&mut wall));
 }
 
 /// Runs the reference script.
