@@ -190,58 +190,73 @@ pub fn bounce<R: Real>(b: &LambertIn<R>, power: bool) -> LambertOut<R> {
     LambertOut { ng, ns, shadow, shadow_o, shadow_d, shadow_t_max, contribution, alive, beta, pdf, ray_o, ray_d: wi }
 }
 
-/// 8 paths' [`LambertIn`] as arrays (lane `i` is path `i`), for [`super::wide::Avx2::lambert_bounces`];
+/// 8 paths' values of one vector, a `Vec3A` per path (lane `i`: path `i`): a path writes and
+/// reads its vector whole, and the kernel turns the 8 into 3 lanes and back with a few
+/// shuffles ([`super::wide::Avx2::vec3_lanes`]), instead of each path scattering and gathering
+/// 3 components.
+#[derive(Clone, Copy, Default)]
+pub struct Vec3Lanes(pub [glam::Vec3A; 8]);
+
+/// 8 paths' [`LambertIn`] (lane `i` is path `i`), for [`super::wide::Avx2::lambert_bounces`];
 /// truth values as 1.0 (true) or 0.0.
 #[derive(Clone, Copy, Default)]
 pub struct LambertLanes {
-    pub p: [[f32; 8]; 3],
-    pub ng: [[f32; 8]; 3],
-    pub ns: [[f32; 8]; 3],
-    pub d: [[f32; 8]; 3],
-    pub r: [[f32; 8]; 3],
-    pub beta: [[f32; 8]; 3],
+    pub p: Vec3Lanes,
+    pub ng: Vec3Lanes,
+    pub ns: Vec3Lanes,
+    pub d: Vec3Lanes,
+    pub r: Vec3Lanes,
+    pub beta: Vec3Lanes,
     pub eta_scale: [f32; 8],
     pub light: [f32; 8],
-    pub ls_l: [[f32; 8]; 3],
-    pub ls_wi: [[f32; 8]; 3],
+    pub ls_l: Vec3Lanes,
+    pub ls_wi: Vec3Lanes,
     pub ls_pdf: [f32; 8],
     pub pmf: [f32; 8],
-    pub p_light: [[f32; 8]; 3],
-    pub n_light: [[f32; 8]; 3],
-    pub cosine: [[f32; 8]; 3],
+    pub p_light: Vec3Lanes,
+    pub n_light: Vec3Lanes,
+    pub cosine: Vec3Lanes,
     pub roulette: [f32; 8],
     pub u_rr: [f32; 8],
 }
 
-/// 8 paths' [`LambertOut`] as arrays; truth values as bits (lane `i`: bit `i`).
+/// 8 paths' [`LambertOut`]; truth values as bits (lane `i`: bit `i`).
 #[derive(Clone, Copy)]
 pub struct LambertLaneOut {
-    pub ng: [[f32; 8]; 3],
-    pub ns: [[f32; 8]; 3],
+    pub ng: Vec3Lanes,
+    pub ns: Vec3Lanes,
     pub shadow: u32,
-    pub shadow_o: [[f32; 8]; 3],
-    pub shadow_d: [[f32; 8]; 3],
+    pub shadow_o: Vec3Lanes,
+    pub shadow_d: Vec3Lanes,
     pub shadow_t_max: [f32; 8],
-    pub contribution: [[f32; 8]; 3],
+    pub contribution: Vec3Lanes,
     pub alive: u32,
-    pub beta: [[f32; 8]; 3],
+    pub beta: Vec3Lanes,
     pub pdf: [f32; 8],
-    pub ray_o: [[f32; 8]; 3],
-    pub ray_d: [[f32; 8]; 3],
+    pub ray_o: Vec3Lanes,
+    pub ray_d: Vec3Lanes,
 }
 
-/// Writes `v` into lane `lane` of `a`.
+impl Vec3Lanes {
+    /// Writes `v` into lane `lane`.
+    #[inline(always)]
+    pub fn set(&mut self, lane: usize, v: glam::Vec3A) {
+        self.0[lane & 7] = v;
+    }
+
+    /// Lane `lane`.
+    #[inline(always)]
+    pub fn get(&self, lane: usize) -> glam::Vec3A {
+        self.0[lane & 7]
+    }
+}
+
+/// Writes `v` into lane `lane` of `a` (components per axis: lanes kept as lanes, as IGI's VPLs).
 #[inline(always)]
 pub fn set3(a: &mut [[f32; 8]; 3], lane: usize, v: glam::Vec3A) {
     a[0][lane] = v.x;
     a[1][lane] = v.y;
     a[2][lane] = v.z;
-}
-
-/// Lane `lane` of `a`.
-#[inline(always)]
-pub fn get3(a: &[[f32; 8]; 3], lane: usize) -> glam::Vec3A {
-    glam::Vec3A::new(a[0][lane], a[1][lane], a[2][lane])
 }
 
 /// The 8 bounces of `l` in lanes (called from [`super::wide::Avx2::lambert_bounces`], compiled
@@ -251,12 +266,12 @@ pub fn get3(a: &[[f32; 8]; 3], lane: usize) -> glam::Vec3A {
 pub(super) fn lane_bounces(avx2: super::wide::Avx2, l: &LambertLanes, power: bool) -> LambertLaneOut {
     use super::wide::F32x8;
     #[inline(always)]
-    fn v3(avx2: super::wide::Avx2, a: &[[f32; 8]; 3]) -> [F32x8; 3] {
-        [avx2.f32x8(&a[0]), avx2.f32x8(&a[1]), avx2.f32x8(&a[2])]
+    fn v3(avx2: super::wide::Avx2, a: &Vec3Lanes) -> [F32x8; 3] {
+        avx2.vec3_lanes(&a.0)
     }
     #[inline(always)]
-    fn a3(v: [F32x8; 3]) -> [[f32; 8]; 3] {
-        [v[0].to_array(), v[1].to_array(), v[2].to_array()]
+    fn a3(avx2: super::wide::Avx2, v: [F32x8; 3]) -> Vec3Lanes {
+        Vec3Lanes(avx2.lanes_vec3(v))
     }
     let zero = avx2.f32x8(&[0.0; 8]);
     let input = LambertIn {
@@ -280,18 +295,18 @@ pub(super) fn lane_bounces(avx2: super::wide::Avx2, l: &LambertLanes, power: boo
     };
     let o = bounce(&input, power);
     LambertLaneOut {
-        ng: a3(o.ng),
-        ns: a3(o.ns),
+        ng: a3(avx2, o.ng),
+        ns: a3(avx2, o.ns),
         shadow: o.shadow.bits(),
-        shadow_o: a3(o.shadow_o),
-        shadow_d: a3(o.shadow_d),
+        shadow_o: a3(avx2, o.shadow_o),
+        shadow_d: a3(avx2, o.shadow_d),
         shadow_t_max: o.shadow_t_max.to_array(),
-        contribution: a3(o.contribution),
+        contribution: a3(avx2, o.contribution),
         alive: o.alive.bits(),
-        beta: a3(o.beta),
+        beta: a3(avx2, o.beta),
         pdf: o.pdf.to_array(),
-        ray_o: a3(o.ray_o),
-        ray_d: a3(o.ray_d),
+        ray_o: a3(avx2, o.ray_o),
+        ray_d: a3(avx2, o.ray_d),
     }
 }
 
@@ -349,21 +364,21 @@ mod tests {
                     u_rr: v(38).abs(),
                 };
                 let f = |a: [f32; 3]| glam::Vec3A::from_array(a);
-                set3(&mut lanes.p, j, f(input.p));
-                set3(&mut lanes.ng, j, f(input.ng));
-                set3(&mut lanes.ns, j, f(input.ns));
-                set3(&mut lanes.d, j, f(input.d));
-                set3(&mut lanes.r, j, f(input.r));
-                set3(&mut lanes.beta, j, f(input.beta));
+                lanes.p.set(j, f(input.p));
+                lanes.ng.set(j, f(input.ng));
+                lanes.ns.set(j, f(input.ns));
+                lanes.d.set(j, f(input.d));
+                lanes.r.set(j, f(input.r));
+                lanes.beta.set(j, f(input.beta));
                 lanes.eta_scale[j] = input.eta_scale;
                 lanes.light[j] = if input.light { 1.0 } else { 0.0 };
-                set3(&mut lanes.ls_l, j, f(input.ls_l));
-                set3(&mut lanes.ls_wi, j, f(input.ls_wi));
+                lanes.ls_l.set(j, f(input.ls_l));
+                lanes.ls_wi.set(j, f(input.ls_wi));
                 lanes.ls_pdf[j] = input.ls_pdf;
                 lanes.pmf[j] = input.pmf;
-                set3(&mut lanes.p_light, j, f(input.p_light));
-                set3(&mut lanes.n_light, j, f(input.n_light));
-                set3(&mut lanes.cosine, j, f(input.cosine));
+                lanes.p_light.set(j, f(input.p_light));
+                lanes.n_light.set(j, f(input.n_light));
+                lanes.cosine.set(j, f(input.cosine));
                 lanes.roulette[j] = if input.roulette { 1.0 } else { 0.0 };
                 lanes.u_rr[j] = input.u_rr;
                 inputs.push(input);
@@ -376,7 +391,7 @@ mod tests {
                 // picks, and nothing downstream reads them (comparisons with NaN are false).
                 let bits = |x: f32| if x.is_nan() { f32::NAN.to_bits() } else { x.to_bits() };
                 let bits3 = |a: [f32; 3]| a.map(bits);
-                let lane3 = |a: &[[f32; 8]; 3]| bits3([a[0][j], a[1][j], a[2][j]]);
+                let lane3 = |a: &Vec3Lanes| bits3(a.get(j).to_array());
                 let at = format!("case {case} lane {j}");
                 assert_eq!(got.shadow & (1 << j) != 0, want.shadow, "{at}: shadow");
                 assert_eq!(got.alive & (1 << j) != 0, want.alive, "{at}: alive");

@@ -3,7 +3,7 @@
 
 use super::accel::{Accel, Hit, RayQuery, lerp_triangle};
 use super::geometry::{offset_ray_origin, shadow_segment};
-use super::lambert::{LambertLanes, set3};
+use super::lambert::LambertLanes;
 use super::light::{EnvironmentLight, Light, LightLanes, LightLeSample, LightLiSample, LightSampleContext};
 use super::math;
 use super::sampler::hash_u64;
@@ -100,13 +100,13 @@ impl LightBatch {
         if scene.has_alpha || scene.has_emission_texture || !self.single.is_empty() {
             // Alpha and emission textures act on each sample (`on_emitter`).
             let Some((_, ls, pmf)) = self.get(scene, n) else { return false };
-            set3(&mut out.ls_l, lane, ls.l);
-            set3(&mut out.ls_wi, lane, ls.wi);
+            out.ls_l.set(lane, ls.l);
+            out.ls_wi.set(lane, ls.wi);
             out.ls_pdf[lane] = ls.pdf;
             out.pmf[lane] = pmf;
-            set3(&mut out.p_light, lane, ls.p_light);
+            out.p_light.set(lane, ls.p_light);
             // Triangle lights' samples all have their normal.
-            set3(&mut out.n_light, lane, ls.n_light.unwrap_or(Vec3A::ZERO));
+            out.n_light.set(lane, ls.n_light.unwrap_or(Vec3A::ZERO));
             return true;
         }
         let Some(Some((index, pmf))) = self.picks.get(n).copied() else { return false };
@@ -116,14 +116,12 @@ impl LightBatch {
         if s.ok & (1 << k) == 0 {
             return false;
         }
-        set3(&mut out.ls_l, lane, le);
-        for a in 0..3 {
-            out.ls_wi[a][lane] = s.wi[a][k];
-            out.p_light[a][lane] = s.p[a][k];
-        }
+        out.ls_l.set(lane, le);
+        out.ls_wi.set(lane, Vec3A::new(s.wi[0][k], s.wi[1][k], s.wi[2][k]));
+        out.p_light.set(lane, Vec3A::new(s.p[0][k], s.p[1][k], s.p[2][k]));
         out.ls_pdf[lane] = s.pdf[k];
         out.pmf[lane] = pmf;
-        set3(&mut out.n_light, lane, normal);
+        out.n_light.set(lane, normal);
         true
     }
 }

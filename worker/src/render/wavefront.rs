@@ -52,7 +52,7 @@ use super::geometry::{Ray, offset_ray_origin};
 use super::integrator::{
     PathParams, RR_MAX_SURVIVAL, emission_weight, nee_sample, nee_with_light, sample_scatter_ahead,
 };
-use super::lambert::{LambertLanes, get3, set3};
+use super::lambert::LambertLanes;
 use super::light::LightSampleContext;
 use super::material::shade;
 use super::sampler::{BounceDraws, Replay, Sampler};
@@ -365,17 +365,17 @@ impl<S: Sampler + Clone> Wavefront<S> {
                     // Into the next lane; 8 full lanes bounce at once.
                     let lane_paths = &mut self.lambert;
                     let lanes = &mut *self.lambert_lanes;
-                    set3(&mut lanes.p, in_lanes, si.p);
-                    set3(&mut lanes.ng, in_lanes, si.ng);
-                    set3(&mut lanes.ns, in_lanes, si.ns);
-                    set3(&mut lanes.d, in_lanes, path.ray.d);
-                    set3(&mut lanes.r, in_lanes, r);
-                    set3(&mut lanes.beta, in_lanes, path.beta);
+                    lanes.p.set(in_lanes, si.p);
+                    lanes.ng.set(in_lanes, si.ng);
+                    lanes.ns.set(in_lanes, si.ns);
+                    lanes.d.set(in_lanes, path.ray.d);
+                    lanes.r.set(in_lanes, r);
+                    lanes.beta.set(in_lanes, path.beta);
                     lanes.eta_scale[in_lanes] = path.eta_scale;
                     // The light sample, taken ahead in lanes.
                     let light = self.light_samples.write_lane(scene, n, lanes, in_lanes);
                     lanes.light[in_lanes] = if light { 1.0 } else { 0.0 };
-                    set3(&mut lanes.cosine, in_lanes, cosine.w);
+                    lanes.cosine.set(in_lanes, cosine.w);
                     lanes.roulette[in_lanes] = if path.depth + 1 >= params.rr_depth { 1.0 } else { 0.0 };
                     lanes.u_rr[in_lanes] = draws.d1[3];
                     lane_paths[in_lanes] = LambertPath { path: i, base: draws.base };
@@ -433,13 +433,13 @@ fn lambert_bounces<S: Sampler>(
         let i = l.path;
         let path = &mut sink.paths[i as usize];
         if path.depth == 0 {
-            path.out.albedo = get3(&lanes.r, j).to_array();
-            path.out.normal = get3(&out.ns, j).to_array();
+            path.out.albedo = lanes.r.get(j).to_array();
+            path.out.normal = out.ns.get(j).to_array();
         }
         if out.shadow & (1 << j) != 0 {
-            let (o, d) = (get3(&out.shadow_o, j), get3(&out.shadow_d, j));
+            let (o, d) = (out.shadow_o.get(j), out.shadow_d.get(j));
             sink.shadow_rays.push(RayQuery { o, d, t_max: out.shadow_t_max[j], time: path.time });
-            sink.shadows.push(PendingShadow { path: i, beta: path.beta, contribution: get3(&out.contribution, j) });
+            sink.shadows.push(PendingShadow { path: i, beta: path.beta, contribution: out.contribution.get(j) });
         } else {
             path.l += path.beta * Vec3A::ZERO;
         }
@@ -449,12 +449,12 @@ fn lambert_bounces<S: Sampler>(
         // The numbers the bounce read: 7, and roulette's.
         let roulette = path.depth + 1 >= params.rr_depth;
         path.sampler.set_dimension(l.base + if roulette { 8 } else { 7 });
-        path.beta = get3(&out.beta, j);
+        path.beta = out.beta.get(j);
         path.specular_bounce = false;
         path.prev_bsdf_pdf = out.pdf[j];
-        path.prev_ctx = LightSampleContext { p: get3(&lanes.p, j), n: get3(&out.ng, j) };
+        path.prev_ctx = LightSampleContext { p: lanes.p.get(j), n: out.ng.get(j) };
         path.depth += 1;
-        path.ray = Ray::new(get3(&out.ray_o, j), get3(&out.ray_d, j));
+        path.ray = Ray::new(out.ray_o.get(j), out.ray_d.get(j));
         sink.next_live.push(i);
     }
 }

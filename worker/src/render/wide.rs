@@ -252,7 +252,71 @@ impl Avx2 {
     }
 }
 
+// `Avx2::vec3_lanes` and `Avx2::lanes_vec3` read and write `Vec3A`s as 4 floats each (glam's SSE2
+// `__m128`: its fourth lane is initialised).
+#[cfg(target_arch = "x86_64")]
+const _: () = assert!(std::mem::size_of::<Vec3A>() == 16 && std::mem::align_of::<Vec3A>() == 16);
+
 impl Avx2 {
+    /// 8 vectors as 3 lanes (x, y, z of vector `i` in lane `i`): two 4 x 4 transposes (the
+    /// unused fourth components are dropped).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn vec3_lanes(self, v: &[Vec3A; 8]) -> [F32x8; 3] {
+        use std::arch::x86_64::*;
+        // No closures (see `accel::Sheared::new`).
+        let p: *const f32 = v.as_ptr().cast();
+        // SAFETY: `self` proves the CPU has AVX; each load reads the 16 bytes of one `Vec3A`
+        // of `v` (x, y, z and its padding, which is initialised): `Vec3A` is 16 bytes here.
+        unsafe {
+            let t = [
+                _mm256_set_m128(_mm_loadu_ps(p.add(16)), _mm_loadu_ps(p)),
+                _mm256_set_m128(_mm_loadu_ps(p.add(20)), _mm_loadu_ps(p.add(4))),
+                _mm256_set_m128(_mm_loadu_ps(p.add(24)), _mm_loadu_ps(p.add(8))),
+                _mm256_set_m128(_mm_loadu_ps(p.add(28)), _mm_loadu_ps(p.add(12))),
+            ];
+            let xy01 = _mm256_unpacklo_ps(t[0], t[1]);
+            let zw01 = _mm256_unpackhi_ps(t[0], t[1]);
+            let xy23 = _mm256_unpacklo_ps(t[2], t[3]);
+            let zw23 = _mm256_unpackhi_ps(t[2], t[3]);
+            [
+                F32x8(_mm256_shuffle_ps::<0x44>(xy01, xy23)),
+                F32x8(_mm256_shuffle_ps::<0xEE>(xy01, xy23)),
+                F32x8(_mm256_shuffle_ps::<0x44>(zw01, zw23)),
+            ]
+        }
+    }
+
+    /// [`Avx2::vec3_lanes`] back: lane `i` of x, y, z as vector `i` (its fourth component z,
+    /// as `Vec3A::new` makes it).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn lanes_vec3(self, v: [F32x8; 3]) -> [Vec3A; 8] {
+        use std::arch::x86_64::*;
+        let mut out = [Vec3A::ZERO; 8];
+        // SAFETY: `self` proves the CPU has AVX; each store writes the 16 bytes of one `Vec3A`
+        // of `out` (x, y, z and z again in its padding).
+        unsafe {
+            let (x, y, z) = (v[0].0, v[1].0, v[2].0);
+            let xy_lo = _mm256_unpacklo_ps(x, y);
+            let xy_hi = _mm256_unpackhi_ps(x, y);
+            let zz_lo = _mm256_unpacklo_ps(z, z);
+            let zz_hi = _mm256_unpackhi_ps(z, z);
+            let rows = [
+                _mm256_shuffle_ps::<0x44>(xy_lo, zz_lo),
+                _mm256_shuffle_ps::<0xEE>(xy_lo, zz_lo),
+                _mm256_shuffle_ps::<0x44>(xy_hi, zz_hi),
+                _mm256_shuffle_ps::<0xEE>(xy_hi, zz_hi),
+            ];
+            let p: *mut f32 = out.as_mut_ptr().cast();
+            for (i, r) in rows.into_iter().enumerate() {
+                _mm_storeu_ps(p.add(4 * i), _mm256_castps256_ps128(r));
+                _mm_storeu_ps(p.add(4 * i + 16), _mm256_extractf128_ps::<1>(r));
+            }
+        }
+        out
+    }
+
     /// The 8 bytes of `v` as 8 lanes of `f32` (exact).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
