@@ -1190,20 +1190,17 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
     let Some(ray0) = rays.first() else { return true };
     let n = rays.len().min(PACKET);
     let active = (1u32 << n) - 1;
-    // Lanes past `n` repeat the first ray (their results are dropped). The rays' values as
-    // arrays (origin, direction), then as lanes; no closures (see `Sheared::new`).
-    let mut v = [[0.0f32; PACKET]; 6];
+    // Lanes past `n` repeat the first ray (their results are dropped). The rays' origins and
+    // directions turned into lanes; no closures (see `Sheared::new`).
+    let (mut origins, mut directions) = ([&ray0.o; PACKET], [&ray0.d; PACKET]);
     let mut t_max = [0.0f32; PACKET];
     for i in 0..PACKET {
         let r = rays.get(i).unwrap_or(ray0);
-        for a in 0..3 {
-            v[a][i] = r.o[a];
-            v[3 + a][i] = r.d[a];
-        }
+        (origins[i], directions[i]) = (&r.o, &r.d);
         t_max[i] = r.t_max;
     }
-    let o = [avx2.f32x8(&v[0]), avx2.f32x8(&v[1]), avx2.f32x8(&v[2])];
-    let d = [avx2.f32x8(&v[3]), avx2.f32x8(&v[4]), avx2.f32x8(&v[5])];
+    let o = avx2.vec3_lanes_of(origins);
+    let d = avx2.vec3_lanes_of(directions);
     // obvhs' `Ray::new(o, bvh_direction(d), ..)`: `safe_inverse` of `d + 0` in lanes (the same
     // bits: 1 / x, or signum(x) / EPSILON where |x| <= EPSILON).
     let zero = o[0].splat(0.0);

@@ -4,6 +4,7 @@
 //! light selection by power.
 
 use super::geometry::Frame;
+use super::lambert::Vec3Lanes;
 use super::math;
 use super::math::Real;
 use super::sampling::{
@@ -220,17 +221,17 @@ pub(super) struct TriangleSample<R: Real> {
     pub pdf: R,
 }
 
-/// Up to 8 triangle-light samples' inputs as lanes (`RenderScene::sample_light_at_many`):
-/// vertices `v[vertex][axis]`, normal, area, two-sidedness (1 or 0), reference point, the
-/// sample's numbers and their barycentrics by area. Lanes left unset hold zeros (a sample that
-/// is not `ok`).
+/// Up to 8 triangle-light samples' inputs (`RenderScene::sample_light_at_many`): vertices,
+/// normal, area, two-sidedness (1 or 0), reference point and the sample's numbers; vectors as
+/// one `Vec3A` per lane (the kernel turns them into lanes). Lanes left unset hold zeros (a
+/// sample that is not `ok`).
 #[derive(Default)]
 pub struct LightLanes {
-    pub v: [[[f32; 8]; 3]; 3],
-    pub n: [[f32; 8]; 3],
+    pub v: [Vec3Lanes; 3],
+    pub n: Vec3Lanes,
     pub area: [f32; 8],
     pub two_sided: [f32; 8],
-    pub p: [[f32; 8]; 3],
+    pub p: Vec3Lanes,
     pub u: [[f32; 8]; 2],
 }
 
@@ -239,13 +240,11 @@ impl LightLanes {
     #[allow(clippy::too_many_arguments)]
     pub fn set(&mut self, lane: usize, v: &[Vec3A; 3], n: Vec3A, area: f32, two_sided: bool, p: Vec3A, u: Vec2) {
         let lane = lane & 7;
-        for k in 0..3 {
-            for (i, vertex) in v.iter().enumerate() {
-                self.v[i][k][lane] = vertex[k];
-            }
-            self.n[k][lane] = n[k];
-            self.p[k][lane] = p[k];
+        for (lanes, vertex) in self.v.iter_mut().zip(v) {
+            lanes.set(lane, *vertex);
         }
+        self.n.set(lane, n);
+        self.p.set(lane, p);
         self.u[0][lane] = u.x;
         self.u[1][lane] = u.y;
         self.area[lane] = area;

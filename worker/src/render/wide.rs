@@ -263,17 +263,23 @@ impl Avx2 {
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub fn vec3_lanes(self, v: &[Vec3A; 8]) -> [F32x8; 3] {
+        self.vec3_lanes_of([&v[0], &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7]])
+    }
+
+    /// [`Avx2::vec3_lanes`] of 8 vectors wherever they are (a packet's rays' origins).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn vec3_lanes_of(self, v: [&Vec3A; 8]) -> [F32x8; 3] {
         use std::arch::x86_64::*;
-        // No closures (see `accel::Sheared::new`).
-        let p: *const f32 = v.as_ptr().cast();
+        let p = v.map(|v| -> *const f32 { (v as *const Vec3A).cast() });
         // SAFETY: `self` proves the CPU has AVX; each load reads the 16 bytes of one `Vec3A`
-        // of `v` (x, y, z and its padding, which is initialised): `Vec3A` is 16 bytes here.
+        // (x, y, z and its padding, which is initialised: see the size assertion above).
         unsafe {
             let t = [
-                _mm256_set_m128(_mm_loadu_ps(p.add(16)), _mm_loadu_ps(p)),
-                _mm256_set_m128(_mm_loadu_ps(p.add(20)), _mm_loadu_ps(p.add(4))),
-                _mm256_set_m128(_mm_loadu_ps(p.add(24)), _mm_loadu_ps(p.add(8))),
-                _mm256_set_m128(_mm_loadu_ps(p.add(28)), _mm_loadu_ps(p.add(12))),
+                _mm256_set_m128(_mm_loadu_ps(p[4]), _mm_loadu_ps(p[0])),
+                _mm256_set_m128(_mm_loadu_ps(p[5]), _mm_loadu_ps(p[1])),
+                _mm256_set_m128(_mm_loadu_ps(p[6]), _mm_loadu_ps(p[2])),
+                _mm256_set_m128(_mm_loadu_ps(p[7]), _mm_loadu_ps(p[3])),
             ];
             let xy01 = _mm256_unpacklo_ps(t[0], t[1]);
             let zw01 = _mm256_unpackhi_ps(t[0], t[1]);
@@ -801,13 +807,9 @@ impl Avx2 {
             use super::sampling::{MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA};
             use super::spherical;
             // No closures: see `accel::Sheared::new`.
-            let v = [
-                [avx2.f32x8(&l.v[0][0]), avx2.f32x8(&l.v[0][1]), avx2.f32x8(&l.v[0][2])],
-                [avx2.f32x8(&l.v[1][0]), avx2.f32x8(&l.v[1][1]), avx2.f32x8(&l.v[1][2])],
-                [avx2.f32x8(&l.v[2][0]), avx2.f32x8(&l.v[2][1]), avx2.f32x8(&l.v[2][2])],
-            ];
-            let n = [avx2.f32x8(&l.n[0]), avx2.f32x8(&l.n[1]), avx2.f32x8(&l.n[2])];
-            let p = [avx2.f32x8(&l.p[0]), avx2.f32x8(&l.p[1]), avx2.f32x8(&l.p[2])];
+            let v = [avx2.vec3_lanes(&l.v[0].0), avx2.vec3_lanes(&l.v[1].0), avx2.vec3_lanes(&l.v[2].0)];
+            let n = avx2.vec3_lanes(&l.n.0);
+            let p = avx2.vec3_lanes(&l.p.0);
             let u = [avx2.f32x8(&l.u[0]), avx2.f32x8(&l.u[1])];
             // The point by area (`sample_uniform_triangle`), the fallback of solid angle.
             let b = super::sampling::uniform_triangle(u);
