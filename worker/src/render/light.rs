@@ -256,8 +256,8 @@ impl LightLanes {
 pub struct LightLaneSamples {
     pub ok: u32,
     pub b: [[f32; 8]; 3],
-    pub p: [[f32; 8]; 3],
-    pub wi: [[f32; 8]; 3],
+    pub p: Vec3Lanes,
+    pub wi: Vec3Lanes,
     pub pdf: [f32; 8],
 }
 
@@ -268,9 +268,9 @@ impl LightLaneSamples {
         let lane = lane & 7;
         (self.ok & (1 << lane) != 0).then(|| LightLiSample {
             l: le,
-            wi: Vec3A::new(self.wi[0][lane], self.wi[1][lane], self.wi[2][lane]),
+            wi: self.wi.get(lane),
             pdf: self.pdf[lane],
-            p_light: Vec3A::new(self.p[0][lane], self.p[1][lane], self.p[2][lane]),
+            p_light: self.p.get(lane),
             n_light: Some(n),
             b: [self.b[0][lane], self.b[1][lane], self.b[2][lane]],
             infinite: false,

@@ -117,8 +117,8 @@ impl LightBatch {
             return false;
         }
         out.ls_l.set(lane, le);
-        out.ls_wi.set(lane, Vec3A::new(s.wi[0][k], s.wi[1][k], s.wi[2][k]));
-        out.p_light.set(lane, Vec3A::new(s.p[0][k], s.p[1][k], s.p[2][k]));
+        out.ls_wi.set(lane, s.wi.get(k));
+        out.p_light.set(lane, s.p.get(k));
         out.ls_pdf[lane] = s.pdf[k];
         out.pmf[lane] = pmf;
         out.n_light.set(lane, normal);

@@ -835,8 +835,8 @@ impl Avx2 {
             super::light::LightLaneSamples {
                 ok: t.ok.bits(),
                 b: [t.b[0].to_array(), t.b[1].to_array(), t.b[2].to_array()],
-                p: [t.p[0].to_array(), t.p[1].to_array(), t.p[2].to_array()],
-                wi: [t.wi[0].to_array(), t.wi[1].to_array(), t.wi[2].to_array()],
+                p: super::lambert::Vec3Lanes(avx2.lanes_vec3(t.p)),
+                wi: super::lambert::Vec3Lanes(avx2.lanes_vec3(t.wi)),
                 pdf: t.pdf.to_array(),
             }
         }
