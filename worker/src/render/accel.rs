@@ -1279,6 +1279,18 @@ fn transpose_bits8(mut x: u64) -> u64 {
     x ^ t ^ (t << 28)
 }
 
+/// Bit `c` set where byte `c` of `x` is not zero: each byte's bits folded onto its lowest, then
+/// the 8 lowest bits gathered into the top byte by one multiplication (every partial product
+/// lands on a bit of its own, so nothing carries).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn nonzero_bytes(x: u64) -> u32 {
+    let mut any = x | (x >> 4);
+    any |= any >> 2;
+    any |= any >> 1;
+    ((any & 0x0101_0101_0101_0101).wrapping_mul(0x0102_0408_1020_4080) >> 56) as u32
+}
+
 /// Entries of a packet's traversal stack: a node and the packet's rays that visit it.
 const PACKET_STACK: usize = 96;
 
@@ -1354,15 +1366,16 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
         let mut prims = 0u32;
         let mut inner = [(0u32, 0u32, 0u32); 8];
         let mut inner_len = 0;
-        for child in 0..8 {
+        // Only the children some ray hits.
+        let mut hit_children = nonzero_bytes(by_child);
+        while hit_children != 0 {
+            let child = hit_children.trailing_zeros() as usize & 7;
+            hit_children &= hit_children - 1;
             let meta = node.child_meta[child];
             if meta == 0 {
                 continue;
             }
             let hit = (by_child >> (8 * child)) as u32 & 0xff;
-            if hit == 0 {
-                continue;
-            }
             if node.imask & (1 << child) == 0 {
                 let first = usize::from(meta & 0b1_1111);
                 for k in 0..(meta >> 5).count_ones() as usize {
@@ -1507,6 +1520,24 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// `nonzero_bytes` sets exactly the bits of the bytes that hold a bit.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn nonzero_bytes_finds_each_byte_with_a_bit() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..100_000 {
+            x = x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            // Random bytes, many of them zero, and single high or low bits.
+            let v = x & (x >> 7) & (x >> 13);
+            for v in [v, v & 0x8080_8080_8080_8080, v & 0x0101_0101_0101_0101, x] {
+                let want = (0..8).fold(0u32, |m, c| m | (u32::from((v >> (8 * c)) & 0xff != 0) << c));
+                assert_eq!(nonzero_bytes(v), want, "{v:#018x}");
+            }
+        }
+        assert_eq!(nonzero_bytes(0), 0);
+        assert_eq!(nonzero_bytes(u64::MAX), 0xff);
     }
 
     /// `transpose_bits8` moves bit `c` of byte `r` to bit `r` of byte `c`, for every bit.
