@@ -534,8 +534,16 @@ impl Accel {
     pub fn intersect_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<Hit> {
         match self.avx2 {
             Some(avx2) => avx2.run_kernel(IntersectOne { accel: self, avx2, ray: RayQuery { o, d, t_max, time } }),
-            None => self.intersect_dispatch(Baseline, None, o, d, t_max, time),
+            None => self.intersect_baseline(o, d, t_max, time),
         }
+    }
+
+    /// [`Accel::intersect_at`] without SIMD, out of line: the callers inline only the dispatch
+    /// (with the baseline traversal inside, the optimizer left the query itself out of line in
+    /// some callers, as the codegen units fell).
+    #[inline(never)]
+    fn intersect_baseline(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> Option<Hit> {
+        self.intersect_dispatch(Baseline, None, o, d, t_max, time)
     }
 
     #[inline(always)]
@@ -819,8 +827,14 @@ impl Accel {
     pub fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
         match self.avx2 {
             Some(avx2) => avx2.run_kernel(OccludedOne { accel: self, avx2, ray: RayQuery { o, d, t_max, time } }),
-            None => self.occluded_dispatch(Baseline, None, o, d, t_max, time),
+            None => self.occluded_baseline(o, d, t_max, time),
         }
+    }
+
+    /// [`Accel::occluded_at`] without SIMD, out of line (see [`Accel::intersect_baseline`]).
+    #[inline(never)]
+    fn occluded_baseline(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
+        self.occluded_dispatch(Baseline, None, o, d, t_max, time)
     }
 
     #[inline(always)]

@@ -103,6 +103,9 @@ pub(super) fn offset_component(p: f32, n: f32) -> f32 {
 
 /// Offsets both ends of a segment and returns (origin, direction, max t) for a shadow ray
 /// from `p0` (normal `n0`) to `p1` (normal `n1`, or `None` for a point light).
+// Inline: every shadow ray makes one (out of line, behind a call, when the release build's
+// codegen units split it from its callers: 0.5% more of bdpt's instructions).
+#[inline]
 pub fn shadow_segment(p0: Vec3A, n0: Vec3A, p1: Vec3A, n1: Option<Vec3A>) -> (Vec3A, Vec3A, f32) {
     let d = p1 - p0;
     let o = offset_ray_origin(p0, n0, d);

@@ -505,6 +505,7 @@ impl RenderScene {
     }
 
     /// Whether anything present (alpha considered) lies on the ray before `t_max` at `time`.
+    #[inline]
     pub fn occluded_at(&self, o: Vec3A, d: Vec3A, t_max: f32, time: f32) -> bool {
         if !self.has_alpha {
             return self.accel.occluded_at(o, d, t_max, time);
