@@ -12,6 +12,7 @@
 
 use super::math::Real;
 use super::vec3::{dot, is_zero, neg, select3};
+use super::wide::Vec3Lanes;
 use pathfarm_common::scene::{Material, MaterialModel};
 use std::f32::consts::FRAC_1_PI;
 
@@ -190,13 +191,6 @@ pub fn bounce<R: Real>(b: &LambertIn<R>, power: bool) -> LambertOut<R> {
     LambertOut { ng, ns, shadow, shadow_o, shadow_d, shadow_t_max, contribution, alive, beta, pdf, ray_o, ray_d: wi }
 }
 
-/// 8 paths' values of one vector, a `Vec3A` per path (lane `i`: path `i`): a path writes and
-/// reads its vector whole, and the kernel turns the 8 into 3 lanes and back with a few
-/// shuffles ([`super::wide::Avx2::vec3_lanes`]), instead of each path scattering and gathering
-/// 3 components.
-#[derive(Clone, Copy, Default)]
-pub struct Vec3Lanes(pub [glam::Vec3A; 8]);
-
 /// 8 paths' [`LambertIn`] (lane `i` is path `i`), for [`super::wide::Avx2::lambert_bounces`];
 /// truth values as 1.0 (true) or 0.0.
 #[derive(Clone, Copy, Default)]
@@ -235,20 +229,6 @@ pub struct LambertLaneOut {
     pub pdf: [f32; 8],
     pub ray_o: Vec3Lanes,
     pub ray_d: Vec3Lanes,
-}
-
-impl Vec3Lanes {
-    /// Writes `v` into lane `lane`.
-    #[inline(always)]
-    pub fn set(&mut self, lane: usize, v: glam::Vec3A) {
-        self.0[lane & 7] = v;
-    }
-
-    /// Lane `lane`.
-    #[inline(always)]
-    pub fn get(&self, lane: usize) -> glam::Vec3A {
-        self.0[lane & 7]
-    }
 }
 
 /// Writes `v` into lane `lane` of `a` (components per axis: lanes kept as lanes, as IGI's VPLs).

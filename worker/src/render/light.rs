@@ -4,7 +4,6 @@
 //! light selection by power.
 
 use super::geometry::Frame;
-use super::lambert::Vec3Lanes;
 use super::math;
 use super::math::Real;
 use super::sampling::{
@@ -12,6 +11,7 @@ use super::sampling::{
     sample_cosine_hemisphere, sample_uniform_cone, sample_uniform_disk_concentric, sample_uniform_sphere,
     sample_uniform_triangle, uniform_cone_pdf, uniform_sphere_pdf,
 };
+use super::wide::Vec3Lanes;
 use glam::{Vec2, Vec3A};
 use pathfarm_common::job::LightSampling;
 use pathfarm_common::scene::EnvironmentImage;

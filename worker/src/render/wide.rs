@@ -252,6 +252,27 @@ impl Avx2 {
     }
 }
 
+/// 8 values of one vector, a `Vec3A` per lane (lane `i`: path or sample `i`): each is written
+/// and read whole, and a kernel turns the 8 into 3 lanes and back with a few shuffles
+/// ([`Avx2::vec3_lanes`], [`Avx2::lanes_vec3`]), instead of each scattering and gathering 3
+/// components.
+#[derive(Clone, Copy, Default)]
+pub struct Vec3Lanes(pub [Vec3A; 8]);
+
+impl Vec3Lanes {
+    /// Writes `v` into lane `lane`.
+    #[inline(always)]
+    pub fn set(&mut self, lane: usize, v: Vec3A) {
+        self.0[lane & 7] = v;
+    }
+
+    /// Lane `lane`.
+    #[inline(always)]
+    pub fn get(&self, lane: usize) -> Vec3A {
+        self.0[lane & 7]
+    }
+}
+
 // `Avx2::vec3_lanes` and `Avx2::lanes_vec3` read and write `Vec3A`s as 4 floats each (glam's SSE2
 // `__m128`: its fourth lane is initialised).
 #[cfg(target_arch = "x86_64")]
@@ -835,8 +856,8 @@ impl Avx2 {
             super::light::LightLaneSamples {
                 ok: t.ok.bits(),
                 b: [t.b[0].to_array(), t.b[1].to_array(), t.b[2].to_array()],
-                p: super::lambert::Vec3Lanes(avx2.lanes_vec3(t.p)),
-                wi: super::lambert::Vec3Lanes(avx2.lanes_vec3(t.wi)),
+                p: Vec3Lanes(avx2.lanes_vec3(t.p)),
+                wi: Vec3Lanes(avx2.lanes_vec3(t.wi)),
                 pdf: t.pdf.to_array(),
             }
         }
