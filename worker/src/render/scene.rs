@@ -143,6 +143,8 @@ pub struct RenderScene {
     has_alpha: bool,
     /// Whether some material has an emission texture (else every area light's factor is 1).
     has_emission_texture: bool,
+    /// Whether some material attenuates light inside it (else every transmittance is 1).
+    has_attenuation: bool,
     /// Whether every light is a triangle and nothing moves (lights can be sampled in lanes).
     triangle_lights_only: bool,
     /// Per material: whether it shades as a bare Lambertian ([`super::lambert::is_plain_lambert`]).
@@ -326,6 +328,7 @@ impl RenderScene {
             environment,
             has_alpha,
             has_emission_texture,
+            has_attenuation: scene.materials.iter().any(|m| m.attenuation != glam::Vec3::ZERO),
             triangle_lights_only,
             plain_lambert: scene.materials.iter().map(super::lambert::is_plain_lambert).collect(),
             center,
@@ -682,6 +685,9 @@ impl RenderScene {
     /// outward winding, no nesting), and `exp(-sigma t)` of it is left.
     #[inline]
     pub fn transmittance(&self, si: &SurfaceInteraction, d: Vec3A) -> Vec3A {
+        if !self.has_attenuation {
+            return Vec3A::ONE;
+        }
         let Some(m) = self.materials.get(si.material as usize) else { return Vec3A::ONE };
         if m.attenuation == glam::Vec3::ZERO || si.ng.dot(d) <= 0.0 {
             return Vec3A::ONE;

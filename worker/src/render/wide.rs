@@ -11,7 +11,10 @@
 //! VL, BW, DQ, CD: the x86-64-v4 level), the same kernels run compiled for it (each entry point
 //! exists twice, `v3` and `v4`, and the proof's level picks one): still 8 lanes, with 32 vector
 //! registers, mask registers and EVEX forms of the same operations (measured: `tiny long` 0.666
-//! -> 0.647 s, `tiny solid long` 0.780 -> 0.743 s, minimum of 3-5 interleaved runs).
+//! -> 0.647 s, `tiny solid long` 0.780 -> 0.743 s, minimum of 3-5 interleaved runs). 16 lanes
+//! were tried where they fit one kernel (a packet's node test for two rays per 512-bit
+//! operation, the same bits): no faster on AMD Zen 4, which runs a 512-bit operation as two
+//! 256-bit halves, so they save front-end work only.
 //!
 //! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
 //! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
