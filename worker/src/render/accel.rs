@@ -697,6 +697,13 @@ impl Accel {
         sorting_pays(self.tris.len(), tests, lanes)
     }
 
+    /// Whether batches of rays (up to 1,024) go through the BVH in sorted packets now: always in
+    /// small scenes, in larger ones while the packets pay (the wavefront then makes its batches
+    /// that large where the scene has no textures: `wavefront::batch_len`).
+    pub fn sorts_rays(&self) -> bool {
+        self.sorted_packets(SORTED_BATCH)
+    }
+
     /// The hits of `rays` (at most [`SORTED_BATCH`]), each in its place, traced in packets of
     /// rays that share their octant and dominant axis (what a packet needs): the rays' indices
     /// sorted by class (a counting sort), each class in packets of 8; a class's last few rays
@@ -1150,8 +1157,9 @@ fn sorting_pays(tris: usize, tests: u64, lanes: u64) -> bool {
     tris <= SORTED_PACKET_TRIANGLES || tests < SORTED_TRIAL_TESTS || lanes * 10 >= tests * SORTED_MIN_LANES_X10
 }
 
-/// The largest batch traced in sorted packets (a power of two).
-const SORTED_BATCH: usize = 256;
+/// The largest batch traced in sorted packets (a power of two; the wavefront's batches where
+/// the scene sorts its rays, `wavefront::SORTED_BATCH`).
+const SORTED_BATCH: usize = 1024;
 
 /// The fewest coherent rays traced as a packet.
 const MIN_PACKET: usize = 4;

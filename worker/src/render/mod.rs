@@ -346,7 +346,9 @@ impl Renderer {
         // few samples per pixel left a row's batches short: per-bounce stage costs spread over
         // fewer paths, and small scenes' sorted packets less full); the others row by row.
         let group = match wavefront {
-            Some(_) => wavefront::BATCH.div_ceil((tile.width() as usize * pass.spp() as usize).max(1)).max(1) as u32,
+            Some(_) => wavefront::batch_len(&self.scene)
+                .div_ceil((tile.width() as usize * pass.spp() as usize).max(1))
+                .max(1) as u32,
             None => 1,
         };
         let groups: Vec<(u32, u32)> =
@@ -361,7 +363,7 @@ impl Renderer {
             .zip(groups)
             .map_init(no_wavefront, |wf, (out, (y, y_end))| {
                 if let Some(params) = wavefront {
-                    let wf = wf.get_or_insert_with(Wavefront::default);
+                    let wf = wf.get_or_insert_with(|| Wavefront::with_batch(wavefront::batch_len(&self.scene)));
                     self.path_rows_wavefront(wf, tile, pass, mask, y..y_end, params, &new_sampler, out);
                     return Vec::new();
                 }
@@ -466,8 +468,9 @@ impl Renderer {
         let start = wavefront::CameraStage { new_sampler, camera: &self.camera, shutter };
         let width = tile.width() as usize;
         let mut accs = vec![film::PixelAccum::default(); width * ys.len()];
-        let mut batch: Vec<(UVec2, u32)> = Vec::with_capacity(wavefront::BATCH);
-        let mut values = Vec::with_capacity(wavefront::BATCH);
+        let batch_len = wavefront::batch_len(&self.scene);
+        let mut batch: Vec<(UVec2, u32)> = Vec::with_capacity(batch_len);
+        let mut values = Vec::with_capacity(batch_len);
         let origin = UVec2::new(tile.x0, ys.start);
         let mut flush = |batch: &mut Vec<(UVec2, u32)>, accs: &mut [film::PixelAccum]| {
             values.clear();
@@ -484,7 +487,7 @@ impl Renderer {
             for x in (tile.x0..tile.x1).filter(|&x| !converged(x, y)) {
                 for s in pass.samples() {
                     batch.push((UVec2::new(x, y), s));
-                    if batch.len() == wavefront::BATCH {
+                    if batch.len() == batch_len {
                         flush(&mut batch, &mut accs);
                     }
                 }

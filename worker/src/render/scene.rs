@@ -337,6 +337,12 @@ impl RenderScene {
         }
     }
 
+    /// Whether batches of rays go through the BVH in sorted packets now (small scenes, and
+    /// larger ones while it pays: [`Accel::sorts_rays`]).
+    pub fn sorts_rays(&self) -> bool {
+        self.accel.sorts_rays()
+    }
+
     /// Whether some material shades as a bare Lambertian BSDF ([`RenderScene::plain_lambert_at`]).
     pub fn has_plain_lambert(&self) -> bool {
         self.plain_lambert.iter().any(|&p| p)
