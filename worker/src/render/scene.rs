@@ -904,19 +904,21 @@ impl RenderScene {
         self.emitted_at(si, w, 0.0)
     }
 
-    /// [`Self::emitted`] for a hit at shutter time `time`.
+    /// [`Self::emitted`] for a hit at shutter time `time`. Inline where the hit is on no light
+    /// (most hits: one lookup), out of line where it is.
+    #[inline]
     pub fn emitted_at(&self, si: &SurfaceInteraction, w: Vec3A, time: f32) -> Vec3A {
         match self.light_of_prim(si.prim) {
-            Some(l) => {
-                let le = self.light_at(l, time).l(w);
-                if le == Vec3A::ZERO {
-                    le
-                } else {
-                    le * self.emission_texture(si.prim, [1.0 - si.b1 - si.b2, si.b1, si.b2])
-                }
-            }
+            Some(l) => self.emitted_by(l, si, w, time),
             None => Vec3A::ZERO,
         }
+    }
+
+    /// The radiance light `l` emits from the hit `si` toward `w` at `time`.
+    #[inline(never)]
+    fn emitted_by(&self, l: usize, si: &SurfaceInteraction, w: Vec3A, time: f32) -> Vec3A {
+        let le = self.light_at(l, time).l(w);
+        if le == Vec3A::ZERO { le } else { le * self.emission_texture(si.prim, [1.0 - si.b1 - si.b2, si.b1, si.b2]) }
     }
 }
 
