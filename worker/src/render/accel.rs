@@ -718,21 +718,39 @@ impl Accel {
         rays: &[RayQuery],
         hits: &mut Vec<Option<Hit>>,
     ) {
-        let mut class = [0u8; SORTED_BATCH];
+        // The sort's arrays sized for the batch: a small batch (an IGI point's rays to its VPLs)
+        // does not zero those of the largest.
+        if rays.len() <= SMALL_SORTED_BATCH {
+            self.intersect_sorted_in::<ANY, SMALL_SORTED_BATCH>(avx2, state, rays, hits);
+        } else {
+            self.intersect_sorted_in::<ANY, SORTED_BATCH>(avx2, state, rays, hits);
+        }
+    }
+
+    /// [`Accel::intersect_sorted`] of at most `CAP` rays (a power of two).
+    #[inline(always)]
+    fn intersect_sorted_in<const ANY: bool, const CAP: usize>(
+        &self,
+        avx2: Avx2,
+        state: &mut Traversal,
+        rays: &[RayQuery],
+        hits: &mut Vec<Option<Hit>>,
+    ) {
+        let mut class = [0u8; CAP];
         let mut start = [0u16; 25];
         for (i, r) in rays.iter().enumerate() {
             let d = r.d + Vec3A::ZERO;
             let c = d.cmplt(Vec3A::ZERO).bitmask() as usize * 3 + dominant_axis(d);
-            class[i & (SORTED_BATCH - 1)] = c as u8;
+            class[i & (CAP - 1)] = c as u8;
             start[(c + 1).min(24)] += 1;
         }
         for c in 0..24 {
             start[c + 1] += start[c];
         }
-        let mut order = [0u16; SORTED_BATCH];
+        let mut order = [0u16; CAP];
         for i in 0..rays.len() {
-            let c = usize::from(class[i & (SORTED_BATCH - 1)]).min(23);
-            order[usize::from(start[c]) & (SORTED_BATCH - 1)] = i as u16;
+            let c = usize::from(class[i & (CAP - 1)]).min(23);
+            order[usize::from(start[c]) & (CAP - 1)] = i as u16;
             start[c] += 1;
         }
         // `start[c]` is now the end of class `c`.
@@ -1160,6 +1178,9 @@ fn sorting_pays(tris: usize, tests: u64, lanes: u64) -> bool {
 /// The largest batch traced in sorted packets (a power of two; the wavefront's batches where
 /// the scene sorts its rays, `wavefront::SORTED_BATCH`).
 const SORTED_BATCH: usize = 1024;
+
+/// Batches up to this size are sorted in arrays of this size (a power of two).
+const SMALL_SORTED_BATCH: usize = 256;
 
 /// The fewest coherent rays traced as a packet.
 const MIN_PACKET: usize = 4;
