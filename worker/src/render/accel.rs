@@ -697,9 +697,9 @@ impl Accel {
         sorting_pays(self.tris.len(), tests, lanes)
     }
 
-    /// Whether batches of rays (up to 1,024) go through the BVH in sorted packets now: always in
-    /// small scenes, in larger ones while the packets pay (the wavefront then makes its batches
-    /// that large where the scene has no textures: `wavefront::batch_len`).
+    /// Whether batches of rays (up to `SORTED_BATCH`) go through the BVH in sorted packets
+    /// now: always in small scenes, in larger ones while the packets pay (the wavefront then
+    /// makes its batches that large where the scene has no textures: `wavefront::batch_len`).
     pub fn sorts_rays(&self) -> bool {
         self.sorted_packets(SORTED_BATCH)
     }
@@ -1175,9 +1175,9 @@ fn sorting_pays(tris: usize, tests: u64, lanes: u64) -> bool {
     tris <= SORTED_PACKET_TRIANGLES || tests < SORTED_TRIAL_TESTS || lanes * 10 >= tests * SORTED_MIN_LANES_X10
 }
 
-/// The largest batch traced in sorted packets (a power of two; the wavefront's batches where
-/// the scene sorts its rays, `wavefront::SORTED_BATCH`).
-const SORTED_BATCH: usize = 1024;
+/// The largest batch traced in sorted packets (a power of two), and the wavefront's batch size
+/// where the scene sorts its rays (`wavefront::batch_len`).
+pub(super) const SORTED_BATCH: usize = 1024;
 
 /// Batches up to this size are sorted in arrays of this size (a power of two).
 const SMALL_SORTED_BATCH: usize = 256;

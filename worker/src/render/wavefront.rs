@@ -70,23 +70,23 @@ use pathfarm_common::job::MisHeuristic;
 /// that the batch's state (about 200 bytes a path) stays in the L2 cache.
 pub const BATCH: usize = 256;
 
-/// Paths per batch where the scene's rays go through the BVH in sorted packets
-/// ([`RenderScene::sorts_rays`]) and its shading reads no textures: more rays of each octant
-/// and dominant axis make fuller packets. Measured on the Cornell box (36 triangles, `tiny`):
-/// 489.0M -> 474.4M instructions (512 paths: 479.2M; 2048: 473.9M), `tiny long` 0.762 ->
-/// 0.722 s (min of 7 interleaved), the bench's paired rounds 0.70 -> 0.77 of Mitsuba's
-/// llvm_ad_rgb; cornellBox_nvpro (16.7k triangles, sorted while it pays) 2,072M -> 2,023M
-/// instructions (128x128x8), 1.81 -> 1.73 s (`pathfarm-worker render`, 256x256x32, 2 threads).
-/// Textured scenes keep [`BATCH`]: MixedLighting (41k triangles) and GlassHurricane (4.1k), both
-/// sorted, rendered 9-10% slower in batches of 1,024 (min of 11 interleaved) with the same
-/// instruction counts: the larger batch's state evicts the texels their shading reads.
-pub const SORTED_BATCH: usize = 1024;
-
-/// The batch size for `scene`: [`SORTED_BATCH`] where its rays go in sorted packets and it
-/// has no textures, else [`BATCH`]. Either way every sample's value is the same (nothing
-/// crosses lanes).
+/// The batch size for `scene`: the largest batch the BVH sorts into packets
+/// (`accel::SORTED_BATCH`, 1,024 paths) where the scene's rays go in sorted packets
+/// ([`RenderScene::sorts_rays`]) and it has no textures, else [`BATCH`]. Either way every
+/// sample's value is the same (nothing crosses lanes).
+///
+/// More rays of each octant and dominant axis make fuller packets. Measured with 1,024 paths
+/// wherever rays are sorted, against 256: the Cornell box (36 triangles, `tiny`) 489.0M ->
+/// 474.4M instructions (512 paths: 479.2M; 2048: 473.9M), `tiny long` 0.762 -> 0.722 s (min of
+/// 7 interleaved), the bench's paired rounds 0.70 -> 0.77 of Mitsuba's llvm_ad_rgb;
+/// cornellBox_nvpro (16.7k triangles, sorted while it pays) 2,072M -> 2,023M instructions
+/// (128x128x8), 1.81 -> 1.73 s (`pathfarm-worker render`, 256x256x32, 2 threads). But
+/// MixedLighting (41k triangles) and GlassHurricane (4.1k), both textured and sorted, rendered
+/// 9-10% slower (min of 11 interleaved) with the same instruction counts: the cost is in the
+/// memory system (likely the larger batch's state evicting the texels their shading reads), so
+/// textured scenes keep [`BATCH`].
 pub fn batch_len(scene: &RenderScene) -> usize {
-    if scene.textures.is_empty() && scene.sorts_rays() { SORTED_BATCH } else { BATCH }
+    if scene.textures.is_empty() && scene.sorts_rays() { super::accel::SORTED_BATCH } else { BATCH }
 }
 
 /// Which implementation renders `path` and `direct` units (their images are bit-identical).
