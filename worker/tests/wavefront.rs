@@ -18,7 +18,8 @@ use pathfarm_common::scene::{
     TextureTransform, WrapMode,
 };
 use pathfarm_worker::render::sampling::{ONE_MINUS_EPSILON, cosine_hemisphere_many, sample_cosine_hemisphere};
-use pathfarm_worker::render::wavefront::PathKernel;
+use pathfarm_worker::render::scene::RenderScene;
+use pathfarm_worker::render::wavefront::{BATCH, PathKernel, batch_len};
 use pathfarm_worker::render::wide::SimdLevel;
 use pathfarm_worker::render::{Renderer, UnitResult};
 use std::sync::Arc;
@@ -429,6 +430,33 @@ fn wavefront_samples_do_not_depend_on_their_batch() {
         .map(|(a, b)| ([a.0[0] + b.0[0], a.0[1] + b.0[1], a.0[2] + b.0[2]], a.1 + b.1, a.2 + b.2, a.3 + b.3, a.4 + b.4))
         .collect();
     assert_eq!(added, exact_sums(&whole));
+}
+
+/// The batch size: larger than [`BATCH`] for the Cornell box (its rays go in sorted packets, and
+/// it has no textures: fuller packets), [`BATCH`] for the same box textured (measured slower in
+/// the larger batches) and for a scene too large to sort its rays.
+#[test]
+fn batches_are_large_where_rays_are_sorted_and_nothing_is_textured() {
+    let cornell = RenderScene::new(&file_scene(&reference().join("cornell_mitsuba.glb")));
+    assert!(cornell.sorts_rays(), "the Cornell box's rays go in sorted packets");
+    assert!(batch_len(&cornell) > BATCH, "{}", batch_len(&cornell));
+    let textured = RenderScene::new(&textured_microfacet_scene());
+    assert!(textured.sorts_rays(), "on trial at first");
+    assert_eq!(batch_len(&textured), BATCH);
+    // 70,000 small triangles in a grid: above the sorted packets' limit.
+    let mut large = file_scene(&reference().join("cornell_mitsuba.glb"));
+    let mesh = &mut large.meshes[0];
+    mesh.normals = None;
+    mesh.positions = (0..70_000u32)
+        .flat_map(|i| {
+            let o = Vec3::new((i % 300) as f32, (i / 300) as f32, 0.0) * 0.01;
+            [o, o + Vec3::new(0.008, 0.0, 0.0), o + Vec3::new(0.0, 0.008, 0.0)]
+        })
+        .collect();
+    mesh.indices = (0..70_000u32).map(|i| [3 * i, 3 * i + 1, 3 * i + 2]).collect();
+    let large = RenderScene::new(&large);
+    assert!(!large.sorts_rays());
+    assert_eq!(batch_len(&large), BATCH);
 }
 
 /// FNV-1a over a whole-image unit's pixel sums in their wire layout.

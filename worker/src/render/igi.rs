@@ -161,10 +161,18 @@ pub struct VplLanes {
     count: usize,
 }
 
+/// Writes `v` into lane `lane` of `a` (a VPL's vectors kept as 3 lanes of components: they are
+/// set once per VPL set and read by every shading point).
+#[inline(always)]
+fn set3(a: &mut [[f32; 8]; 3], lane: usize, v: Vec3A) {
+    a[0][lane] = v.x;
+    a[1][lane] = v.y;
+    a[2][lane] = v.z;
+}
+
 impl VplLanes {
     /// `set` in chunks of 8, or `None` if some VPL's BSDF is not a bare Lambertian.
     fn of(set: &[Vpl]) -> Option<Vec<Self>> {
-        use super::lambert::set3;
         set.chunks(8)
             .map(|chunk| {
                 let mut l = Self { count: chunk.len(), ..Self::default() };
@@ -665,14 +673,14 @@ mod tests {
                 let above = glam::Vec3A::new(w(0), w(1), w(2).abs() + 0.1);
                 let p = if w(30) > 0.95 { origin } else { origin + above };
                 let facing = -above + w3(3) * 0.3;
-                crate::render::lambert::set3(&mut lanes.p, j, p);
-                crate::render::lambert::set3(&mut lanes.ng, j, facing);
-                crate::render::lambert::set3(&mut lanes.ns, j, w3(6));
-                crate::render::lambert::set3(&mut lanes.ng_side, j, if w(31) > -0.8 { facing } else { w3(9) });
-                crate::render::lambert::set3(&mut lanes.z, j, if w(32) > -0.8 { facing } else { w3(12) });
+                super::set3(&mut lanes.p, j, p);
+                super::set3(&mut lanes.ng, j, facing);
+                super::set3(&mut lanes.ns, j, w3(6));
+                super::set3(&mut lanes.ng_side, j, if w(31) > -0.8 { facing } else { w3(9) });
+                super::set3(&mut lanes.z, j, if w(32) > -0.8 { facing } else { w3(12) });
                 lanes.wo_z[j] = if w(33) > -0.8 { w(15).abs() } else { w(15) };
-                crate::render::lambert::set3(&mut lanes.f, j, w3(16).abs());
-                crate::render::lambert::set3(&mut lanes.beta, j, w3(19).abs());
+                super::set3(&mut lanes.f, j, w3(16).abs());
+                super::set3(&mut lanes.beta, j, w3(19).abs());
             }
             let got = avx2.vpl_terms(&point, &lanes, valid);
             for j in 0..8 {

@@ -231,14 +231,6 @@ pub struct LambertLaneOut {
     pub ray_d: Vec3Lanes,
 }
 
-/// Writes `v` into lane `lane` of `a` (components per axis: lanes kept as lanes, as IGI's VPLs).
-#[inline(always)]
-pub fn set3(a: &mut [[f32; 8]; 3], lane: usize, v: glam::Vec3A) {
-    a[0][lane] = v.x;
-    a[1][lane] = v.y;
-    a[2][lane] = v.z;
-}
-
 /// The 8 bounces of `l` in lanes (called from [`super::wide::Avx2::lambert_bounces`], compiled
 /// for AVX2). No closures (see `accel::Sheared::new`).
 #[cfg(target_arch = "x86_64")]
