@@ -459,6 +459,24 @@ fn batches_are_large_where_rays_are_sorted_and_nothing_is_textured() {
     assert_eq!(batch_len(&large), BATCH);
 }
 
+/// A mesh with 70,000 copies of one of its triangles (a degenerate scene; a mesh scaled to
+/// nothing is alike): the scene builds (the BVH build once chained coincident triangles 70,000
+/// deep, then overflowed the stack) and renders the image of the mesh without the copies, bit
+/// for bit (a copy is hit where its original is, with the same vertices to shade).
+#[test]
+fn coincident_triangles_render_as_one() {
+    let plain = file_scene(&reference().join("cornell_mitsuba.glb"));
+    let mut copies = plain.clone();
+    let mesh = copies
+        .meshes
+        .iter_mut()
+        .find(|m| plain.materials[m.material].emissive == Vec3::ZERO)
+        .expect("a mesh that emits nothing");
+    let first = mesh.indices[0];
+    mesh.indices.extend(std::iter::repeat_n(first, 70_000));
+    assert_eq!(digest(&copies, default_path(), 24, 4), digest(&plain, default_path(), 24, 4));
+}
+
 /// FNV-1a over a whole-image unit's pixel sums in their wire layout.
 fn digest(scene: &Scene, integrator: IntegratorSettings, size: u32, spp: u32) -> u64 {
     let s = settings(size, spp, integrator);

@@ -445,6 +445,62 @@ fn bvh_direction(d: Vec3A) -> Vec3A {
     d + Vec3A::ZERO
 }
 
+/// The box the BVH is built over for a triangle with bounds `b`: `b` padded by 1e-5 of its
+/// largest coordinate. The node test is exact arithmetic on quantized boxes, and a ray through a
+/// box's edge (a mesh edge on the box boundary) can otherwise miss a node whose triangle the
+/// watertight test would hit.
+fn build_box(b: Aabb) -> Aabb {
+    let pad = Vec3A::splat(build_pad(&b));
+    Aabb { min: b.min - pad, max: b.max + pad }
+}
+
+fn build_pad(b: &Aabb) -> f32 {
+    b.min.abs().max(b.max.abs()).max_element() * 1e-5 + 1e-20
+}
+
+/// The most build boxes that may coincide exactly before [`spread_coincident`] moves them apart.
+const MAX_COINCIDENT: u32 = 8;
+
+/// Grows each build box that more than [`MAX_COINCIDENT`] others share exactly, on each of its
+/// six sides by up to its pad again, by a hash of (its index, side): no two stay alike.
+///
+/// obvhs' PLOC pairs each node with the neighbour whose union with it has the least area and
+/// breaks ties toward the rightmost, so among coincident boxes (all costs tied) only the last two
+/// pair in each pass: 70,000 copies of one triangle (a degenerate scene; a mesh scaled to nothing)
+/// made a chain 70,000 deep, whose conversion to the wide BVH overflowed the thread's stack after
+/// minutes of build. Spread apart, 130,000 copies build in 0.22 s, 20 levels deep. Only such
+/// groups move: every other scene keeps the tree that ties broken toward the
+/// right give it (the Cornell box's quads are pairs of coincident boxes; spreading every box
+/// cost `tiny` 472M -> 489M-504M instructions, by the hash). Boxes only grow, so every hit is
+/// the same.
+///
+/// Ties between distinct boxes remain: 16,000 triangles evenly spaced in a row, each box's
+/// union with its left and right neighbours of exactly equal area, take 3.3 s to build (50,000
+/// build in 33 ms: their pads' rounding breaks the ties).
+fn spread_coincident(boxes: &mut [Aabb]) {
+    let key = |b: &Aabb| {
+        let (min, max) = (b.min.to_array(), b.max.to_array());
+        [min[0], min[1], min[2], max[0], max[1], max[2]].map(f32::to_bits)
+    };
+    let mut counts = std::collections::HashMap::<[u32; 6], u32>::with_capacity(boxes.len());
+    for b in boxes.iter() {
+        *counts.entry(key(b)).or_default() += 1;
+    }
+    if counts.len() == boxes.len() {
+        return;
+    }
+    for (i, b) in boxes.iter_mut().enumerate() {
+        if counts.get(&key(b)).is_some_and(|&n| n > MAX_COINCIDENT) {
+            let pad = build_pad(b);
+            let bits = super::sampler::mix_bits(i as u64);
+            // Six factors in [0, 1), 10 bits each.
+            let f = |side: u32| ((bits >> (10 * side)) & 1023) as f32 / 1024.0;
+            b.min -= pad * Vec3A::new(f(0), f(1), f(2));
+            b.max += pad * Vec3A::new(f(3), f(4), f(5));
+        }
+    }
+}
+
 impl Accel {
     /// Builds the BVH over `tris` (world space).
     pub fn new(tris: &[[Vec3A; 3]]) -> Self {
@@ -471,11 +527,8 @@ impl Accel {
                 packet_lanes: AtomicU64::new(0),
             };
         }
-        // Pad every box: the node test is exact arithmetic on quantized boxes, and a ray through a
-        // box's edge (a mesh edge on the box boundary) can otherwise miss a node whose triangle
-        // the watertight test would hit.
         let close_of = |i: usize| close.and_then(|c| c.get(i)).copied();
-        let boxes: Vec<Aabb> = tris
+        let mut boxes: Vec<Aabb> = tris
             .iter()
             .enumerate()
             .map(|(i, t)| {
@@ -484,10 +537,10 @@ impl Accel {
                     let bc = Aabb::from_points(&c);
                     b = Aabb { min: b.min.min(bc.min), max: b.max.max(bc.max) };
                 }
-                let pad = Vec3A::splat(b.min.abs().max(b.max.abs()).max_element() * 1e-5 + 1e-20);
-                Aabb { min: b.min - pad, max: b.max + pad }
+                build_box(b)
             })
             .collect();
+        spread_coincident(&mut boxes);
         let bvh = build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut Duration::default());
         let prim_ids = bvh.primitive_indices.clone();
         let ordered: Vec<[Vec3A; 3]> = prim_ids.iter().map(|&i| tris[i as usize]).collect();
@@ -1611,6 +1664,38 @@ mod tests {
         ];
         let quads = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [3, 7, 6, 2], [0, 4, 7, 3], [1, 2, 6, 5]];
         quads.iter().flat_map(|q| [[c[q[0]], c[q[1]], c[q[2]]], [c[q[0]], c[q[2]], c[q[3]]]]).collect()
+    }
+
+    /// The number of levels of the wide BVH (1 for a root alone), counted without recursion.
+    fn bvh_depth(accel: &Accel) -> usize {
+        let Some(bvh) = &accel.bvh else { return 0 };
+        let mut deepest = 0;
+        let mut stack = vec![(0usize, 1usize)];
+        while let Some((i, depth)) = stack.pop() {
+            deepest = deepest.max(depth);
+            let node = &bvh.nodes[i];
+            for ch in 0..8 {
+                if node.imask & (1 << ch) != 0 {
+                    stack.push((node.child_node_index(ch) as usize, depth + 1));
+                }
+            }
+        }
+        deepest
+    }
+
+    /// 70,000 copies of one triangle: every box tied in PLOC's costs, which once chained them
+    /// 70,000 deep (minutes of build, then a stack overflow converting the chain: a worker
+    /// killed by a degenerate scene). The build's boxes, padded apart, make a shallow tree.
+    #[test]
+    fn coincident_triangles_build_a_shallow_bvh() {
+        let t = [Vec3A::new(-1.0, -1.0, 2.0), Vec3A::new(1.0, -1.0, 2.0), Vec3A::new(0.0, 1.0, 2.0)];
+        let accel = Accel::new(&vec![t; 70_000]);
+        let depth = bvh_depth(&accel);
+        assert!(depth <= 32, "depth {depth}");
+        let hit = accel.intersect(Vec3A::ZERO, Vec3A::Z, f32::INFINITY).expect("a hit");
+        assert_eq!(hit.t, 2.0);
+        assert!(hit.prim < 70_000);
+        assert!(accel.occluded(Vec3A::ZERO, Vec3A::Z, 3.0));
     }
 
     #[test]
