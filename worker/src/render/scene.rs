@@ -130,6 +130,9 @@ impl LightBatch {
 pub struct RenderScene {
     accel: Accel,
     tris: Vec<TriRef>,
+    /// Each triangle's geometric normal where it does not move ([`RenderScene::geometric_normal`]
+    /// of its open pose, as a hit would compute it): read, not recomputed, by every hit.
+    tri_ng: Vec<Vec3A>,
     pub meshes: Vec<Mesh>,
     pub materials: Vec<Material>,
     pub textures: Vec<Texture>,
@@ -316,9 +319,11 @@ impl RenderScene {
             Some(ct) => Accel::new_moving(&world_tris, ct),
             None => Accel::new(&world_tris),
         };
+        let tri_ng = world_tris.iter().map(|&p| Self::geometric_normal(p)).collect();
         Self {
             accel,
             tris,
+            tri_ng,
             meshes: scene.meshes.clone(),
             materials: scene.materials.clone(),
             textures: scene.textures.clone(),
@@ -586,7 +591,8 @@ impl RenderScene {
         let b0 = 1.0 - b1 - b2;
         // Where the mesh does not move, its positions and normals as they are (the same values
         // as `at_time` gives them, without its checks).
-        let (p, ng, ns) = match close.is_none().then(|| Self::static_geometry(mesh, idx, [b0, b1, b2])).flatten() {
+        let ng = self.tri_ng.get(hit.prim as usize).filter(|_| close.is_none());
+        let (p, ng, ns) = match ng.and_then(|&ng| Self::static_geometry(mesh, idx, [b0, b1, b2], ng)) {
             Some(geometry) => geometry,
             None => Self::moving_geometry(mesh, close, idx, [b0, b1, b2], time),
         };
@@ -630,13 +636,13 @@ impl RenderScene {
     /// move: `None` where a position index is out of range (then
     /// [`RenderScene::moving_geometry`] decides, as before).
     #[inline(always)]
-    fn static_geometry(mesh: &Mesh, idx: [usize; 3], b: [f32; 3]) -> Option<(Vec3A, Vec3A, Vec3A)> {
+    fn static_geometry(mesh: &Mesh, idx: [usize; 3], b: [f32; 3], ng: Vec3A) -> Option<(Vec3A, Vec3A, Vec3A)> {
         let pos = &mesh.positions;
         let p = [Vec3A::from(*pos.get(idx[0])?), Vec3A::from(*pos.get(idx[1])?), Vec3A::from(*pos.get(idx[2])?)];
         let n = mesh.normals.as_ref().and_then(|n| {
             Some([Vec3A::from(*n.get(idx[0])?), Vec3A::from(*n.get(idx[1])?), Vec3A::from(*n.get(idx[2])?)])
         });
-        Some(Self::geometry(p, n, b))
+        Some(Self::geometry(p, n, b, ng))
     }
 
     /// [`RenderScene::static_geometry`] at shutter time `time` of a mesh whose shutter-close
@@ -666,16 +672,22 @@ impl RenderScene {
             let get = |i: usize| at_time(n.get(idx[i]).copied(), cn.and_then(|cn| cn.get(idx[i]).copied()));
             Some([get(0)?, get(1)?, get(2)?])
         });
-        Self::geometry([pos(0), pos(1), pos(2)], n, b)
+        let p = [pos(0), pos(1), pos(2)];
+        Self::geometry(p, n, b, Self::geometric_normal(p))
     }
 
-    /// The point, geometric normal and shading normal at barycentrics `b` of the triangle with
-    /// vertices `p` and vertex normals `n` (`ng` where there are none or they interpolate to
-    /// zero).
+    /// The geometric normal of the triangle with vertices `p` (+Z where it has no area).
     #[inline(always)]
-    fn geometry(p: [Vec3A; 3], n: Option<[Vec3A; 3]>, b: [f32; 3]) -> (Vec3A, Vec3A, Vec3A) {
+    fn geometric_normal(p: [Vec3A; 3]) -> Vec3A {
+        (p[1] - p[0]).cross(p[2] - p[0]).normalize_or(Vec3A::Z)
+    }
+
+    /// The point and shading normal at barycentrics `b` of the triangle with vertices `p`, vertex
+    /// normals `n` and geometric normal `ng` ([`RenderScene::geometric_normal`]), and `ng` (the
+    /// shading normal where there are no vertex normals or they interpolate to zero).
+    #[inline(always)]
+    fn geometry(p: [Vec3A; 3], n: Option<[Vec3A; 3]>, b: [f32; 3], ng: Vec3A) -> (Vec3A, Vec3A, Vec3A) {
         let [b0, b1, b2] = b;
-        let ng = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or(Vec3A::Z);
         // Interpolate the hit point from the vertices: more accurate than o + t d.
         let point = p[0] * b0 + p[1] * b1 + p[2] * b2;
         let ns = n
