@@ -253,6 +253,7 @@ impl LightLanes {
 }
 
 /// The outcome of [`LightLanes`]: `TriangleSample`'s values per lane.
+#[derive(Default)]
 pub struct LightLaneSamples {
     pub ok: u32,
     pub b: [[f32; 8]; 3],
@@ -846,7 +847,8 @@ mod lane_tests {
                 }
                 want.push((light.sample_li(&ctx, u, LightSampling::SolidAngle), n));
             }
-            let got = avx2.triangle_samples(&lanes, true);
+            let mut got = LightLaneSamples::default();
+            avx2.triangle_samples(&lanes, true, &mut got);
             let bits = |s: Option<LightLiSample>| {
                 s.map(|s| {
                     let v = |v: Vec3A| v.to_array().map(f32::to_bits);

@@ -78,6 +78,12 @@ pub struct LightBatch {
 }
 
 impl LightBatch {
+    /// Room for the light samples of `points` points taken in lanes (made once, as the
+    /// wavefront's other buffers).
+    pub fn with_capacity(points: usize) -> Self {
+        Self { lanes: Vec::with_capacity(points.div_ceil(8)), picks: Vec::with_capacity(points), single: Vec::new() }
+    }
+
     /// The `n`-th point's light sample, as [`RenderScene::sample_light_at`] gives it.
     #[inline]
     pub fn get(&self, scene: &RenderScene, n: usize) -> Option<(usize, LightLiSample, f32)> {
@@ -841,7 +847,7 @@ impl RenderScene {
         mode: LightSampling,
         out: &mut LightBatch,
     ) {
-        out.lanes.clear();
+        // `out.lanes` is overwritten in place.
         out.picks.clear();
         out.single.clear();
         let lanes = self.avx2().filter(|_| self.samples_lights_in_lanes(mode));
@@ -852,6 +858,7 @@ impl RenderScene {
             return;
         };
         let mut queries = queries.peekable();
+        let mut chunk = 0;
         while queries.peek().is_some() {
             let mut lanes = LightLanes::default();
             // (Nothing moves here: the query's time changes nothing.)
@@ -867,7 +874,13 @@ impl RenderScene {
                 };
                 out.picks.push(pick);
             }
-            out.lanes.push(avx2.triangle_samples(&lanes, mode == LightSampling::SolidAngle));
+            // Written in place, into the last batch's entries where there are (the entries past
+            // this batch's are never read: `get` looks up `picks` first).
+            if out.lanes.len() <= chunk {
+                out.lanes.push(super::light::LightLaneSamples::default());
+            }
+            avx2.triangle_samples(&lanes, mode == LightSampling::SolidAngle, &mut out.lanes[chunk]);
+            chunk += 1;
         }
     }
 

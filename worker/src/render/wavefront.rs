@@ -238,7 +238,7 @@ impl<S: Sampler> Wavefront<S> {
             rays: Vec::with_capacity(batch),
             hits: Vec::with_capacity(batch),
             surfaces: Vec::with_capacity(batch),
-            light_samples: LightBatch::default(),
+            light_samples: LightBatch::with_capacity(batch),
             shadows: Vec::with_capacity(batch),
             shadow_rays: Vec::with_capacity(batch),
             blocked: Vec::with_capacity(batch),

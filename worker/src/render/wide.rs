@@ -817,16 +817,18 @@ mod lanes {
 
 impl Avx2 {
     /// `super::light::TriangleSample` of 8 triangle-light samples at once, in a function
-    /// compiled for AVX2 (the scalar sample's bits in every lane).
+    /// compiled for AVX2 (the scalar sample's bits in every lane), written into `out` (returned,
+    /// the 330-byte value was copied by a `memcpy` call per 8 samples).
     #[inline(always)]
     pub fn triangle_samples(
         self,
         lanes: &super::light::LightLanes,
         solid_angle: bool,
-    ) -> super::light::LightLaneSamples {
+        out: &mut super::light::LightLaneSamples,
+    ) {
         #[cfg(target_arch = "x86_64")]
         leveled! {
-        fn (avx2: Avx2, l: &super::light::LightLanes, solid_angle: bool) -> super::light::LightLaneSamples {
+        fn (avx2: Avx2, l: &super::light::LightLanes, solid_angle: bool, out: &mut super::light::LightLaneSamples) -> () {
             use super::math::Real;
             use super::sampling::{MAX_SPHERICAL_SAMPLE_AREA, MIN_SPHERICAL_SAMPLE_AREA};
             use super::spherical;
@@ -856,23 +858,23 @@ impl Avx2 {
             } else {
                 super::light::TriangleSample::at(v, n, area, two_sided, p, b, None)
             };
-            super::light::LightLaneSamples {
+            *out = super::light::LightLaneSamples {
                 ok: t.ok.bits(),
                 b: [t.b[0].to_array(), t.b[1].to_array(), t.b[2].to_array()],
                 p: Vec3Lanes(avx2.lanes_vec3(t.p)),
                 wi: Vec3Lanes(avx2.lanes_vec3(t.wi)),
                 pdf: t.pdf.to_array(),
-            }
+            };
         }
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `self` proves the CPU has the level's features.
         unsafe {
-            if self.v4 { v4(self, lanes, solid_angle) } else { v3(self, lanes, solid_angle) }
+            if self.v4 { v4(self, lanes, solid_angle, out) } else { v3(self, lanes, solid_angle, out) }
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = (lanes, solid_angle);
+            let _ = (lanes, solid_angle, out);
             unreachable!("no AVX2 proof exists on this architecture")
         }
     }
