@@ -459,7 +459,7 @@ fn build_pad(b: &Aabb) -> f32 {
 }
 
 /// The most build boxes that may coincide exactly before [`spread_coincident`] moves them apart.
-const MAX_COINCIDENT: u32 = 8;
+const MAX_COINCIDENT: usize = 8;
 
 /// Grows each build box that more than [`MAX_COINCIDENT`] others share exactly, on each of its
 /// six sides by up to its pad again, by a hash of (its index, side): no two stay alike.
@@ -478,19 +478,24 @@ const MAX_COINCIDENT: u32 = 8;
 /// union with its left and right neighbours of exactly equal area, take 3.3 s to build (50,000
 /// build in 33 ms: their pads' rounding breaks the ties).
 fn spread_coincident(boxes: &mut [Aabb]) {
-    let key = |b: &Aabb| {
+    // Boxes compared by a 64-bit hash of their bits: equal boxes hash alike (and a collision
+    // would only spread a few boxes more). Sorted hashes, not a hash map: 4 ms for 130,000
+    // boxes against 30-40 ms.
+    let hash = |b: &Aabb| {
         let (min, max) = (b.min.to_array(), b.max.to_array());
-        [min[0], min[1], min[2], max[0], max[1], max[2]].map(f32::to_bits)
+        [min[0], min[1], min[2], max[0], max[1], max[2]]
+            .iter()
+            .fold(0u64, |h, x| super::sampler::mix_bits(h ^ u64::from(x.to_bits())))
     };
-    let mut counts = std::collections::HashMap::<[u32; 6], u32>::with_capacity(boxes.len());
-    for b in boxes.iter() {
-        *counts.entry(key(b)).or_default() += 1;
-    }
-    if counts.len() == boxes.len() {
+    let mut hashes: Vec<u64> = boxes.iter().map(hash).collect();
+    hashes.sort_unstable();
+    let crowded: Vec<u64> =
+        hashes.chunk_by(|a, b| a == b).filter(|run| run.len() > MAX_COINCIDENT).map(|run| run[0]).collect();
+    if crowded.is_empty() {
         return;
     }
     for (i, b) in boxes.iter_mut().enumerate() {
-        if counts.get(&key(b)).is_some_and(|&n| n > MAX_COINCIDENT) {
+        if crowded.binary_search(&hash(b)).is_ok() {
             let pad = build_pad(b);
             let bits = super::sampler::mix_bits(i as u64);
             // Six factors in [0, 1), 10 bits each.

@@ -492,6 +492,9 @@ impl Sampler for SobolSampler {
         }
     }
 
+    // Inline into its one caller (the wavefront's bounce loop): left to the inliner, it went in
+    // or out of line as unrelated code changed, and out of line cost 0.5% more instructions.
+    #[inline(always)]
     fn bounce_draws_many<'a>(
         lanes: impl Iterator<Item = &'a Self>,
         level: super::wide::SimdLevel,
