@@ -95,7 +95,17 @@ impl EnvironmentLight {
 
     /// Radiance arriving along a ray travelling in direction `d` that left the scene (pbrt's
     /// `Le(ray)`): the environment seen in direction `d`.
+    /// Inline for a constant colour (one load), out of line for an image.
+    #[inline]
     pub fn le(&self, d: Vec3A) -> Vec3A {
+        match &self.image {
+            None => self.scale,
+            Some(_) => self.le_image(d),
+        }
+    }
+
+    #[inline(never)]
+    fn le_image(&self, d: Vec3A) -> Vec3A {
         match &self.image {
             None => self.scale,
             Some((img, _)) => {

@@ -468,8 +468,8 @@ impl Avx2 {
     pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
         self,
         accel: &super::accel::Accel,
-        rays: &[super::accel::RayQuery],
-        hits: &mut Vec<Option<super::accel::Hit>>,
+        rays: &[&super::accel::RayQuery],
+        hits: super::accel::PacketOut<'_>,
         stats: &mut super::accel::PacketStats,
     ) -> bool {
         // Kept out of the query loop it is called from (measured: `tiny large` 1,857M -> 1,841M
@@ -479,8 +479,8 @@ impl Avx2 {
             fn <const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
                 avx2: Avx2,
                 accel: &super::accel::Accel,
-                rays: &[super::accel::RayQuery],
-                hits: &mut Vec<Option<super::accel::Hit>>,
+                rays: &[&super::accel::RayQuery],
+                hits: super::accel::PacketOut<'_>,
                 stats: &mut super::accel::PacketStats,
             ) -> bool {
                 super::accel::trace_packet::<ANY, KX, KY, KZ>(avx2, accel, rays, hits, stats)
