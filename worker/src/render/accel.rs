@@ -490,11 +490,12 @@ fn spread_coincident(boxes: &mut [Aabb]) {
     // Boxes compared by a 64-bit hash of their bits: equal boxes hash alike (and a collision
     // would only spread a few boxes more). Sorted hashes, not a hash map: 4 ms for 130,000
     // boxes against 30-40 ms.
+    // FxHash's step per 32-bit word (rotate, xor, multiply): a sixth of a full mix per word.
     let hash = |b: &Aabb| {
         let (min, max) = (b.min.to_array(), b.max.to_array());
         [min[0], min[1], min[2], max[0], max[1], max[2]]
             .iter()
-            .fold(0u64, |h, x| super::sampler::mix_bits(h ^ u64::from(x.to_bits())))
+            .fold(0u64, |h, x| (h.rotate_left(5) ^ u64::from(x.to_bits())).wrapping_mul(0x51_7cc1_b727_220a_95))
     };
     let mut hashes: Vec<u64> = boxes.iter().map(hash).collect();
     hashes.sort_unstable();
