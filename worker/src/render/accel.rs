@@ -495,7 +495,7 @@ fn spread_coincident(boxes: &mut [Aabb]) {
         let (min, max) = (b.min.to_array(), b.max.to_array());
         [min[0], min[1], min[2], max[0], max[1], max[2]]
             .iter()
-            .fold(0u64, |h, x| (h.rotate_left(5) ^ u64::from(x.to_bits())).wrapping_mul(0x51_7cc1_b727_220a_95))
+            .fold(0u64, |h, x| (h.rotate_left(5) ^ u64::from(x.to_bits())).wrapping_mul(0x517c_c1b7_2722_0a95))
     };
     let mut hashes: Vec<u64> = boxes.iter().map(hash).collect();
     hashes.sort_unstable();
