@@ -41,8 +41,9 @@
 //! of 1,024 paths where rays go in sorted packets ([`batch_len`]) and emission looked up inline,
 //! to 7.21k (`tiny long` 0.775 to 0.727 s over these last three steps, min of 7 interleaved).
 //! On an AVX2-only AMD EPYC (Zen 3): each static triangle's geometric normal made once at
-//! build, and the light kernel's samples written in place, to 7.10k (`tiny long` 0.935 to
-//! 0.91 s).
+//! build, the light kernel's samples written in place, and packets that read their rays by
+//! reference and write their hits in place, to 7.03k (472.3M to 460.8M instructions; `tiny
+//! long` within this machine's noise, 0.91-0.93 s).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
