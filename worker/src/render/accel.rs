@@ -470,8 +470,8 @@ fn build_pad(b: &Aabb) -> f32 {
 /// The most build boxes that may coincide exactly before [`spread_coincident`] moves them apart.
 const MAX_COINCIDENT: usize = 8;
 
-/// Grows each build box that more than [`MAX_COINCIDENT`] others share exactly, on each of its
-/// six sides by up to its pad again, by a hash of (its index, side): no two stay alike.
+/// Grows each build box that more than [`MAX_COINCIDENT`] triangles share exactly, on each of
+/// its six sides by up to its pad again, by a hash of (its index, side): no two stay alike.
 ///
 /// obvhs' PLOC pairs each node with the neighbour whose union with it has the least area and
 /// breaks ties toward the rightmost, so among coincident boxes (all costs tied) only the last two
@@ -487,10 +487,10 @@ const MAX_COINCIDENT: usize = 8;
 /// union with its left and right neighbours of exactly equal area, take 3.3 s to build (50,000
 /// build in 33 ms: their pads' rounding breaks the ties).
 fn spread_coincident(boxes: &mut [Aabb]) {
-    // Boxes compared by a 64-bit hash of their bits: equal boxes hash alike (and a collision
-    // would only spread a few boxes more). Sorted hashes, not a hash map: 4 ms for 130,000
-    // boxes against 30-40 ms.
-    // FxHash's step per 32-bit word (rotate, xor, multiply): a sixth of a full mix per word.
+    // Boxes compared by a 64-bit hash of their bits (FxHash's step per 32-bit word: rotate, xor,
+    // multiply): equal boxes hash alike, and a collision would only spread a few boxes more.
+    // Sorted hashes, not a hash map: 4 ms for 130,000 boxes (with a full mix per word) against
+    // 30-40 ms.
     let hash = |b: &Aabb| {
         let (min, max) = (b.min.to_array(), b.max.to_array());
         [min[0], min[1], min[2], max[0], max[1], max[2]]

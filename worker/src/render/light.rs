@@ -94,27 +94,22 @@ impl EnvironmentLight {
     }
 
     /// Radiance arriving along a ray travelling in direction `d` that left the scene (pbrt's
-    /// `Le(ray)`): the environment seen in direction `d`.
-    /// Inline for a constant colour (one load), out of line for an image.
+    /// `Le(ray)`): the environment seen in direction `d`. Inline for a constant colour (one
+    /// load), out of line for an image.
     #[inline]
     pub fn le(&self, d: Vec3A) -> Vec3A {
         match &self.image {
             None => self.scale,
-            Some(_) => self.le_image(d),
+            Some((img, _)) => self.le_image(img, d),
         }
     }
 
     #[inline(never)]
-    fn le_image(&self, d: Vec3A) -> Vec3A {
-        match &self.image {
-            None => self.scale,
-            Some((img, _)) => {
-                let uv = Self::uv(self.to_light(d));
-                let x = (uv.x * img.width as f32) as u32;
-                let y = (uv.y * img.height as f32) as u32;
-                Vec3A::from(img.texel(x, y)) * self.scale
-            }
-        }
+    fn le_image(&self, img: &EnvironmentImage, d: Vec3A) -> Vec3A {
+        let uv = Self::uv(self.to_light(d));
+        let x = (uv.x * img.width as f32) as u32;
+        let y = (uv.y * img.height as f32) as u32;
+        Vec3A::from(img.texel(x, y)) * self.scale
     }
 
     /// Samples a direction toward the environment: (wi in world space, solid-angle pdf).

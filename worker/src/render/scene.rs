@@ -136,8 +136,8 @@ impl LightBatch {
 pub struct RenderScene {
     accel: Accel,
     tris: Vec<TriRef>,
-    /// Each triangle's geometric normal where it does not move ([`RenderScene::geometric_normal`]
-    /// of its open pose, as a hit would compute it): read, not recomputed, by every hit.
+    /// Each triangle's geometric normal in a static scene ([`RenderScene::geometric_normal`], as
+    /// a hit would compute it): read, not recomputed, by every hit. Empty where things move.
     tri_ng: Vec<Vec3A>,
     pub meshes: Vec<Mesh>,
     pub materials: Vec<Material>,
@@ -325,7 +325,11 @@ impl RenderScene {
             Some(ct) => Accel::new_moving(&world_tris, ct),
             None => Accel::new(&world_tris),
         };
-        let tri_ng = world_tris.iter().map(|&p| Self::geometric_normal(p)).collect();
+        // Only static scenes read them (a moving mesh's normal is made at the ray's time).
+        let tri_ng = match close {
+            None => world_tris.iter().map(|&p| Self::geometric_normal(p)).collect(),
+            Some(_) => Vec::new(),
+        };
         Self {
             accel,
             tris,
