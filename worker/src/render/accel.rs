@@ -1722,6 +1722,10 @@ mod tests {
         assert_eq!(hit.t, 2.0);
         assert!(hit.prim < 70_000);
         assert!(accel.occluded(Vec3A::ZERO, Vec3A::Z, 3.0));
+        // A mesh scaled to nothing: 70,000 triangles collapsed onto one point, boxes of no size.
+        let point = [Vec3A::new(0.5, 0.5, 0.5); 3];
+        let depth = bvh_depth(&Accel::new(&vec![point; 70_000]));
+        assert!(depth <= 32, "depth {depth}");
     }
 
     #[test]
