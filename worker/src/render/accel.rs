@@ -281,6 +281,16 @@ impl<R: Real> Candidate<R> {
     }
 }
 
+/// Where the edge functions do not have both signs (the ray may pass inside the triangle): the
+/// first of `candidate`'s tests, the one most triangles fail.
+#[inline(always)]
+fn inside_edges<R: Real>(e: [R; 3]) -> R::Mask {
+    let zero = e[0].splat(0.0);
+    let any_negative = e[0].lt(zero) | e[1].lt(zero) | e[2].lt(zero);
+    let any_positive = e[0].gt(zero) | e[1].gt(zero) | e[2].gt(zero);
+    !(any_negative & any_positive)
+}
+
 /// Where an edge function is zero: the test's double-precision fallback decides there.
 #[inline(always)]
 fn any_zero<R: Real>(e: [R; 3]) -> R::Mask {
@@ -1015,6 +1025,17 @@ pub(super) struct LaneCandidates {
 }
 
 impl LaneCandidates {
+    /// No lane hits, none needs the fallback.
+    const NONE: Self = Self {
+        hits: 0,
+        redo: 0,
+        det: [0.0; LANES],
+        t_scaled: [0.0; LANES],
+        t: [0.0; LANES],
+        b1: [0.0; LANES],
+        b2: [0.0; LANES],
+    };
+
     /// Lane `i`'s candidate.
     #[inline(always)]
     fn get(&self, i: usize) -> Candidate<f32> {
@@ -1054,6 +1075,10 @@ pub(super) fn lane_candidates<const KX: usize, const KY: usize, const KZ: usize>
     );
     let e = p.edges();
     let redo = any_zero(e).bits();
+    // Every lane outside an edge (most groups): no candidates, without the rest of the test.
+    if redo == 0 && inside_edges(e).bits() == 0 {
+        return LaneCandidates::NONE;
+    }
     let c = p.candidate(e, l.splat(shear.sz));
     // The hits before the `t_max` at the group's start: the lanes that can still hit (the
     // one-at-a-time test's `t_max` only shrinks from there).
@@ -1099,15 +1124,7 @@ impl Accel {
         #[cfg(not(target_arch = "x86_64"))]
         {
             let _ = lanes;
-            let mut out = LaneCandidates {
-                hits: 0,
-                redo: 0,
-                det: [0.0; LANES],
-                t_scaled: [0.0; LANES],
-                t: [0.0; LANES],
-                b1: [0.0; LANES],
-                b2: [0.0; LANES],
-            };
+            let mut out = LaneCandidates::NONE;
             for i in 0..LANES.min(self.tris.len().saturating_sub(first)) {
                 let v = &self.tris[first + i];
                 let p = Sheared::new(
@@ -1576,6 +1593,11 @@ fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
     let s = Sheared::new(p.shear_o, p.shear_s, splat);
     let e = s.edges();
     let redo = any_zero(e).bits() & rays;
+    // Most tests end here, every lane outside an edge: before the rest of the test (its
+    // division and error bounds), which `candidate` makes only where some lane may pass.
+    if redo == 0 && inside_edges(e).bits() & rays == 0 {
+        return 0;
+    }
     let c = s.candidate(e, p.shear_sz);
     let hits = c.hits_before(tmax_lanes).bits() & rays & !redo;
     if hits | redo == 0 {
