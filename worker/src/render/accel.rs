@@ -1386,7 +1386,7 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
         // obvhs' `ray_get_octant_inv4`, low byte.
         oct_inv4: u32::from(!(first.x < 0.0)) << 2 | u32::from(!(first.y < 0.0)) << 1 | u32::from(!(first.z < 0.0)),
     };
-    let mut best: [Option<(u32, f32, f32)>; PACKET] = [None; PACKET];
+    let mut best = PacketBest { t: avx2.f32x8(&t_max), b1: zero, b2: zero, slot: zero, found: 0 };
     // The counting traversal is a copy of its own: the other counts nothing, at no cost.
     let traced = if stats.count {
         packet_traverse::<ANY, true, KX, KY, KZ>(avx2, accel, bvh, &p, active, &mut t_max, &mut best, stats)
@@ -1396,12 +1396,31 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
     if !traced {
         return false;
     }
+    if best.found == 0 {
+        return true;
+    }
+    let (b1, b2, tri) = (best.b1.to_array(), best.b2.to_array(), best.slot.to_array());
     for (i, &slot) in slots.iter().enumerate().take(n) {
-        if let (Some((tri, b1, b2)), Some(h)) = (best[i], hits.get_mut(slot as usize)) {
-            *h = Some(Hit { t: t_max[i], prim: accel.prim_ids[tri as usize], b1, b2 });
+        if best.found & (1 << i) != 0
+            && let Some(h) = hits.get_mut(slot as usize)
+        {
+            let prim = accel.prim_ids[tri[i].to_bits() as usize];
+            *h = Some(Hit { t: t_max[i], prim, b1: b1[i], b2: b2[i] });
         }
     }
     true
+}
+
+/// A packet's closest hits so far, in lanes: each lane's `t_max` (its hit's distance where it
+/// has one), barycentrics and triangle slot (as bits), and the lanes that have a hit. Updated
+/// by blends: lane values written one at a time and read back as lanes wait on the stores.
+#[cfg(target_arch = "x86_64")]
+struct PacketBest {
+    t: super::wide::F32x8,
+    b1: super::wide::F32x8,
+    b2: super::wide::F32x8,
+    slot: super::wide::F32x8,
+    found: u32,
 }
 
 /// Transposes the 8 x 8 bit matrix whose row `r` is byte `r` of `x` (column `c`: bit `c` of the
@@ -1446,7 +1465,7 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
     p: &PacketRays<'_, KX, KY, KZ>,
     active: u32,
     t_max: &mut [f32; PACKET],
-    best: &mut [Option<(u32, f32, f32)>; PACKET],
+    best: &mut PacketBest,
     stats: &mut PacketStats,
 ) -> bool {
     let l = p.shear_sz;
@@ -1465,7 +1484,6 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
             continue;
         }
         let Some(node) = bvh.nodes.get(index as usize) else { continue };
-        let mut tmax_lanes = avx2.f32x8(t_max);
         let extent = node.compute_extent();
         let node_p = Vec3A::from(node.p);
         // Each ray's `extent * inv_direction` and `(p - origin) * inv_direction`, as the
@@ -1543,14 +1561,12 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
                 stats.tests += 1;
                 stats.lanes += rays.count_ones();
             }
-            let changed = packet_triangle(avx2, accel, p, slot, rays, tmax_lanes, t_max, best);
+            let changed = packet_triangle(avx2, accel, p, slot, rays, t_max, best);
             if ANY {
                 done |= changed;
                 if done == active {
                     return true;
                 }
-            } else if changed != 0 {
-                tmax_lanes = avx2.f32x8(t_max);
             }
         }
         // Inner children: the highest priority is visited next (pushed last).
@@ -1567,22 +1583,19 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
 }
 
 /// The watertight test of the triangle in `slot` against the packet's `rays` (lane bits): each
-/// hit before its lane's `t_max` becomes the lane's best and its `t_max`. Returns the lanes
-/// hit.
+/// hit before its lane's `t_max` becomes the lane's best and its `t_max` (in `best`, and in
+/// `t_max`, which the node tests read per ray). Returns the lanes hit.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
     avx2: Avx2,
     accel: &Accel,
     p: &PacketRays<'_, KX, KY, KZ>,
     slot: u32,
     rays: u32,
-    tmax_lanes: super::wide::F32x8,
     t_max: &mut [f32; PACKET],
-    best: &mut [Option<(u32, f32, f32)>; PACKET],
+    best: &mut PacketBest,
 ) -> u32 {
-    let _ = avx2;
     let Some(v) = accel.tris.get(slot as usize) else { return 0 };
     let l = p.shear_sz;
     let splat = [
@@ -1599,33 +1612,43 @@ fn packet_triangle<const KX: usize, const KY: usize, const KZ: usize>(
         return 0;
     }
     let c = s.candidate(e, p.shear_sz);
-    let hits = c.hits_before(tmax_lanes).bits() & rays & !redo;
+    // `hits_before` holds `t < t_max`: each such lane's hit is its new best.
+    let hit_lanes = c.hits_before(best.t) & l.mask_of_bits(rays & !redo);
+    let hits = hit_lanes.bits();
     if hits | redo == 0 {
         return 0;
     }
-    let (t, b1, b2) = (c.t.to_array(), c.b1.to_array(), c.b2.to_array());
-    let mut todo = hits | redo;
-    let mut changed = 0;
+    if hits != 0 {
+        let slot_lanes = F32x8::from_bits(l.int(slot as i32));
+        best.t = F32x8::select(hit_lanes, c.t, best.t);
+        best.b1 = F32x8::select(hit_lanes, c.b1, best.b1);
+        best.b2 = F32x8::select(hit_lanes, c.b2, best.b2);
+        best.slot = F32x8::select(hit_lanes, slot_lanes, best.slot);
+        best.found |= hits;
+        *t_max = best.t.to_array();
+    }
+    if redo == 0 {
+        return hits;
+    }
+    // Lanes on an edge take the scalar test's double-precision fallback, one at a time (rare).
+    let (mut b1, mut b2, mut tri) = (best.b1.to_array(), best.b2.to_array(), best.slot.to_array());
+    let mut todo = redo;
+    let mut changed = hits;
     while todo != 0 {
-        let lane = todo.trailing_zeros() as usize;
+        let lane = todo.trailing_zeros() as usize & (PACKET - 1);
         todo &= todo - 1;
-        let hit = if redo & (1 << lane) != 0 {
-            // A lane in `rays` has a ray of its own.
-            match p.rays.get(lane) {
-                Some(r) => accel.test_slot(&RayShear::<KX, KY, KZ>::new(r.o, r.d), slot as usize, t_max[lane], 0.0),
-                None => None,
-            }
-        } else {
-            Some((t[lane], b1[lane], b2[lane]))
-        };
-        if let Some((t, b1, b2)) = hit
+        // A lane in `rays` has a ray of its own.
+        let Some(r) = p.rays.get(lane) else { continue };
+        let shear = RayShear::<KX, KY, KZ>::new(r.o, r.d);
+        if let Some((t, hb1, hb2)) = accel.test_slot(&shear, slot as usize, t_max[lane], 0.0)
             && t < t_max[lane]
         {
-            t_max[lane] = t;
-            best[lane] = Some((slot, b1, b2));
+            (t_max[lane], b1[lane], b2[lane], tri[lane]) = (t, hb1, hb2, f32::from_bits(slot));
             changed |= 1 << lane;
         }
     }
+    (best.t, best.b1, best.b2, best.slot) = (avx2.f32x8(t_max), avx2.f32x8(&b1), avx2.f32x8(&b2), avx2.f32x8(&tri));
+    best.found |= changed;
     changed
 }
 
