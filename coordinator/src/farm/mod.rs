@@ -27,7 +27,7 @@ mod job;
 mod lease;
 mod residency;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 mod workers;
 
 pub use changes::Changes;
@@ -223,8 +223,8 @@ impl Farm {
 
     /// Brings back a job from the store. `checkpoints`: the last checkpoint of each frame that
     /// had one; `done`: indices of the frames whose images were written (sequences; for a
-    /// finished single-frame job, `[0]` when its final image is on disk: then no film is held
-    /// and its checkpoint is not needed). Units merged by a checkpoint stay merged, every other
+    /// finished single-frame job, `[0]` when its final image is on disk, as its final marker
+    /// says: then no film is held and its checkpoint is not needed). Units merged by a checkpoint stay merged, every other
     /// unit of the frame is pending again; frames without either start over.
     pub fn restore(
         &mut self,
@@ -323,10 +323,16 @@ impl Farm {
         // Frames without a checkpoint start when they are leased (their films are not held
         // before); a sequence preview that started holds every frame's film.
         let total = job.frames.len() as u32;
+        // A single-frame job recorded completed without its final image on disk and whose
+        // checkpoint does not hold every unit: the row is written when the job completes, the
+        // checkpoint and the image after it (a kill in between left them behind).
+        let single_unfinished =
+            !job.sequence && job.image_on_disk.is_none() && !job.open.values().any(|r| r.is_complete());
         job.state = match rec.state {
             // A sequence recorded completed whose last frames were merged but not written (and
-            // whose checkpoints were older) renders them again.
-            JobState::Completed if job.sequence && job.frames_merged < total => {
+            // whose checkpoints were older) renders them again; so does a single frame whose
+            // checkpoint is older than its completion.
+            JobState::Completed if (job.sequence && job.frames_merged < total) || single_unfinished => {
                 job.finished_ms = None;
                 JobState::Queued
             }
@@ -562,15 +568,16 @@ impl Farm {
 
     /// The server wrote the images of a finished single-frame job (`preview_ev`: the EV of its
     /// preview): unless something changed since the job ended (`output_dirty`), its film is
-    /// dropped and its images are served from the files. Returns whether it was dropped.
-    pub fn final_image_written(&mut self, id: JobId, preview_ev: Option<f32>) -> bool {
-        let Some(job) = self.jobs.get_mut(&id) else { return false };
+    /// dropped and its images are served from the files. Returns the job's `finished_ms` when
+    /// it was dropped (for the final marker, [`crate::service::outputs::FINAL_MARKER`]).
+    pub fn final_image_written(&mut self, id: JobId, preview_ev: Option<f32>) -> Option<u64> {
+        let job = self.jobs.get_mut(&id)?;
         if job.sequence || !job.state.is_finished() || job.output_dirty || job.leased > 0 {
-            return false;
+            return None;
         }
         job.open.clear();
         job.image_on_disk = Some(preview_ev);
-        true
+        job.finished_ms
     }
 
     /// Sets the webhook of a job (right after submitting it).

@@ -18,7 +18,7 @@ fn settings() -> RenderSettings {
 }
 
 /// A fake render: every sample of every pixel adds (x, y, pass) so the result depends on the unit.
-fn fake_result(g: &LeaseGrant) -> UnitResultFrame {
+pub(crate) fn fake_result(g: &LeaseGrant) -> UnitResultFrame {
     let mut accum = TileAccum::new(g.tile);
     for y in g.tile.y0..g.tile.y1 {
         for x in g.tile.x0..g.tile.x1 {
@@ -234,6 +234,49 @@ fn a_restored_sequence_resumes_its_frames() {
     bad[0].frame = 9;
     let rec = farm.job(id).expect("job").record(0);
     assert!(Farm::new(FarmConfig::default()).restore(rec, bad, &[], 0).is_err());
+}
+
+/// A single-frame job whose row says completed but whose last checkpoint holds only some units
+/// (the coordinator was killed after the job completed, before its last checkpoint and its final
+/// image): the restore renders the missing units again instead of finishing a partial film, and
+/// the result is the uninterrupted film. With its final image on disk (`done`) it stays completed.
+#[test]
+fn a_completed_job_checkpointed_before_completion_renders_its_last_units_again() {
+    let s = settings();
+    let reference = reference_film(&s);
+    let units = s.plan().unit_count();
+    let mut farm = Farm::new(FarmConfig::default());
+    let id = farm.submit("x".into(), None, 0, s.clone(), 0).expect("submit");
+    let w = farm.register("w".into(), 1, 0);
+    let mut cps = Vec::new();
+    let mut completed = false;
+    for n in 0..units {
+        if n == units - 2 {
+            cps = farm.job_mut(id).expect("job").take_checkpoints(true, 1);
+        }
+        let g = farm.lease(w, 0).expect("lease").expect("work");
+        completed = farm.accept(g.lease_id, fake_result(&g), 0).expect("accept").job_completed;
+    }
+    assert!(completed);
+    let rec = farm.job(id).expect("job").record(0);
+    assert_eq!(rec.state, JobState::Completed);
+    let mut final_on_disk = Farm::new(FarmConfig::default());
+    final_on_disk.restore(rec.clone(), cps.clone(), &[0], 0).expect("restore");
+    assert_eq!(final_on_disk.job(id).expect("job").state, JobState::Completed);
+    let mut again = Farm::new(FarmConfig::default());
+    again.restore(rec, cps, &[], 0).expect("restore");
+    let job = again.job(id).expect("job");
+    assert_eq!((job.state, job.units_merged, job.finished_ms), (JobState::Queued, units as u64 - 2, None));
+    let w = again.register("w".into(), 1, 0);
+    let mut leased = 0;
+    while let Some(g) = again.lease(w, 0).expect("lease") {
+        leased += 1;
+        again.accept(g.lease_id, fake_result(&g), 0).expect("accept");
+    }
+    assert_eq!(leased, 2);
+    let job = again.job(id).expect("job");
+    assert_eq!(job.state, JobState::Completed);
+    assert_eq!(job.film().as_deref(), Some(&reference));
 }
 
 /// Webhook events are queued once, only for the events a job asked for, in order.
@@ -1100,7 +1143,7 @@ fn queued_jobs_hold_no_film_and_start_when_their_film_fits() {
     assert_eq!(farm.lease(w, 0).expect("lease"), None, "finished films are held until written");
     // The output loop wrote one job's final image: its film is dropped, the next job starts.
     farm.job_mut(done[0]).expect("job").output_dirty = false;
-    assert!(farm.final_image_written(done[0], Some(0.5)));
+    assert!(farm.final_image_written(done[0], Some(0.5)).is_some());
     let job = farm.job(done[0]).expect("job");
     assert_eq!((job.film().as_deref(), job.image_on_disk()), (None, Some(Some(0.5))));
     assert_eq!(job.info(0).progress, 1.0);

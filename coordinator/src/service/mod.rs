@@ -239,11 +239,14 @@ impl AppState {
         let now = now_ms();
         for rec in store.jobs()? {
             let id = rec.id;
-            let image = config.data_dir.join("jobs").join(id.to_string()).join("image.exr");
+            let dir = config.data_dir.join("jobs").join(id.to_string());
             let (done, checkpoints) = match &rec.frames {
                 Some(frames) => store.sequence_state(id, frames),
-                // A finished job whose image is written holds no film: its checkpoint is not read.
-                None if rec.state.is_finished() && image.is_file() => (vec![0], Vec::new()),
+                // A finished job whose final image is written holds no film: its checkpoint is
+                // not read. (A progressive image, or a final one not marked yet, is not that.)
+                None if rec.state.is_finished() && outputs::final_image_on_disk(&dir, rec.finished_ms) => {
+                    (vec![0], Vec::new())
+                }
                 // Only the merged set: the film is read when the job is leased again.
                 None => (Vec::new(), store::read_checkpoint_head(&store.checkpoint_path(id)).into_iter().collect()),
             };

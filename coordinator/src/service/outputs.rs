@@ -25,6 +25,40 @@ pub fn write_outputs(
     Ok(ev)
 }
 
+/// Beside a single-frame job's `image.exr` once it holds the job's final image: the job's
+/// `finished_ms`. Progressive images are written to the same file while the job runs, and the
+/// job's row says it finished before its final image is written; a restart trusts the file only
+/// when this marker matches the row (else the job's checkpoint is used).
+pub const FINAL_MARKER: &str = "final";
+
+/// Records that `dir/image.exr` is the final image of a job that finished at `finished_ms`.
+pub fn write_final_marker(dir: &Path, finished_ms: u64) -> anyhow::Result<()> {
+    write_atomic(&dir.join(FINAL_MARKER), finished_ms.to_string().as_bytes())?;
+    Ok(())
+}
+
+/// Whether `dir/image.exr` is the final image of a job whose row says it finished at
+/// `finished_ms`.
+pub fn final_image_on_disk(dir: &Path, finished_ms: Option<u64>) -> bool {
+    let marker = std::fs::read_to_string(dir.join(FINAL_MARKER)).ok().and_then(|s| s.trim().parse::<u64>().ok());
+    finished_ms.is_some() && marker == finished_ms && dir.join("image.exr").is_file()
+}
+
+/// A finished single-frame job's images were written (`preview_ev`: its preview's EV): unless
+/// it changed since it ended, its film is dropped, its images are served from disk and the final
+/// marker says so to a restart. Returns whether they were final.
+pub fn final_images_written(state: &AppState, id: JobId, preview_ev: f32) -> bool {
+    let Some(finished_ms) = state.farm.lock().final_image_written(id, Some(preview_ev)) else { return false };
+    if let Err(e) = write_final_marker(&state.job_dir(id), finished_ms) {
+        tracing::error!(job = id, "writing the final image's marker failed: {e:#}");
+    }
+    if state.farm.lock().job(id).is_err() {
+        // Deleted while its images were written: no files may remain.
+        state.delete_job_files(id);
+    }
+    true
+}
+
 /// The noisy preview of a frame that has a denoised layer, beside `preview.png`.
 pub const NOISY_PREVIEW: &str = "preview-noisy.png";
 
@@ -186,8 +220,7 @@ pub async fn output_loop(state: Arc<AppState>) {
             match r {
                 Ok(Ok(ev)) => {
                     tracing::debug!(job = id, state = job_state.as_str(), preview_ev = ev, "images written");
-                    // A finished job's images are final: its film is dropped, they are served from disk.
-                    if job_state.is_finished() && state.farm.lock().final_image_written(id, Some(ev)) {
+                    if job_state.is_finished() && final_images_written(&state, id, ev) {
                         tracing::debug!(job = id, "film dropped: the job's images are served from its files");
                     }
                 }
@@ -316,4 +349,73 @@ pub fn resolve_film_banded(state: &AppState, id: JobId, frame: Option<i32>) -> S
         index.and_then(|i| job.denoised(i)).map(|d| d.rgb.to_vec())
     };
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::farm::tests::fake_result;
+    use pathfarm_common::job::RenderSettings;
+
+    /// Leases and merges `n` units of job `id` as worker `w`, applying the farm's changes as the
+    /// service does (a completed job's row is written at once).
+    fn merge_units(state: &AppState, w: u64, n: usize) {
+        for _ in 0..n {
+            let changes = state.locked(|farm| {
+                let g = farm.lease(w, 0).expect("lease").expect("work");
+                farm.accept(g.lease_id, fake_result(&g), 0).expect("accept");
+            });
+            state.apply(changes.1).expect("apply");
+        }
+    }
+
+    /// The coordinator killed after a job completed (its row says so) but before its last
+    /// checkpoint and its final image: the image on disk is a progressive one and the
+    /// checkpoint lacks the last units. The restart renders those units again (the job is not
+    /// completed with the progressive image, as it was); once the final image and its marker
+    /// are written, a restart serves it from disk.
+    #[test]
+    fn a_progressive_image_is_not_taken_for_the_final_one_after_a_restart() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cfg = ServerConfig::new("127.0.0.1:0".parse().expect("addr"), dir.path().into());
+        let mut s = RenderSettings::new(16, 16, 4);
+        s.tile_size = 8;
+        let units = s.plan().unit_count();
+        let id = {
+            let state = AppState::new(cfg.clone()).expect("state");
+            let id = state.farm.lock().submit("s".into(), None, 0, s.clone(), 0).expect("submit");
+            let w = state.farm.lock().register("w".into(), 1, 0);
+            merge_units(&state, w, units - 2);
+            assert_eq!(super::super::loops::checkpoint_all(&state), 1);
+            // A progressive write, as the output loop makes while the job runs.
+            let layers = resolve_banded(&state, id).expect("film");
+            write_outputs(&state.job_dir(id), layers, Default::default()).expect("progressive image");
+            merge_units(&state, w, 2);
+            assert_eq!(state.farm.lock().job(id).expect("job").state, JobState::Completed);
+            id
+        };
+        let state = AppState::new(cfg.clone()).expect("restart");
+        {
+            let farm = state.farm.lock();
+            let job = farm.job(id).expect("job");
+            assert_eq!((job.state, job.units_merged), (JobState::Queued, units as u64 - 2));
+            assert!(job.image_on_disk().is_none(), "the progressive image was taken for the final one");
+        }
+        assert!(super::super::residency::apply_residency(&state));
+        let w = state.farm.lock().register("w".into(), 1, 0);
+        merge_units(&state, w, 2);
+        assert_eq!(state.farm.lock().job(id).expect("job").state, JobState::Completed);
+        assert!(state.farm.lock().lease(w, 0).expect("lease").is_none());
+        // The output loop's final write (it takes the job's dirty flag when it starts one).
+        state.farm.lock().job_mut(id).expect("job").output_dirty = false;
+        let ev = write_outputs(&state.job_dir(id), resolve_banded(&state, id).expect("film"), Default::default())
+            .expect("final image");
+        assert!(final_images_written(&state, id, ev));
+        drop(state);
+        let state = AppState::new(cfg).expect("second restart");
+        let farm = state.farm.lock();
+        let job = farm.job(id).expect("job");
+        assert_eq!((job.state, job.units_merged), (JobState::Completed, units as u64));
+        assert!(job.image_on_disk().is_some(), "the final image is served from disk");
+    }
 }
