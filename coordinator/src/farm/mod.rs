@@ -224,8 +224,10 @@ impl Farm {
     /// Brings back a job from the store. `checkpoints`: the last checkpoint of each frame that
     /// had one; `done`: indices of the frames whose images were written (sequences; for a
     /// finished single-frame job, `[0]` when its final image is on disk, as its final marker
-    /// says: then no film is held and its checkpoint is not needed). Units merged by a checkpoint stay merged, every other
-    /// unit of the frame is pending again; frames without either start over.
+    /// says: then no film is held and its checkpoint is not needed). Units merged by a
+    /// checkpoint stay merged, every other unit of the frame is pending again; frames without
+    /// either start over. A job recorded completed whose frames are neither written nor complete
+    /// in their checkpoints is queued again for the units they lack.
     pub fn restore(
         &mut self,
         rec: JobRecord,
