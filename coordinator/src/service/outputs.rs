@@ -357,8 +357,8 @@ mod tests {
     use crate::farm::tests::fake_result;
     use pathfarm_common::job::RenderSettings;
 
-    /// Leases and merges `n` units of job `id` as worker `w`, applying the farm's changes as the
-    /// service does (a completed job's row is written at once).
+    /// Leases and merges `n` units as worker `w` (of the one job there is), applying the farm's
+    /// changes as the service does (a completed job's row is written at once).
     fn merge_units(state: &AppState, w: u64, n: usize) {
         for _ in 0..n {
             let changes = state.locked(|farm| {
