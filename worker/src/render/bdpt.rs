@@ -13,9 +13,10 @@
 //! the MIS weights ignore roulette, which keeps them a partition of unity, so the estimator stays
 //! unbiased.
 
+use super::accel::RayQuery;
 use super::bsdf::Bsdf;
 use super::camera::Camera;
-use super::geometry::{Ray, offset_ray_origin};
+use super::geometry::{Ray, offset_ray_origin, shadow_segment};
 use super::integrator::sample_scatter;
 use super::light::{Light, LightSampleContext};
 use super::material::shade;
@@ -434,7 +435,7 @@ pub fn light_subpath(
 /// Traces one BDPT sample through `pixel` at shutter time `time` (both subpaths and every
 /// connection see the scene then; `camera` is the camera at that time): returns the camera-side
 /// estimate and its AOVs and calls `splat(raster, value)` for every light-tracing (`t = 1`)
-/// contribution.
+/// contribution. A batch of one sample ([`BdptBatch`]).
 #[allow(clippy::too_many_arguments)]
 pub fn li_bdpt(
     scene: &RenderScene,
@@ -443,71 +444,229 @@ pub fn li_bdpt(
     sample_index: u32,
     sampler: &mut impl Sampler,
     params: &BdptParams,
-    paths: &mut Subpaths,
+    batch: &mut BdptBatch,
     splat: &mut impl FnMut(Vec2, Vec3A),
     time: f32,
 ) -> SampleValue {
-    let mut out = SampleValue::default();
-    let (max_camera, max_light) = if params.max_depth == 0 {
-        (UNLIMITED_VERTICES, UNLIMITED_VERTICES)
-    } else {
-        (params.max_depth as usize + 1, params.max_depth as usize)
-    };
-    // Camera subpath.
-    sampler.start_pixel_sample(pixel, sample_index, 0);
-    let ray = camera.sample_ray(pixel, sampler);
-    paths.camera.clear();
-    let mut origin = Vertex::camera(ray.o, Vec3A::ONE);
-    origin.time = time;
-    paths.camera.push(origin);
-    random_walk(
-        scene,
-        ray,
-        Vec3A::ONE,
-        camera.pdf_we(ray.d),
-        max_camera - 1,
-        params.rr_depth,
-        TransportMode::Radiance,
-        sampler,
-        &mut paths.camera,
-        Some(&mut out),
-    );
-    // Light subpath.
-    sampler.start_pixel_sample(pixel, sample_index, LIGHT_DIM);
-    light_subpath(scene, max_light, params.rr_depth, sampler, &mut paths.light, time);
+    batch.clear();
+    batch.push(scene, camera, pixel, sample_index, sampler, params, time);
+    let mut out = Vec::with_capacity(1);
+    batch.finish(scene, camera, params, splat, &mut out);
+    out.pop().unwrap_or_default()
+}
 
-    let max_vertices = if params.max_depth == 0 { usize::MAX } else { params.max_depth as usize + 1 };
-    let mut l = Vec3A::ZERO;
-    let (cam, light) = (&paths.camera, &paths.light);
-    for t in 1..=cam.len() {
-        // s = 1 takes a fresh light sample: it does not need the light subpath, which may be
-        // empty (a zero emission texture at its origin).
-        for s in 0..=light.len().max(1) {
-            if (s == 1 && t == 1) || s + t < 2 || s + t > max_vertices {
-                continue;
+/// A strategy's contribution before its visibility ray is answered: unweighted, as if
+/// unoccluded (zero where [`connect`] gives nothing), with its splat position (`t = 1`), the
+/// vertex it sampled (`s = 1` or `t = 1`) and its visibility ray (an index into the batch's
+/// rays; none where the contribution is zero or needs no ray).
+struct Pending {
+    s: usize,
+    t: usize,
+    l: Vec3A,
+    raster: Option<Vec2>,
+    sampled: Sampled,
+    ray: Option<u32>,
+}
+
+impl Pending {
+    fn nothing(s: usize, t: usize) -> Self {
+        Self { s, t, l: Vec3A::ZERO, raster: None, sampled: Sampled::None, ray: None }
+    }
+}
+
+/// The vertex a strategy sampled, by what makes it (a [`Vertex`] is ten times the size: kept
+/// whole for every strategy of a batch, its copies cost more than the batched rays saved).
+#[derive(Clone, Copy)]
+enum Sampled {
+    None,
+    /// `t = 1`: the camera vertex.
+    Camera {
+        p: Vec3A,
+        beta: Vec3A,
+        time: f32,
+    },
+    /// `s = 1`: the light vertex, with its forward density.
+    Light {
+        index: usize,
+        p: Vec3A,
+        n: Option<Vec3A>,
+        beta: Vec3A,
+        pdf_fwd: f32,
+        time: f32,
+    },
+}
+
+impl Sampled {
+    /// The vertex, as [`connect`] made it.
+    fn vertex(self) -> Option<Vertex> {
+        match self {
+            Self::None => None,
+            Self::Camera { p, beta, time } => {
+                let mut v = Vertex::camera(p, beta);
+                v.time = time;
+                Some(v)
             }
-            if params.strategy.is_some_and(|(ws, wt)| (ws as usize, wt as usize) != (s, t)) {
-                continue;
-            }
-            if s == 1 {
-                sampler.start_pixel_sample(pixel, sample_index, CONNECT_DIM + 3 * t as u32);
-            }
-            let (c, raster) = connect(scene, camera, light, cam, s, t, sampler, params.mis_exponent);
-            if !c.is_finite() {
-                continue;
-            }
-            match raster {
-                Some(r) if c != Vec3A::ZERO => splat(r, c),
-                Some(_) => {}
-                None => l += c,
+            Self::Light { index, p, n, beta, pdf_fwd, time } => {
+                let mut v = Vertex::light(index, p, n, beta, 0.0);
+                v.time = time;
+                v.pdf_fwd = pdf_fwd;
+                Some(v)
             }
         }
     }
-    out.radiance = l.to_array();
-    out
 }
 
-/// The weighted contribution of strategy `(s, t)`; `Some(raster)` for a splat (`t = 1`).
+/// BDPT samples traced together: each sample's subpaths and strategies first
+/// ([`BdptBatch::push`]), then the visibility rays of every strategy of the batch answered in
+/// one batched query ([`RenderScene::occluded_many`]: sorted packets where the scene sorts its
+/// rays, one SIMD dispatch either way) instead of one query per connection, then each sample's
+/// MIS weights and sums ([`BdptBatch::finish`]). Each sample's value is exactly what one sample
+/// at a time gives (the same operations in the same order; a ray's answer does not depend on
+/// its batch), so images stay split-invariant; splats come in sample order.
+#[derive(Default)]
+pub struct BdptBatch {
+    /// The batch's samples: their subpaths (kept for the MIS weights), reused.
+    paths: Vec<Subpaths>,
+    /// Per sample: its strategies' range in `pending` and its AOVs.
+    samples: Vec<(std::ops::Range<usize>, SampleValue)>,
+    pending: Vec<Pending>,
+    rays: Vec<RayQuery>,
+    blocked: Vec<bool>,
+}
+
+impl BdptBatch {
+    /// Samples in the batch.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// Whether the batch holds no sample.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// Empties the batch (its buffers are kept).
+    pub fn clear(&mut self) {
+        self.samples.clear();
+        self.pending.clear();
+        self.rays.clear();
+    }
+
+    /// Traces both subpaths of sample `sample_index` through `pixel` at shutter time `time` and
+    /// its strategies up to their visibility rays (all its random numbers are drawn here).
+    #[allow(clippy::too_many_arguments)]
+    pub fn push(
+        &mut self,
+        scene: &RenderScene,
+        camera: &Camera,
+        pixel: UVec2,
+        sample_index: u32,
+        sampler: &mut impl Sampler,
+        params: &BdptParams,
+        time: f32,
+    ) {
+        let k = self.samples.len();
+        if self.paths.len() <= k {
+            self.paths.resize_with(k + 1, Subpaths::default);
+        }
+        let paths = &mut self.paths[k];
+        let mut out = SampleValue::default();
+        let (max_camera, max_light) = if params.max_depth == 0 {
+            (UNLIMITED_VERTICES, UNLIMITED_VERTICES)
+        } else {
+            (params.max_depth as usize + 1, params.max_depth as usize)
+        };
+        // Camera subpath.
+        sampler.start_pixel_sample(pixel, sample_index, 0);
+        let ray = camera.sample_ray(pixel, sampler);
+        paths.camera.clear();
+        let mut origin = Vertex::camera(ray.o, Vec3A::ONE);
+        origin.time = time;
+        paths.camera.push(origin);
+        random_walk(
+            scene,
+            ray,
+            Vec3A::ONE,
+            camera.pdf_we(ray.d),
+            max_camera - 1,
+            params.rr_depth,
+            TransportMode::Radiance,
+            sampler,
+            &mut paths.camera,
+            Some(&mut out),
+        );
+        // Light subpath.
+        sampler.start_pixel_sample(pixel, sample_index, LIGHT_DIM);
+        light_subpath(scene, max_light, params.rr_depth, sampler, &mut paths.light, time);
+
+        let max_vertices = if params.max_depth == 0 { usize::MAX } else { params.max_depth as usize + 1 };
+        let (cam, light) = (&paths.camera, &paths.light);
+        let first = self.pending.len();
+        for t in 1..=cam.len() {
+            // s = 1 takes a fresh light sample: it does not need the light subpath, which may be
+            // empty (a zero emission texture at its origin).
+            for s in 0..=light.len().max(1) {
+                if (s == 1 && t == 1) || s + t < 2 || s + t > max_vertices {
+                    continue;
+                }
+                if params.strategy.is_some_and(|(ws, wt)| (ws as usize, wt as usize) != (s, t)) {
+                    continue;
+                }
+                if s == 1 {
+                    sampler.start_pixel_sample(pixel, sample_index, CONNECT_DIM + 3 * t as u32);
+                }
+                self.pending.push(connect(scene, camera, light, cam, s, t, sampler, &mut self.rays));
+            }
+        }
+        self.samples.push((first..self.pending.len(), out));
+    }
+
+    /// Answers the batch's visibility rays, then appends each sample's value to `out` in order
+    /// (calling `splat(raster, value)` for its light-tracing contributions) and empties the
+    /// batch. `camera` is the camera every sample was pushed with.
+    pub fn finish(
+        &mut self,
+        scene: &RenderScene,
+        camera: &Camera,
+        params: &BdptParams,
+        splat: &mut impl FnMut(Vec2, Vec3A),
+        out: &mut Vec<SampleValue>,
+    ) {
+        self.blocked.clear();
+        if !self.rays.is_empty() {
+            scene.occluded_many(&self.rays, &mut self.blocked);
+        }
+        for ((range, value), paths) in self.samples.iter().zip(&self.paths) {
+            let mut l = Vec3A::ZERO;
+            for p in &self.pending[range.clone()] {
+                let blocked = p.ray.is_some_and(|k| self.blocked.get(k as usize).copied().unwrap_or(true));
+                let c = if blocked { Vec3A::ZERO } else { p.l };
+                let c = if c == Vec3A::ZERO {
+                    c
+                } else {
+                    let (light, cam) = (&paths.light, &paths.camera);
+                    let sampled = p.sampled.vertex();
+                    c * mis_weight(scene, camera, light, cam, sampled.as_ref(), p.s, p.t, params.mis_exponent)
+                };
+                if !c.is_finite() {
+                    continue;
+                }
+                match p.raster {
+                    Some(r) if c != Vec3A::ZERO => splat(r, c),
+                    Some(_) => {}
+                    None => l += c,
+                }
+            }
+            let mut value = *value;
+            value.radiance = l.to_array();
+            out.push(value);
+        }
+        self.clear();
+    }
+}
+
+/// Strategy `(s, t)` up to its visibility ray, which goes into `rays` where its contribution is
+/// not zero (see [`Pending`]).
 #[allow(clippy::too_many_arguments)]
 fn connect(
     scene: &RenderScene,
@@ -517,84 +676,78 @@ fn connect(
     s: usize,
     t: usize,
     sampler: &mut impl Sampler,
-    mis_exponent: u32,
-) -> (Vec3A, Option<Vec2>) {
+    rays: &mut Vec<RayQuery>,
+) -> Pending {
     let pt = &cam[t - 1];
     // Both subpaths are at the camera sample's shutter time.
     let time = pt.time;
-    let mut raster = None;
-    let mut sampled = None;
-    let l = if s == 0 {
+    let mut queue = |(o, d, t_max): (Vec3A, Vec3A, f32)| {
+        rays.push(RayQuery { o, d, t_max, time });
+        Some(rays.len() as u32 - 1)
+    };
+    if s == 0 {
         if t < 2 {
-            return (Vec3A::ZERO, None);
+            return Pending::nothing(s, t);
         }
-        pt.beta * pt.le(scene, &cam[t - 2])
+        let l = pt.beta * pt.le(scene, &cam[t - 2]);
+        Pending { l, ..Pending::nothing(s, t) }
     } else if t == 1 {
         let qs = &light[s - 1];
         if !qs.is_connectible(scene) || qs.kind != VertexKind::Surface {
-            return (Vec3A::ZERO, None);
+            return Pending::nothing(s, t);
         }
-        let Some(cs) = camera.sample_wi(qs.p) else { return (Vec3A::ZERO, None) };
+        let Some(cs) = camera.sample_wi(qs.p) else { return Pending::nothing(s, t) };
         let mut v = Vertex::camera(cs.p_camera, Vec3A::splat(cs.we / cs.pdf));
         v.time = time;
-        let mut c = qs.beta * qs.f(&v) * v.beta * cs.wi.dot(qs.ns).abs();
-        if c != Vec3A::ZERO && !scene.visible_at(qs.p, qs.ng, cs.p_camera, None, time) {
-            c = Vec3A::ZERO;
-        }
-        raster = Some(cs.raster);
-        sampled = Some(v);
-        c
+        let l = qs.beta * qs.f(&v) * v.beta * cs.wi.dot(qs.ns).abs();
+        let ray = if l != Vec3A::ZERO { queue(shadow_segment(qs.p, qs.ng, cs.p_camera, None)) } else { None };
+        let sampled = Sampled::Camera { p: v.p, beta: v.beta, time };
+        Pending { s, t, l, raster: Some(cs.raster), sampled, ray }
     } else if s == 1 {
         if !pt.is_connectible(scene) || pt.kind != VertexKind::Surface {
-            return (Vec3A::ZERO, None);
+            return Pending::nothing(s, t);
         }
         let u_select = sampler.get_1d();
         let u = sampler.get_2d();
         let ctx = LightSampleContext { p: pt.p, n: pt.ng };
         // Area sampling: the density the MIS weights assume for a light vertex.
         let Some((index, ls, pmf)) = scene.sample_light_at(&ctx, u_select, u, LightSampling::Area, time) else {
-            return (Vec3A::ZERO, None);
+            return Pending::nothing(s, t);
         };
         let mut v = Vertex::light(index, ls.p_light, ls.n_light, ls.l / (ls.pdf * pmf), 0.0);
         v.time = time;
         v.pdf_fwd = v.pdf_light_origin(scene, pt);
-        let mut c = pt.beta * pt.f(&v) * v.beta * ls.wi.dot(pt.ns).abs();
-        if c != Vec3A::ZERO && !scene.unoccluded_at(pt.p, pt.ng, &ls, time) {
-            c = Vec3A::ZERO;
-        }
-        sampled = Some(v);
-        c
+        let l = pt.beta * pt.f(&v) * v.beta * ls.wi.dot(pt.ns).abs();
+        let ray = if l != Vec3A::ZERO { queue(RenderScene::shadow_ray(pt.p, pt.ng, &ls)) } else { None };
+        let sampled = Sampled::Light { index, p: ls.p_light, n: ls.n_light, beta: v.beta, pdf_fwd: v.pdf_fwd, time };
+        Pending { s, t, l, raster: None, sampled, ray }
     } else {
         let qs = &light[s - 1];
         if !qs.is_connectible(scene) || !pt.is_connectible(scene) || qs.kind != VertexKind::Surface {
-            return (Vec3A::ZERO, None);
+            return Pending::nothing(s, t);
         }
-        let mut c = qs.beta * qs.f(pt) * pt.f(qs) * pt.beta;
-        if c != Vec3A::ZERO {
+        let mut l = qs.beta * qs.f(pt) * pt.f(qs) * pt.beta;
+        let mut ray = None;
+        if l != Vec3A::ZERO {
             let d = pt.p - qs.p;
             let d2 = d.length_squared();
             if !(d2 > 0.0) {
-                return (Vec3A::ZERO, None);
+                return Pending::nothing(s, t);
             }
             let w = d / d2.sqrt();
-            c *= w.dot(qs.ns).abs() * w.dot(pt.ns).abs() / d2;
+            l *= w.dot(qs.ns).abs() * w.dot(pt.ns).abs() / d2;
             // A connection inside an attenuating object (it reaches the back of pt's surface).
             if let Some(si) = &pt.si {
                 let mut along = *si;
                 along.t = d2.sqrt();
-                c *= scene.transmittance(&along, w);
+                l *= scene.transmittance(&along, w);
             }
-            if c != Vec3A::ZERO && !scene.visible_at(qs.p, qs.ng, pt.p, Some(pt.ng), time) {
-                c = Vec3A::ZERO;
+            if l != Vec3A::ZERO {
+                ray = queue(shadow_segment(qs.p, qs.ng, pt.p, Some(pt.ng)));
             }
         }
-        c
-    };
-    if l == Vec3A::ZERO {
-        return (Vec3A::ZERO, raster);
+        Pending { l, ray, ..Pending::nothing(s, t) }
     }
-    let w = mis_weight(scene, camera, light, cam, sampled.as_ref(), s, t, mis_exponent);
-    (l * w, raster)
 }
 
 /// The MIS weight of strategy `(s, t)` for the path it built (pbrt-v4's `MISWeight`, with the

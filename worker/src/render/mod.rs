@@ -23,7 +23,7 @@ mod vec3;
 pub mod wavefront;
 pub mod wide;
 
-use bdpt::{BdptParams, Subpaths, li_bdpt};
+use bdpt::{BdptBatch, BdptParams, li_bdpt};
 use camera::Camera;
 use glam::{UVec2, Vec2, Vec3A};
 use igi::{IgiParams, IgiScratch, VplCache, li_igi};
@@ -336,8 +336,10 @@ impl Renderer {
             _ => None,
         };
         // The wavefront's buffers are made once per rayon job, not per row (the bench's `tiny
-        // large`: 0.125-0.126 s -> 0.123-0.125 s), and only for the wavefront.
-        let no_wavefront = || None::<Wavefront<S>>;
+        // large`: 0.125-0.126 s -> 0.123-0.125 s), and only for the wavefront; so are bdpt's
+        // batches (their subpaths' vertices grown anew for each row cost more than the batched
+        // rays saved).
+        let no_wavefront = || (None::<Wavefront<S>>, BdptBatch::default());
         let wavefront = match (&self.integrator, self.path_kernel) {
             (Integrator::Path(params), PathKernel::Wavefront) => Some(params),
             _ => None,
@@ -361,7 +363,7 @@ impl Renderer {
             .sums
             .par_chunks_mut((width * group as usize).max(1))
             .zip(groups)
-            .map_init(no_wavefront, |wf, (out, (y, y_end))| {
+            .map_init(no_wavefront, |(wf, bdpt_batch), (out, (y, y_end))| {
                 if let Some(params) = wavefront {
                     let wf = wf.get_or_insert_with(|| Wavefront::with_batch(wavefront::batch_len(&self.scene)));
                     self.path_rows_wavefront(wf, tile, pass, mask, y..y_end, params, &new_sampler, out);
@@ -369,7 +371,11 @@ impl Renderer {
                 }
                 let mut sampler = new_sampler();
                 let mut splats = Vec::new();
-                let mut paths = Subpaths::default();
+                if let (Integrator::Bdpt(params), None) = (&self.integrator, &self.shutter_cameras) {
+                    let row = BdptRow { tile, pass, mask, y };
+                    self.bdpt_row(row, params, &mut sampler, bdpt_batch, &mut splats, out);
+                    return splats;
+                }
                 let mut igi_scratch = IgiScratch::default();
                 for (x, pixel_out) in (tile.x0..tile.x1).zip(out.iter_mut()) {
                     if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
@@ -413,7 +419,7 @@ impl Renderer {
                                     s,
                                     &mut sampler,
                                     params,
-                                    &mut paths,
+                                    bdpt_batch,
                                     &mut |raster, v| splats.push((raster, v)),
                                     time,
                                 )
@@ -445,7 +451,82 @@ impl Renderer {
     }
 }
 
+/// A row of a tile's pass for [`Renderer::bdpt_row`].
+#[derive(Clone, Copy)]
+struct BdptRow<'a> {
+    tile: TileRect,
+    pass: Pass,
+    mask: Option<&'a BlockMask>,
+    y: u32,
+}
+
+/// Samples per [`BdptBatch`] of a row: enough visibility rays (about 10 a sample in the Cornell
+/// box at depth 8) that a batch's sorted packets fill.
+const BDPT_BATCH: usize = 64;
+
 impl Renderer {
+    /// Row `row.y` of a tile for the `bdpt` integrator without motion blur: its samples (pixel by
+    /// pixel, each pixel's in sample order) in batches of [`BDPT_BATCH`] ([`BdptBatch`]: each
+    /// batch's visibility rays answered at once), each pixel's values folded in sample order as
+    /// one sample at a time folds them, splats in sample order; the row's sums written to `out`
+    /// (converged pixels left as they are).
+    fn bdpt_row<S: Sampler>(
+        &self,
+        row: BdptRow<'_>,
+        params: &BdptParams,
+        sampler: &mut S,
+        batch: &mut BdptBatch,
+        splats: &mut Vec<Splat>,
+        out: &mut [film::PixelSums],
+    ) {
+        let BdptRow { tile, pass, mask, y } = row;
+        let mut values = Vec::with_capacity(BDPT_BATCH);
+        // The pixels of the samples in the batch, and the pixel whose values are being folded.
+        let mut owners: Vec<usize> = Vec::with_capacity(BDPT_BATCH);
+        let mut acc: Option<(usize, film::PixelAccum)> = None;
+        let mut flush = |batch: &mut BdptBatch, owners: &mut Vec<usize>, out: &mut [film::PixelSums]| {
+            values.clear();
+            batch.finish(&self.scene, &self.camera, params, &mut |raster, v| splats.push((raster, v)), &mut values);
+            for (&owner, v) in owners.iter().zip(&values) {
+                match &mut acc {
+                    Some((o, a)) if *o == owner => a.add(v),
+                    _ => {
+                        if let Some((o, a)) = acc.take()
+                            && let Some(slot) = out.get_mut(o)
+                        {
+                            *slot = a.finish();
+                        }
+                        let mut a = film::PixelAccum::default();
+                        a.add(v);
+                        acc = Some((owner, a));
+                    }
+                }
+            }
+            owners.clear();
+        };
+        for (k, x) in (tile.x0..tile.x1).enumerate() {
+            if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
+                continue;
+            }
+            let pixel = UVec2::new(x, y);
+            for s in pass.samples() {
+                batch.push(&self.scene, &self.camera, pixel, s, sampler, params, 0.0);
+                owners.push(k);
+                if batch.len() >= BDPT_BATCH {
+                    flush(batch, &mut owners, out);
+                }
+            }
+        }
+        if !batch.is_empty() {
+            flush(batch, &mut owners, out);
+        }
+        if let Some((o, a)) = acc
+            && let Some(slot) = out.get_mut(o)
+        {
+            *slot = a.finish();
+        }
+    }
+
     /// Rows `ys` of `tile` for the `path` integrator with the wavefront kernel: their samples
     /// (row by row, pixel by pixel, each pixel's in sample order) in batches, each pixel's
     /// values folded in sample order as the scalar loop folds them; the rows' sums written to
