@@ -45,7 +45,9 @@
 //! reference and write their hits in place, to 7.03k (472.3M to 460.8M instructions; `tiny
 //! long` within this machine's noise, 0.91-0.93 s). Lane triangle tests that leave after the
 //! edge functions, a packet's closest hits kept in lanes, the bench built as the `dist`
-//! profile ships (fat LTO) and a batch's surfaces made in one loop, to 6.67k (437.1M).
+//! profile ships (fat LTO) and a batch's surfaces made in one loop, to 6.67k (437.1M). On an
+//! AMD EPYC with AVX-512 (Zen 5): a sorted class's rays ordered by the octant of their origin
+//! (`accel`), to 6.53k (427.8M).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
