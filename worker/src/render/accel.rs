@@ -2269,7 +2269,8 @@ mod tests {
         let mut got = Vec::new();
         let mut blocked = Vec::new();
         let (mut hit, mut shadowed) = (0, 0);
-        for len in [1, 3, 4, 8, 9, 37, 255, 256, 257] {
+        // Up to 256 rays sorted by class; above, by class and origin octant (`ORIGIN_CELLS`).
+        for len in [1, 3, 4, 8, 9, 37, 255, 256, 257, SORTED_BATCH] {
             for batch in rays.chunks(len) {
                 accel.intersect_many(batch, &mut got);
                 assert_eq!(got.len(), batch.len());
@@ -2287,7 +2288,7 @@ mod tests {
                 }
             }
         }
-        let n = 9 * rays.len();
+        let n = 10 * rays.len();
         assert!(
             hit > n / 4 && shadowed > n / 8 && shadowed < n - n / 8,
             "too one-sided to tell: {hit}, {shadowed} of {n}"
