@@ -450,9 +450,13 @@ pub fn li_bdpt(
 ) -> SampleValue {
     batch.clear();
     batch.push(scene, camera, pixel, sample_index, sampler, params, time);
-    let mut out = Vec::with_capacity(1);
+    // The batch's own buffer for the value (no allocation per sample).
+    let mut out = std::mem::take(&mut batch.one);
+    out.clear();
     batch.finish(scene, camera, params, splat, &mut out);
-    out.pop().unwrap_or_default()
+    let value = out.pop().unwrap_or_default();
+    batch.one = out;
+    value
 }
 
 /// A strategy's contribution before its visibility ray is answered: unweighted, as if
@@ -532,6 +536,8 @@ pub struct BdptBatch {
     pending: Vec<Pending>,
     rays: Vec<RayQuery>,
     blocked: Vec<bool>,
+    /// [`li_bdpt`]'s value of its one sample.
+    one: Vec<SampleValue>,
 }
 
 impl BdptBatch {
