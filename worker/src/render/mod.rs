@@ -460,7 +460,7 @@ struct BdptRow<'a> {
     y: u32,
 }
 
-/// Samples per [`BdptBatch`] of a row: enough visibility rays (about 10 a sample in the Cornell
+/// Samples per [`BdptBatch`] of a row: enough visibility rays (about 8 a sample in the Cornell
 /// box at depth 8) that a batch's sorted packets fill.
 const BDPT_BATCH: usize = 64;
 
