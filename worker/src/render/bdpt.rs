@@ -478,8 +478,9 @@ impl Pending {
     }
 }
 
-/// The vertex a strategy sampled, by what makes it (a [`Vertex`] is ten times the size: kept
-/// whole for every strategy of a batch, its copies cost more than the batched rays saved).
+/// The vertex a strategy sampled, by what makes it: 80 bytes, where a [`Vertex`] takes 432 (kept
+/// whole in every strategy of a batch, with batches made anew per row, `tiny bdpt` took 746.8M
+/// instructions against the one-ray-at-a-time 709.9M).
 #[derive(Clone, Copy)]
 enum Sampled {
     None,
