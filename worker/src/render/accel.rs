@@ -1534,11 +1534,11 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
         let node_p = Vec3A::from(node.p);
         // Each ray's `extent * inv_direction` and `(p - origin) * inv_direction`, as the
         // single-ray node test makes them, computed in lanes.
-        let mut dir_inv = [[0.0f32; PACKET]; 3];
-        let mut origin = [[0.0f32; PACKET]; 3];
+        let mut dir_inv = [l; 3];
+        let mut origin = [l; 3];
         for a in 0..3 {
-            dir_inv[a] = (l.splat(extent[a]) * p.inv_direction[a]).to_array();
-            origin[a] = ((l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a]).to_array();
+            dir_inv[a] = l.splat(extent[a]) * p.inv_direction[a];
+            origin[a] = (l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a];
         }
         let q = [
             (avx2.bytes_f32x8(&node.child_min_x), avx2.bytes_f32x8(&node.child_max_x)),
@@ -1553,15 +1553,7 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
         // The single-ray node test for each ray that reached the node (its 8 children in lanes,
         // the same bits): row `r` (byte `r`) holds the children ray `r` hits; transposed, byte
         // `c` holds the rays that hit child `c`.
-        let mut rows = 0u64;
-        let mut todo = rays & 0xff;
-        while todo != 0 {
-            let r = todo.trailing_zeros() as usize & (PACKET - 1);
-            todo &= todo - 1;
-            let d = [dir_inv[0][r], dir_inv[1][r], dir_inv[2][r]];
-            let o = [origin[0][r], origin[1][r], origin[2][r]];
-            rows |= u64::from(avx2.child_box_hits(&near, &far, d, o, t_max[r])) << (8 * r);
-        }
+        let rows = avx2.packet_child_hits(&near, &far, &dir_inv, &origin, best.t, rays);
         let by_child = transpose_bits8(rows);
         // Rays per leaf triangle (by offset from the node's first primitive) and inner children
         // (priority, node index, rays).
@@ -2081,77 +2073,76 @@ mod tests {
             }
         }
         let mut accel = Accel::new(&tris);
-        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
-            eprintln!("this CPU has no AVX2: no packets to compare");
-            return;
-        }
-        let mut batches = Vec::new();
-        for b in 0..400u64 {
-            let r = |k: u64| unit(b * 64 + k) * 2.0 - 1.0;
-            let o = Vec3A::new(r(0), r(1), r(2)) * 3.0;
-            let center = Vec3A::new(r(3), r(4), r(5));
-            let spread = [0.0, 1e-3, 0.05, 0.5][(b % 4) as usize];
-            let len = 1 + (b % 11) as usize * 3;
-            batches.push(
-                (0..len as u64)
-                    .map(|k| {
-                        let j = |m: u64| (unit(b * 4096 + k * 8 + m) - 0.5) * spread;
-                        let t_max = if k % 3 == 0 { 2.0 + unit(b * 4096 + k * 8 + 7) } else { f32::INFINITY };
-                        RayQuery { o, d: center + Vec3A::new(j(0), j(1), j(2)), t_max, time: 0.0 }
-                    })
-                    .collect::<Vec<_>>(),
-            );
-        }
-        // Bundles from one point through the grid's vertices and edge midpoints, row by row.
-        for o in [Vec3A::new(0.5, 0.5, 2.0), Vec3A::new(0.3, 0.6, -1.5)] {
-            for i in 0..=n {
+        for level in packet_levels() {
+            accel.set_simd_level(level);
+            let mut batches = Vec::new();
+            for b in 0..400u64 {
+                let r = |k: u64| unit(b * 64 + k) * 2.0 - 1.0;
+                let o = Vec3A::new(r(0), r(1), r(2)) * 3.0;
+                let center = Vec3A::new(r(3), r(4), r(5));
+                let spread = [0.0, 1e-3, 0.05, 0.5][(b % 4) as usize];
+                let len = 1 + (b % 11) as usize * 3;
                 batches.push(
-                    (0..=n)
-                        .flat_map(|j| {
-                            let p = v(i, j);
-                            let q = v(i.min(n - 1) + 1, j).lerp(p, 0.5);
-                            [p - o, q - o]
+                    (0..len as u64)
+                        .map(|k| {
+                            let j = |m: u64| (unit(b * 4096 + k * 8 + m) - 0.5) * spread;
+                            let t_max = if k % 3 == 0 { 2.0 + unit(b * 4096 + k * 8 + 7) } else { f32::INFINITY };
+                            RayQuery { o, d: center + Vec3A::new(j(0), j(1), j(2)), t_max, time: 0.0 }
                         })
-                        .map(|d| RayQuery { o, d, t_max: f32::INFINITY, time: 0.0 })
-                        .collect(),
+                        .collect::<Vec<_>>(),
                 );
             }
-        }
-        let (mut hits, mut total) = (0, 0);
-        let (mut got, mut blocked) = (Vec::new(), Vec::new());
-        for rays in &batches {
-            accel.intersect_many(rays, &mut got);
-            accel.occluded_many(rays, &mut blocked);
-            assert_eq!((got.len(), blocked.len()), (rays.len(), rays.len()));
-            for ((r, h), b) in rays.iter().zip(&got).zip(&blocked) {
-                let want = accel.intersect_at(r.o, r.d, r.t_max, r.time);
-                assert_eq!(bits(*h), bits(want), "ray {} {} {}", r.o, r.d, r.t_max);
-                assert_eq!(*b, accel.occluded_at(r.o, r.d, r.t_max, r.time), "ray {} {} {}", r.o, r.d, r.t_max);
-                hits += usize::from(want.is_some());
-                total += 1;
+            // Bundles from one point through the grid's vertices and edge midpoints, row by row.
+            for o in [Vec3A::new(0.5, 0.5, 2.0), Vec3A::new(0.3, 0.6, -1.5)] {
+                for i in 0..=n {
+                    batches.push(
+                        (0..=n)
+                            .flat_map(|j| {
+                                let p = v(i, j);
+                                let q = v(i.min(n - 1) + 1, j).lerp(p, 0.5);
+                                [p - o, q - o]
+                            })
+                            .map(|d| RayQuery { o, d, t_max: f32::INFINITY, time: 0.0 })
+                            .collect(),
+                    );
+                }
             }
-        }
-        assert!(hits > total / 4 && hits < total, "{hits} of {total} rays hit");
-        // A fine flat grid alone (a deep tree): rays through its vertices, which 6 triangles in
-        // different subtrees share, so the order of the visit decides every tie.
-        let m = 64;
-        let w = |i: usize, j: usize| Vec3A::new(i as f32 / m as f32, j as f32 / m as f32, 0.0);
-        let mut grid = Vec::new();
-        for i in 0..m {
-            for j in 0..m {
-                grid.push([w(i, j), w(i + 1, j), w(i + 1, j + 1)]);
-                grid.push([w(i, j), w(i + 1, j + 1), w(i, j + 1)]);
+            let (mut hits, mut total) = (0, 0);
+            let (mut got, mut blocked) = (Vec::new(), Vec::new());
+            for rays in &batches {
+                accel.intersect_many(rays, &mut got);
+                accel.occluded_many(rays, &mut blocked);
+                assert_eq!((got.len(), blocked.len()), (rays.len(), rays.len()));
+                for ((r, h), b) in rays.iter().zip(&got).zip(&blocked) {
+                    let want = accel.intersect_at(r.o, r.d, r.t_max, r.time);
+                    assert_eq!(bits(*h), bits(want), "ray {} {} {}", r.o, r.d, r.t_max);
+                    assert_eq!(*b, accel.occluded_at(r.o, r.d, r.t_max, r.time), "ray {} {} {}", r.o, r.d, r.t_max);
+                    hits += usize::from(want.is_some());
+                    total += 1;
+                }
             }
-        }
-        let mut accel = Accel::new(&grid);
-        accel.set_simd_level(SimdLevel::Avx2);
-        for o in [Vec3A::new(0.5, 0.5, 1.0), Vec3A::new(0.1, 0.8, 0.3)] {
-            for i in 0..=m {
-                let rays: Vec<_> =
-                    (0..=m).map(|j| RayQuery { o, d: w(i, j) - o, t_max: f32::INFINITY, time: 0.0 }).collect();
-                accel.intersect_many(&rays, &mut got);
-                for (r, h) in rays.iter().zip(&got) {
-                    assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {}", r.o, r.d);
+            assert!(hits > total / 4 && hits < total, "{hits} of {total} rays hit");
+            // A fine flat grid alone (a deep tree): rays through its vertices, which 6 triangles in
+            // different subtrees share, so the order of the visit decides every tie.
+            let m = 64;
+            let w = |i: usize, j: usize| Vec3A::new(i as f32 / m as f32, j as f32 / m as f32, 0.0);
+            let mut grid = Vec::new();
+            for i in 0..m {
+                for j in 0..m {
+                    grid.push([w(i, j), w(i + 1, j), w(i + 1, j + 1)]);
+                    grid.push([w(i, j), w(i + 1, j + 1), w(i, j + 1)]);
+                }
+            }
+            let mut accel = Accel::new(&grid);
+            accel.set_simd_level(level);
+            for o in [Vec3A::new(0.5, 0.5, 1.0), Vec3A::new(0.1, 0.8, 0.3)] {
+                for i in 0..=m {
+                    let rays: Vec<_> =
+                        (0..=m).map(|j| RayQuery { o, d: w(i, j) - o, t_max: f32::INFINITY, time: 0.0 }).collect();
+                    accel.intersect_many(&rays, &mut got);
+                    for (r, h) in rays.iter().zip(&got) {
+                        assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {}", r.o, r.d);
+                    }
                 }
             }
         }
@@ -2166,51 +2157,50 @@ mod tests {
     fn packets_that_miss_the_root_get_the_single_ray_hits() {
         let cube = cube();
         let mut accel = Accel::new(&cube);
-        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
-            eprintln!("this CPU has no AVX2: no packets to compare");
-            return;
-        }
-        let (lo, hi) = cube
-            .iter()
-            .flatten()
-            .fold((Vec3A::splat(f32::MAX), Vec3A::splat(f32::MIN)), |(lo, hi), v| (lo.min(*v), hi.max(*v)));
-        let nudge = |x: f32, k: i32| f32::from_bits((x.to_bits() as i32 + k) as u32);
-        let (mut hits, mut misses, mut total) = (0, 0, 0);
-        let mut got = Vec::new();
-        for o in [Vec3A::new(0.3, -4.0, 0.7), Vec3A::new(-3.0, 2.5, 6.0), Vec3A::new(2e4, 1e4, -3e4)] {
-            for corner in 0..8 {
-                let c = Vec3A::new(
-                    if corner & 1 == 0 { lo.x } else { hi.x },
-                    if corner & 2 == 0 { lo.y } else { hi.y },
-                    if corner & 4 == 0 { lo.z } else { hi.z },
-                );
-                let mid = (c + (lo + hi) * 0.5) * 0.5;
-                for target in [c, mid, Vec3A::new(c.x, mid.y, c.z), Vec3A::new(mid.x, c.y, c.z)] {
-                    // 8 rays a packet: the target nudged by -4..4 ulps per axis (and far off).
-                    for step in [1, 64, 1 << 12, 1 << 20] {
-                        let rays: Vec<RayQuery> = (0..8)
-                            .map(|k: i32| {
-                                let p = Vec3A::new(
-                                    nudge(target.x, (k - 4) * step),
-                                    nudge(target.y, (3 - k) * step),
-                                    nudge(target.z, (k % 3 - 1) * step),
-                                );
-                                RayQuery { o, d: p - o, t_max: f32::INFINITY, time: 0.0 }
-                            })
-                            .collect();
-                        accel.intersect_many(&rays, &mut got);
-                        for (r, h) in rays.iter().zip(&got) {
-                            let want = accel.intersect_at(r.o, r.d, r.t_max, r.time);
-                            assert_eq!(bits(*h), bits(want), "ray {} {}", r.o, r.d);
-                            hits += usize::from(want.is_some());
-                            misses += usize::from(want.is_none());
-                            total += 1;
+        for level in packet_levels() {
+            accel.set_simd_level(level);
+            let (lo, hi) = cube
+                .iter()
+                .flatten()
+                .fold((Vec3A::splat(f32::MAX), Vec3A::splat(f32::MIN)), |(lo, hi), v| (lo.min(*v), hi.max(*v)));
+            let nudge = |x: f32, k: i32| f32::from_bits((x.to_bits() as i32 + k) as u32);
+            let (mut hits, mut misses, mut total) = (0, 0, 0);
+            let mut got = Vec::new();
+            for o in [Vec3A::new(0.3, -4.0, 0.7), Vec3A::new(-3.0, 2.5, 6.0), Vec3A::new(2e4, 1e4, -3e4)] {
+                for corner in 0..8 {
+                    let c = Vec3A::new(
+                        if corner & 1 == 0 { lo.x } else { hi.x },
+                        if corner & 2 == 0 { lo.y } else { hi.y },
+                        if corner & 4 == 0 { lo.z } else { hi.z },
+                    );
+                    let mid = (c + (lo + hi) * 0.5) * 0.5;
+                    for target in [c, mid, Vec3A::new(c.x, mid.y, c.z), Vec3A::new(mid.x, c.y, c.z)] {
+                        // 8 rays a packet: the target nudged by -4..4 ulps per axis (and far off).
+                        for step in [1, 64, 1 << 12, 1 << 20] {
+                            let rays: Vec<RayQuery> = (0..8)
+                                .map(|k: i32| {
+                                    let p = Vec3A::new(
+                                        nudge(target.x, (k - 4) * step),
+                                        nudge(target.y, (3 - k) * step),
+                                        nudge(target.z, (k % 3 - 1) * step),
+                                    );
+                                    RayQuery { o, d: p - o, t_max: f32::INFINITY, time: 0.0 }
+                                })
+                                .collect();
+                            accel.intersect_many(&rays, &mut got);
+                            for (r, h) in rays.iter().zip(&got) {
+                                let want = accel.intersect_at(r.o, r.d, r.t_max, r.time);
+                                assert_eq!(bits(*h), bits(want), "ray {} {}", r.o, r.d);
+                                hits += usize::from(want.is_some());
+                                misses += usize::from(want.is_none());
+                                total += 1;
+                            }
                         }
                     }
                 }
             }
+            assert!(hits > total / 10 && misses > total / 10, "{hits} hits and {misses} misses of {total} rays");
         }
-        assert!(hits > total / 10 && misses > total / 10, "{hits} hits and {misses} misses of {total} rays");
     }
 
     /// Packets of the awkward rays (axis-aligned with -0 and +0 components, components of
@@ -2219,21 +2209,21 @@ mod tests {
     #[test]
     fn packets_of_awkward_rays_get_the_single_ray_hits() {
         let mut accel = Accel::new(&soup(3000, 3));
-        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
-            return;
-        }
-        let mut base = crate::render::wide::test_rays(600);
-        base.push((Vec3A::ZERO, Vec3A::new(f32::NAN, 0.0, 1.0), f32::INFINITY));
-        base.push((Vec3A::ZERO, Vec3A::ZERO, f32::INFINITY));
-        base.push((Vec3A::ZERO, Vec3A::new(0.0, f32::INFINITY, 0.1), f32::INFINITY));
-        base.push((Vec3A::new(0.1, 0.2, 5.0), -Vec3A::Z, 0.0));
-        let mut got = Vec::new();
-        for (o, d, t_max) in base {
-            let rays: Vec<RayQuery> =
-                (0..8).map(|k| RayQuery { o: o + Vec3A::splat(k as f32 * 1e-4), d, t_max, time: 0.0 }).collect();
-            accel.intersect_many(&rays, &mut got);
-            for (r, h) in rays.iter().zip(&got) {
-                assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {} {}", r.o, r.d, r.t_max);
+        for level in packet_levels() {
+            accel.set_simd_level(level);
+            let mut base = crate::render::wide::test_rays(600);
+            base.push((Vec3A::ZERO, Vec3A::new(f32::NAN, 0.0, 1.0), f32::INFINITY));
+            base.push((Vec3A::ZERO, Vec3A::ZERO, f32::INFINITY));
+            base.push((Vec3A::ZERO, Vec3A::new(0.0, f32::INFINITY, 0.1), f32::INFINITY));
+            base.push((Vec3A::new(0.1, 0.2, 5.0), -Vec3A::Z, 0.0));
+            let mut got = Vec::new();
+            for (o, d, t_max) in base {
+                let rays: Vec<RayQuery> =
+                    (0..8).map(|k| RayQuery { o: o + Vec3A::splat(k as f32 * 1e-4), d, t_max, time: 0.0 }).collect();
+                accel.intersect_many(&rays, &mut got);
+                for (r, h) in rays.iter().zip(&got) {
+                    assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {} {}", r.o, r.d, r.t_max);
+                }
             }
         }
     }
@@ -2245,54 +2235,61 @@ mod tests {
     #[test]
     fn sorted_packets_of_incoherent_rays_get_the_single_ray_hits() {
         let mut accel = Accel::new(&soup(100, 5));
-        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
-            return;
-        }
-        assert!(accel.sorted_packets(SORTED_BATCH) && !accel.sorted_packets(SORTED_BATCH + 1));
-        let mut rays: Vec<RayQuery> = crate::render::wide::test_rays(700)
-            .into_iter()
-            .map(|(o, d, t_max)| RayQuery { o, d, t_max, time: 0.0 })
-            .collect();
-        // Rays from inside the cube, all ways, many of them at once in each class.
-        for k in 0..300u64 {
-            let u = |j: u64| crate::render::wide::unit(k * 8 + j) * 2.0 - 1.0;
-            rays.push(RayQuery {
-                o: Vec3A::new(u(0), u(1), u(2)) * 0.5,
-                d: Vec3A::new(u(3), u(4), u(5)),
-                t_max: 10.0,
-                time: 0.0,
-            });
-        }
-        // Shadow rays too: some blocked, some not (segments of every length).
-        let segments: Vec<RayQuery> =
-            rays.iter().enumerate().map(|(k, r)| RayQuery { t_max: (k % 7) as f32 * 0.4, ..*r }).collect();
-        let mut got = Vec::new();
-        let mut blocked = Vec::new();
-        let (mut hit, mut shadowed) = (0, 0);
-        // Up to 256 rays sorted by class; above, by class and origin octant (`ORIGIN_CELLS`).
-        for len in [1, 3, 4, 8, 9, 37, 255, 256, 257, SORTED_BATCH] {
-            for batch in rays.chunks(len) {
-                accel.intersect_many(batch, &mut got);
-                assert_eq!(got.len(), batch.len());
-                for (r, h) in batch.iter().zip(&got) {
-                    assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {} {}", r.o, r.d, r.t_max);
-                    hit += usize::from(h.is_some());
+        for level in packet_levels() {
+            accel.set_simd_level(level);
+            assert!(accel.sorted_packets(SORTED_BATCH) && !accel.sorted_packets(SORTED_BATCH + 1));
+            let mut rays: Vec<RayQuery> = crate::render::wide::test_rays(700)
+                .into_iter()
+                .map(|(o, d, t_max)| RayQuery { o, d, t_max, time: 0.0 })
+                .collect();
+            // Rays from inside the cube, all ways, many of them at once in each class.
+            for k in 0..300u64 {
+                let u = |j: u64| crate::render::wide::unit(k * 8 + j) * 2.0 - 1.0;
+                rays.push(RayQuery {
+                    o: Vec3A::new(u(0), u(1), u(2)) * 0.5,
+                    d: Vec3A::new(u(3), u(4), u(5)),
+                    t_max: 10.0,
+                    time: 0.0,
+                });
+            }
+            // Shadow rays too: some blocked, some not (segments of every length).
+            let segments: Vec<RayQuery> =
+                rays.iter().enumerate().map(|(k, r)| RayQuery { t_max: (k % 7) as f32 * 0.4, ..*r }).collect();
+            let mut got = Vec::new();
+            let mut blocked = Vec::new();
+            let (mut hit, mut shadowed) = (0, 0);
+            // Up to 256 rays sorted by class; above, by class and origin octant (`ORIGIN_CELLS`).
+            for len in [1, 3, 4, 8, 9, 37, 255, 256, 257, SORTED_BATCH] {
+                for batch in rays.chunks(len) {
+                    accel.intersect_many(batch, &mut got);
+                    assert_eq!(got.len(), batch.len());
+                    for (r, h) in batch.iter().zip(&got) {
+                        assert_eq!(
+                            bits(*h),
+                            bits(accel.intersect(r.o, r.d, r.t_max)),
+                            "ray {} {} {}",
+                            r.o,
+                            r.d,
+                            r.t_max
+                        );
+                        hit += usize::from(h.is_some());
+                    }
+                }
+                for batch in segments.chunks(len) {
+                    accel.occluded_many(batch, &mut blocked);
+                    assert_eq!(blocked.len(), batch.len());
+                    for (r, b) in batch.iter().zip(&blocked) {
+                        assert_eq!(*b, accel.occluded(r.o, r.d, r.t_max), "segment {} {} {}", r.o, r.d, r.t_max);
+                        shadowed += usize::from(*b);
+                    }
                 }
             }
-            for batch in segments.chunks(len) {
-                accel.occluded_many(batch, &mut blocked);
-                assert_eq!(blocked.len(), batch.len());
-                for (r, b) in batch.iter().zip(&blocked) {
-                    assert_eq!(*b, accel.occluded(r.o, r.d, r.t_max), "segment {} {} {}", r.o, r.d, r.t_max);
-                    shadowed += usize::from(*b);
-                }
-            }
+            let n = 10 * rays.len();
+            assert!(
+                hit > n / 4 && shadowed > n / 8 && shadowed < n - n / 8,
+                "too one-sided to tell: {hit}, {shadowed} of {n}"
+            );
         }
-        let n = 10 * rays.len();
-        assert!(
-            hit > n / 4 && shadowed > n / 8 && shadowed < n - n / 8,
-            "too one-sided to tell: {hit}, {shadowed} of {n}"
-        );
     }
 
     /// Above 256 triangles sorted packets run while they pay: on trial for their first
@@ -2306,29 +2303,44 @@ mod tests {
         assert!(sorting_pays(300, trial - 1, 0), "on trial");
         assert!(sorting_pays(300, 10 * trial, 26 * trial), "2.6 rays a test pay");
         assert!(!sorting_pays(300, 10 * trial, 26 * trial - 1), "fewer do not");
-        let mut accel = Accel::new(&soup(3000, 9));
-        if accel.set_simd_level(SimdLevel::Avx2) != SimdLevel::Avx2 {
-            return;
-        }
-        assert!(accel.sorted_packets(SORTED_BATCH), "on trial at first");
-        let rays: Vec<RayQuery> = (0..40_000u64)
-            .map(|k| {
-                let u = |j: u64| crate::render::wide::unit(k * 8 + j) * 2.0 - 1.0;
-                RayQuery { o: Vec3A::new(u(0), u(1), u(2)), d: Vec3A::new(u(3), u(4), u(5)), t_max: 10.0, time: 0.0 }
-            })
-            .collect();
-        let mut got = Vec::new();
-        let mut sorted_batches = 0;
-        for batch in rays.chunks(SORTED_BATCH) {
-            sorted_batches += usize::from(accel.sorted_packets(batch.len()));
-            accel.intersect_many(batch, &mut got);
-            for (r, h) in batch.iter().zip(&got) {
-                assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {}", r.o, r.d);
+        for level in packet_levels() {
+            let mut accel = Accel::new(&soup(3000, 9));
+            accel.set_simd_level(level);
+            assert!(accel.sorted_packets(SORTED_BATCH), "on trial at first");
+            let rays: Vec<RayQuery> = (0..40_000u64)
+                .map(|k| {
+                    let u = |j: u64| crate::render::wide::unit(k * 8 + j) * 2.0 - 1.0;
+                    RayQuery {
+                        o: Vec3A::new(u(0), u(1), u(2)),
+                        d: Vec3A::new(u(3), u(4), u(5)),
+                        t_max: 10.0,
+                        time: 0.0,
+                    }
+                })
+                .collect();
+            let mut got = Vec::new();
+            let mut sorted_batches = 0;
+            for batch in rays.chunks(SORTED_BATCH) {
+                sorted_batches += usize::from(accel.sorted_packets(batch.len()));
+                accel.intersect_many(batch, &mut got);
+                for (r, h) in batch.iter().zip(&got) {
+                    assert_eq!(bits(*h), bits(accel.intersect(r.o, r.d, r.t_max)), "ray {} {}", r.o, r.d);
+                }
             }
+            let (tests, lanes) = (accel.packet_tests.load(Relaxed), accel.packet_lanes.load(Relaxed));
+            assert!(tests >= trial, "{tests} packet triangle tests");
+            assert!(sorted_batches > 0 && !accel.sorted_packets(SORTED_BATCH), "{lanes} rays in {tests} tests");
         }
-        let (tests, lanes) = (accel.packet_tests.load(Relaxed), accel.packet_lanes.load(Relaxed));
-        assert!(tests >= trial, "{tests} packet triangle tests");
-        assert!(sorted_batches > 0 && !accel.sorted_packets(SORTED_BATCH), "{lanes} rays in {tests} tests");
+    }
+
+    /// The SIMD levels with packets that this CPU has: AVX2, and AVX-512 (two rays per node
+    /// test); none without AVX2.
+    fn packet_levels() -> Vec<SimdLevel> {
+        let best = SimdLevel::detect();
+        if best == SimdLevel::Baseline {
+            eprintln!("this CPU has no AVX2: no packets to compare");
+        }
+        [SimdLevel::Avx2, SimdLevel::Avx512].into_iter().filter(|&l| l <= best).collect()
     }
 
     fn bits(h: Option<Hit>) -> Option<(u32, u32, u32, u32)> {
