@@ -1534,11 +1534,11 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
         let node_p = Vec3A::from(node.p);
         // Each ray's `extent * inv_direction` and `(p - origin) * inv_direction`, as the
         // single-ray node test makes them, computed in lanes.
-        let mut dir_inv = [l; 3];
-        let mut origin = [l; 3];
+        let mut dir_inv = [[0.0f32; PACKET]; 3];
+        let mut origin = [[0.0f32; PACKET]; 3];
         for a in 0..3 {
-            dir_inv[a] = l.splat(extent[a]) * p.inv_direction[a];
-            origin[a] = (l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a];
+            dir_inv[a] = (l.splat(extent[a]) * p.inv_direction[a]).to_array();
+            origin[a] = ((l.splat(node_p[a]) - p.origin[a]) * p.inv_direction[a]).to_array();
         }
         let q = [
             (avx2.bytes_f32x8(&node.child_min_x), avx2.bytes_f32x8(&node.child_max_x)),
@@ -1553,7 +1553,15 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
         // The single-ray node test for each ray that reached the node (its 8 children in lanes,
         // the same bits): row `r` (byte `r`) holds the children ray `r` hits; transposed, byte
         // `c` holds the rays that hit child `c`.
-        let rows = avx2.packet_child_hits(&near, &far, &dir_inv, &origin, best.t, rays);
+        let mut rows = 0u64;
+        let mut todo = rays & 0xff;
+        while todo != 0 {
+            let r = todo.trailing_zeros() as usize & (PACKET - 1);
+            todo &= todo - 1;
+            let d = [dir_inv[0][r], dir_inv[1][r], dir_inv[2][r]];
+            let o = [origin[0][r], origin[1][r], origin[2][r]];
+            rows |= u64::from(avx2.child_box_hits(&near, &far, d, o, t_max[r])) << (8 * r);
+        }
         let by_child = transpose_bits8(rows);
         // Rays per leaf triangle (by offset from the node's first primitive) and inner children
         // (priority, node index, rays).
@@ -2333,8 +2341,8 @@ mod tests {
         }
     }
 
-    /// The SIMD levels with packets that this CPU has: AVX2, and AVX-512 (two rays per node
-    /// test); none without AVX2.
+    /// The SIMD levels with packets that this CPU has: AVX2, and AVX-512 (the same kernels
+    /// compiled for x86-64-v4); none without AVX2.
     fn packet_levels() -> Vec<SimdLevel> {
         let best = SimdLevel::detect();
         if best == SimdLevel::Baseline {

@@ -11,12 +11,13 @@
 //! VL, BW, DQ, CD: the x86-64-v4 level), the same kernels run compiled for it (each entry point
 //! exists twice, `v3` and `v4`, and the proof's level picks one): still 8 lanes, with 32 vector
 //! registers, mask registers and EVEX forms of the same operations (measured: `tiny long` 0.666
-//! -> 0.647 s, `tiny solid long` 0.780 -> 0.743 s, minimum of 3-5 interleaved runs). One kernel
-//! runs 16 lanes there: a packet's node test, two rays per 512-bit operation
-//! ([`Avx2::packet_child_hits`], the same bits). It was no faster on AMD Zen 4, which runs a
-//! 512-bit operation as two 256-bit halves; on an Intel Xeon with AVX-512 (full-width units)
-//! `tiny long` 0.974 -> 0.952 s (median of 11 interleaved runs; minimum 0.898 -> 0.842), and
-//! `tiny large long` within the noise (1.675 -> 1.661 s, median of 7).
+//! -> 0.647 s, `tiny solid long` 0.780 -> 0.743 s, minimum of 3-5 interleaved runs). 16 lanes
+//! were tried where they fit one kernel (a packet's node test for two rays per 512-bit
+//! operation, the same bits): no faster on AMD Zen 4, which runs a 512-bit operation as two
+//! 256-bit halves, so they save front-end work only; nor, measurably, on an Intel Xeon with
+//! full-width AVX-512 units (`tiny long`, 25 interleaved pairs: median ratio 0.998, quartiles
+//! 0.958-1.037). Nor did the packet's triangle tests' edge functions for two triangles at once
+//! (an early skip of those no ray passes): 8.5% slower there.
 //!
 //! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
 //! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
@@ -511,44 +512,22 @@ impl Avx2 {
     }
 
     /// The single-ray node test's box test of a node's 8 children (`near`, `far`: their planes
-    /// per axis, swapped for the packet's direction signs) for each ray of a packet in `rays` (lane bits): byte `r` of the
-    /// result holds the children ray `r` hits. `dir_inv` and `origin`: the rays'
-    /// `extent * inv_direction` and `(p - origin) * inv_direction` per axis, in lanes; `t_max`:
-    /// theirs. Where the CPU has AVX-512, two rays per 512-bit operation (the same lane
-    /// operations, so the same bits).
+    /// per axis, swapped for the ray's direction signs) against one ray of a packet, from its
+    /// `extent * inv_direction`, `(p - origin) * inv_direction` and `t_max`. Bit `c`: the box of
+    /// child slot `c` is hit.
     #[inline(always)]
-    pub(super) fn packet_child_hits(
+    pub(super) fn child_box_hits(
         self,
         near: &[F32x8; 3],
         far: &[F32x8; 3],
-        dir_inv: &[F32x8; 3],
-        origin: &[F32x8; 3],
-        t_max: F32x8,
-        rays: u32,
-    ) -> u64 {
+        dir_inv: [f32; 3],
+        origin: [f32; 3],
+        t_max: f32,
+    ) -> u32 {
         let near = [near[0].0, near[1].0, near[2].0];
         let far = [far[0].0, far[1].0, far[2].0];
-        let dir_inv = [dir_inv[0].0, dir_inv[1].0, dir_inv[2].0];
-        let origin = [origin[0].0, origin[1].0, origin[2].0];
-        if self.v4 {
-            // SAFETY: `v4` proves the CPU has AVX-512 F, VL, BW, DQ and CD.
-            return unsafe { packet_child_hits_avx512(&near, &far, &dir_inv, &origin, t_max.0, rays) };
-        }
-        let lanes = |v: &[std::arch::x86_64::__m256; 3]| {
-            [F32x8(v[0]).to_array(), F32x8(v[1]).to_array(), F32x8(v[2]).to_array()]
-        };
-        let (dir_inv, origin, t_max) = (lanes(&dir_inv), lanes(&origin), t_max.to_array());
-        let mut rows = 0u64;
-        let mut todo = rays & 0xff;
-        while todo != 0 {
-            let r = todo.trailing_zeros() as usize & 7;
-            todo &= todo - 1;
-            let d = [dir_inv[0][r], dir_inv[1][r], dir_inv[2][r]];
-            let o = [origin[0][r], origin[1][r], origin[2][r]];
-            // SAFETY: `self` proves the CPU has AVX2.
-            rows |= u64::from(unsafe { child_box_hits_avx2(&near, &far, d, o, t_max[r]) }) << (8 * r);
-        }
-        rows
+        // SAFETY: `self` proves the CPU has AVX2.
+        unsafe { child_box_hits_avx2(&near, &far, dir_inv, origin, t_max) }
     }
 }
 
@@ -1178,56 +1157,6 @@ fn child_box_hits_avx2(
     let (tmin_y, tmax_y) = axis(1);
     let (tmin_z, tmax_z) = axis(2);
     interval_hits_avx2(&[tmin_x, tmin_y, tmin_z], &[tmax_x, tmax_y, tmax_z], _mm256_set1_ps(t_max))
-}
-
-/// [`Avx2::packet_child_hits`] in 512-bit lanes: two rays at a time, the node's 8 children in
-/// each half (lanes 0..8: the first ray, 8..16: the second), each ray's values spread over its
-/// half by a permutation (exact copies), then [`child_box_hits_avx2`]'s operations in the same
-/// order.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt,avx512f,avx512vl,avx512bw,avx512dq,avx512cd")]
-#[inline]
-fn packet_child_hits_avx512(
-    near: &[std::arch::x86_64::__m256; 3],
-    far: &[std::arch::x86_64::__m256; 3],
-    dir_inv: &[std::arch::x86_64::__m256; 3],
-    origin: &[std::arch::x86_64::__m256; 3],
-    t_max: std::arch::x86_64::__m256,
-    rays: u32,
-) -> u64 {
-    use std::arch::x86_64::*;
-    let both = |v: __m256| _mm512_insertf32x8::<1>(_mm512_castps256_ps512(v), v);
-    let (near, far) = ([both(near[0]), both(near[1]), both(near[2])], [both(far[0]), both(far[1]), both(far[2])]);
-    let wide = |v: __m256| _mm512_castps256_ps512(v);
-    let (dir_inv, origin) =
-        ([wide(dir_inv[0]), wide(dir_inv[1]), wide(dir_inv[2])], [wide(origin[0]), wide(origin[1]), wide(origin[2])]);
-    let t_max = wide(t_max);
-    let epsilon = _mm512_set1_ps(NODE_EPSILON);
-    let mut rows = 0u64;
-    let mut todo = rays & 0xff;
-    while todo != 0 {
-        let r0 = todo.trailing_zeros();
-        todo &= todo - 1;
-        // An odd ray out pairs with itself.
-        let r1 = if todo != 0 { todo.trailing_zeros() } else { r0 };
-        todo &= todo.wrapping_sub(1);
-        let index = _mm512_mask_blend_epi32(0xff00, _mm512_set1_epi32(r0 as i32), _mm512_set1_epi32(r1 as i32));
-        let axis = |a: usize| {
-            let d = _mm512_permutexvar_ps(index, dir_inv[a]);
-            let o = _mm512_permutexvar_ps(index, origin[a]);
-            (_mm512_add_ps(_mm512_mul_ps(near[a], d), o), _mm512_add_ps(_mm512_mul_ps(far[a], d), o))
-        };
-        let (tmin_x, tmax_x) = axis(0);
-        let (tmin_y, tmax_y) = axis(1);
-        let (tmin_z, tmax_z) = axis(2);
-        let tmin = _mm512_max_ps(tmin_x, _mm512_max_ps(tmin_y, tmin_z));
-        let tmax = _mm512_min_ps(tmax_x, _mm512_min_ps(tmax_y, tmax_z));
-        let tmin = _mm512_max_ps(tmin, epsilon);
-        let tmax = _mm512_min_ps(tmax, _mm512_permutexvar_ps(index, t_max));
-        let hits = u64::from(_mm512_cmp_ps_mask::<_CMP_LE_OQ>(tmin, tmax));
-        rows |= (hits & 0xff) << (8 * r0) | (hits >> 8) << (8 * r1);
-    }
-    rows
 }
 
 /// The node test's last part, lane-wise: from the entry and exit distances per axis, where
