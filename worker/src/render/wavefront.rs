@@ -47,7 +47,8 @@
 //! edge functions, a packet's closest hits kept in lanes, the bench built as the `dist`
 //! profile ships (fat LTO) and a batch's surfaces made in one loop, to 6.67k (437.1M). On an
 //! AMD EPYC with AVX-512 (Zen 5): a sorted class's rays ordered by the octant of their origin
-//! (`accel`), to 6.53k (427.8M).
+//! (`accel`), to 6.53k (427.8M). On an Intel Xeon with AVX-512: the light kernel's inputs
+//! reused from chunk to chunk, to 6.50k (425.9M).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
