@@ -864,7 +864,7 @@ impl RenderScene {
         };
         let mut queries = queries.peekable();
         let mut chunk = 0;
-        // Reused from chunk to chunk (a fresh one zeroed 768 bytes per 8 points, 0.3% of the
+        // Reused from chunk to chunk (a fresh one zeroed 768 bytes per 8 points, 0.4% of the
         // Cornell box's instructions): lanes a chunk does not set keep old values, whose
         // results are never read (`get` looks up `picks` first).
         let mut lanes = LightLanes::default();
