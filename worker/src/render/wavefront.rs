@@ -59,6 +59,15 @@
 //! anything). Nothing crosses lanes: a sample's value is the same whatever batch it is in, so
 //! images stay deterministic and split-invariant. The tests render whole tiles both ways and
 //! compare bits.
+//!
+//! Tried on an AMD EPYC with AVX-512 (Zen 4) and dropped: the stages from arrival to shading
+//! run over the live paths a chunk at a time (arrival, the bounce's numbers, the diffuse
+//! directions, the light samples and shading for 64 paths, then the next 64), so that a chunk's
+//! paths and surfaces stay in the L1 cache between stages (perf puts many of the stage loops'
+//! cycles on their first reads of a path or surface). `tiny` 425.9M -> 429.0M instructions
+//! (chunks of 8: 447.6M; 32: 432.5M; 128: 427.4M; 256: 426.7M), `tiny long` 1.038x the time with
+//! chunks of 64, 0.991x (quartiles 0.935-1.009) with 128 and 1.003x with 256 (median of 15
+//! interleaved pairs): within the machine's noise at best.
 
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;

@@ -17,7 +17,11 @@
 //! 256-bit halves, so they save front-end work only; nor, measurably, on an Intel Xeon with
 //! full-width AVX-512 units (`tiny long`, 25 interleaved pairs: median ratio 0.998, quartiles
 //! 0.958-1.037). Nor did the packet's triangle tests' edge functions for two triangles at once
-//! (an early skip of those no ray passes): 8.5% slower there.
+//! (an early skip of those no ray passes): 8.5% slower there. The whole bench compiled for
+//! x86-64-v3 (`RUSTFLAGS=-Ctarget-cpu=x86-64-v3`, so the stage code between the kernels too) ran
+//! `tiny long` in 0.968x the time (median of 9 interleaved pairs, quartiles 0.916-0.998) on an
+//! AMD EPYC (Zen 4): not worth a second build of the worker, and glam's `cross` would then fuse
+//! (below), changing bits against baseline workers.
 //!
 //! Determinism: a farm mixes CPUs, and its image must be bit-identical to a local render whatever
 //! worker rendered a unit. Every kernel here computes exactly the f32 operations of the baseline
