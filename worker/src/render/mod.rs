@@ -382,8 +382,10 @@ impl Renderer {
                 let mut splats = Vec::new();
                 if let (Integrator::Bdpt(params), None) = (&self.integrator, &self.shutter_cameras) {
                     // Room for a splat or two per sample from the start (grown from nothing,
-                    // the row's splats were copied at each doubling).
-                    splats.reserve(2 * out.len() * pass.s1.saturating_sub(pass.s0) as usize);
+                    // the row's splats were copied at each doubling), up to 2 MiB: a long pass
+                    // of a scene the light paths seldom splat into grows only as it needs.
+                    let samples = out.len() * pass.s1.saturating_sub(pass.s0) as usize;
+                    splats.reserve((2 * samples).min(MAX_SPLATS_RESERVED));
                     let row = BdptRow { tile, pass, mask, y };
                     self.bdpt_row(row, params, &mut sampler, bdpt_batch, &mut splats, out);
                     return splats;
@@ -481,6 +483,9 @@ struct BdptRow<'a> {
 /// Samples per [`BdptBatch`] of a row: enough visibility rays (about 8 a sample in the Cornell
 /// box at depth 8) that a batch's sorted packets fill.
 const BDPT_BATCH: usize = 64;
+
+/// The most splats a bdpt row's job makes room for before it has any (2 MiB).
+const MAX_SPLATS_RESERVED: usize = 1 << 16;
 
 /// The strategies (and visibility rays) a bdpt sample usually has, for which its batch makes
 /// room at once ([`BdptBatch::with_capacity`]).
