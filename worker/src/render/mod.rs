@@ -340,7 +340,7 @@ impl Renderer {
         // batches (their subpaths' vertices grown anew for each row cost more than the batched
         // rays saved), made with room for a batch's strategies and rays: a rayon job's batch
         // grown from nothing reallocated them 912 times in the bench's `tiny bdpt` (with the
-        // subpaths' and splats' room below: 706.3M -> 698.8M instructions, `tiny bdpt long`
+        // subpaths' and splats' room below: 706.3M -> 699.3M instructions, `tiny bdpt long`
         // 0.980x the time, median of 11 interleaved pairs).
         let no_wavefront = || {
             let bdpt = match &self.integrator {

@@ -66,8 +66,8 @@
 //! paths and surfaces stay in the L1 cache between stages (perf puts many of the stage loops'
 //! cycles on their first reads of a path or surface). `tiny` 425.9M -> 429.0M instructions
 //! (chunks of 8: 447.6M; 32: 432.5M; 128: 427.4M; 256: 426.7M), `tiny long` 1.038x the time with
-//! chunks of 64, 0.991x (quartiles 0.935-1.009) with 128 and 1.003x with 256 (median of 15
-//! interleaved pairs): within the machine's noise at best.
+//! chunks of 64 (median of 9 interleaved pairs), 0.991x (quartiles 0.935-1.009) with 128 and
+//! 1.003x with 256 (15 pairs each): within the machine's noise at best.
 
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;
