@@ -31,7 +31,7 @@ use integrator::{PathParams, li_path};
 use pathfarm_common::adaptive::BlockMask;
 use pathfarm_common::assembly::FilmAssembly;
 use pathfarm_common::film::{self, Film, SplatBuffer, TileAccum};
-use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect};
+use pathfarm_common::job::{IntegratorSettings, MisHeuristic, Pass, RenderSettings, TileRect, UnitKey};
 use pathfarm_common::scene::{self as scene_model, EnvironmentImage, Scene};
 use rayon::prelude::*;
 use sampler::{AnySampler, Sampler};
@@ -302,6 +302,14 @@ impl Renderer {
             }
         }
         Ok(self.render_tile_unit(tile, pass, mask))
+    }
+
+    /// Builds what the units of `pass` share (igi's VPL sets of its samples), so that units
+    /// rendered at once find it made rather than each making it.
+    pub fn prepare_pass(&self, pass: Pass) {
+        if let Integrator::Igi(p) = self.integrator {
+            self.vpls.get(&self.scene, &p, self.settings.sampler, self.settings.seed, pass);
+        }
     }
 
     fn render_tile_unit(&self, tile: TileRect, pass: Pass, mask: Option<&BlockMask>) -> UnitResult {
@@ -660,12 +668,27 @@ fn environment_spec(
     Ok(Some(EnvironmentSpec { image, scale, rotation_deg: env.rotation_deg }))
 }
 
-/// Renders a whole job locally, unit by unit in canonical order, exactly as the farm does.
+/// The most memory `render_local`'s units in flight may hold at once (their tiles' sums, and
+/// bdpt's whole-image splat buffers): at least one unit is always in flight.
+const LOCAL_IN_FLIGHT_BYTES: usize = 64 << 20;
+
+/// Renders a whole job locally, folding its units in canonical order, exactly as the farm does.
 /// `progress(done, total)` is called after each unit.
+///
+/// Consecutive units of one pass (each of its own tile) render at once on the rayon pool, up to
+/// twice its threads and [`LOCAL_IN_FLIGHT_BYTES`], and are folded in order when all are done:
+/// one unit at a time, each unit's last rows left a thread idle, and so did each fold. Measured
+/// on an Intel Xeon (2 threads, interleaved runs, ratios of wall time): progressive passes of
+/// the Cornell box (256 x 256, 16 spp) 0.907x (9 pairs), of the 130k-triangle scene (64 spp)
+/// 0.951x (25 pairs, quartiles 0.892-1.001); one pass of 64 spp, 1.004x (noise: its 16 units
+/// are long). Each unit's result is the same whenever it renders, so the film is the same bits
+/// as one unit at a time (`tests/local.rs`).
 ///
 /// With adaptive sampling the passes run in order and, after each pass, every tile's mask comes
 /// from [`pathfarm_common::adaptive::converged_blocks`] of the film's merged sums of that tile; the next pass
 /// renders with it, and a tile whose blocks have all converged is skipped (counted as done).
+/// (A tile's mask depends only on its own earlier passes, which are folded before its next
+/// unit renders.)
 pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize)) -> Film {
     let settings = renderer.settings();
     let plan = settings.plan();
@@ -673,20 +696,60 @@ pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize))
     let mut asm = FilmAssembly::new(&plan, settings.width, settings.height);
     let adaptive = settings.adaptive.as_ref().map(|a| (a, settings.spp));
     let total = plan.unit_count();
-    for (done, key) in plan.units().enumerate() {
-        let (tile, pass) = (plan.tiles[key.tile as usize], plan.passes[key.pass as usize]);
-        // A tile whose every block converged left the schedule (its later passes count as done).
-        if asm.next_pass(key.tile as usize) == key.pass {
-            let mask = asm.mask(key.tile as usize);
-            let r = if mask.is_some() {
-                // The settings were validated (no bdpt) and the mask is of this tile.
-                renderer.render_unit_masked(tile, pass, mask).unwrap_or_else(|e| unreachable!("{e}"))
-            } else {
-                renderer.render_unit(tile, pass)
-            };
-            asm.offer(&plan, adaptive, key, r.accum, r.splats);
+    let most_units = 2 * rayon::current_num_threads().max(1);
+    let splat_bytes = match renderer.integrator {
+        Integrator::Bdpt(_) => {
+            settings.width as usize * settings.height as usize * 3 * std::mem::size_of::<film::Fixed>()
         }
-        progress(done + 1, total);
+        _ => 0,
+    };
+    let unit_bytes = |key: &UnitKey| {
+        plan.tiles[key.tile as usize].pixel_count() * std::mem::size_of::<film::PixelSums>() + splat_bytes
+    };
+    let mut units = plan.units().peekable();
+    let mut chunk = Vec::with_capacity(most_units);
+    let mut done = 0;
+    while let Some(first) = units.next() {
+        chunk.clear();
+        chunk.push(first);
+        let mut bytes = unit_bytes(&first);
+        while chunk.len() < most_units
+            && let Some(next) = units.peek()
+            && next.pass == first.pass
+            && bytes + unit_bytes(next) <= LOCAL_IN_FLIGHT_BYTES
+        {
+            bytes += unit_bytes(next);
+            chunk.extend(units.next());
+        }
+        let pass = plan.passes[first.pass as usize];
+        // The pass's shared state (igi's VPL sets) built once, before its units look it up.
+        renderer.prepare_pass(pass);
+        let asm_now = &asm;
+        let results: Vec<Option<UnitResult>> = chunk
+            .par_iter()
+            .map(|key| {
+                // A tile whose every block converged left the schedule (its later passes count
+                // as done).
+                if asm_now.next_pass(key.tile as usize) != key.pass {
+                    return None;
+                }
+                let tile = plan.tiles[key.tile as usize];
+                let mask = asm_now.mask(key.tile as usize);
+                Some(if mask.is_some() {
+                    // The settings were validated (no bdpt) and the mask is of this tile.
+                    renderer.render_unit_masked(tile, pass, mask).unwrap_or_else(|e| unreachable!("{e}"))
+                } else {
+                    renderer.render_unit(tile, pass)
+                })
+            })
+            .collect();
+        for (&key, r) in chunk.iter().zip(results) {
+            if let Some(r) = r {
+                asm.offer(&plan, adaptive, key, r.accum, r.splats);
+            }
+            done += 1;
+            progress(done, total);
+        }
     }
     asm.into_film().unwrap_or_else(|| unreachable!("render_local never takes the film away"))
 }
