@@ -26,7 +26,7 @@ pub mod wide;
 use bdpt::{BdptBatch, BdptParams, li_bdpt};
 use camera::Camera;
 use glam::{UVec2, Vec2, Vec3A};
-use igi::{IgiParams, IgiScratch, VplCache, li_igi};
+use igi::{IgiParams, IgiScratch, VplCache};
 use integrator::{PathParams, li_path};
 use pathfarm_common::adaptive::BlockMask;
 use pathfarm_common::assembly::FilmAssembly;
@@ -398,7 +398,11 @@ impl Renderer {
                     self.bdpt_row(row, params, &mut sampler, bdpt_batch, &mut splats, out);
                     return splats;
                 }
-                let mut igi_scratch = IgiScratch::default();
+                if let Integrator::Igi(params) = &self.integrator {
+                    let row = BdptRow { tile, pass, mask, y };
+                    self.igi_row(row, params, vpls.as_deref().unwrap_or_default(), &mut sampler, out);
+                    return splats;
+                }
                 for (x, pixel_out) in (tile.x0..tile.x1).zip(out.iter_mut()) {
                     if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
                         // A converged block: no samples, nothing added by the merge (its sums
@@ -446,21 +450,8 @@ impl Renderer {
                                     time,
                                 )
                             }
-                            Integrator::Igi(params) => {
-                                sampler.start_pixel_sample(pixel, s, 0);
-                                match vpls.as_ref().and_then(|v| v.get((s - pass.s0) as usize)) {
-                                    Some(vpls) => li_igi(
-                                        &self.scene,
-                                        &self.camera,
-                                        pixel,
-                                        &mut sampler,
-                                        params,
-                                        vpls,
-                                        &mut igi_scratch,
-                                    ),
-                                    None => film::SampleValue::default(),
-                                }
-                            }
+                            // Rendered by `igi_row` above.
+                            Integrator::Igi(_) => film::SampleValue::default(),
                         };
                         acc.add(&v);
                     }
@@ -479,7 +470,7 @@ impl Renderer {
     }
 }
 
-/// A row of a tile's pass for [`Renderer::bdpt_row`].
+/// A row of a tile's pass for [`Renderer::bdpt_row`] and [`Renderer::igi_row`].
 #[derive(Clone, Copy)]
 struct BdptRow<'a> {
     tile: TileRect,
@@ -559,6 +550,61 @@ impl Renderer {
             && let Some(slot) = out.get_mut(o)
         {
             *slot = a.finish();
+        }
+    }
+
+    /// Row `row.y` of a tile for the `igi` integrator: its samples (pixel by pixel, each
+    /// pixel's in sample order, with `vpls`, the pass's VPL sets by sample) recorded until
+    /// their VPLs' shadow rays fill a batch ([`igi::IGI_BATCH_RAYS`]), the batch's rays
+    /// answered at once ([`IgiScratch`]), each pixel's values folded in sample order; the row's
+    /// sums written to `out` (converged pixels left as they are).
+    fn igi_row<S: Sampler>(
+        &self,
+        row: BdptRow<'_>,
+        params: &IgiParams,
+        vpls: &[std::sync::Arc<igi::VplSets>],
+        sampler: &mut S,
+        out: &mut [film::PixelSums],
+    ) {
+        let BdptRow { tile, pass, mask, y } = row;
+        let mut scratch = IgiScratch::default();
+        let mut accs = vec![film::PixelAccum::default(); out.len()];
+        // The pixel (offset in the row) of each recorded sample, in order.
+        let mut owners: Vec<usize> = Vec::new();
+        let mut flush = |scratch: &mut IgiScratch, owners: &mut Vec<usize>| {
+            let mut owner = owners.iter();
+            scratch.resolve(&self.scene, |v| {
+                if let Some(acc) = owner.next().and_then(|&k| accs.get_mut(k)) {
+                    acc.add(v);
+                }
+            });
+            owners.clear();
+        };
+        let mut converged = vec![false; out.len()];
+        for (k, x) in (tile.x0..tile.x1).enumerate() {
+            if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
+                // A converged block: no samples, nothing added by the merge.
+                if let Some(c) = converged.get_mut(k) {
+                    *c = true;
+                }
+                continue;
+            }
+            let pixel = UVec2::new(x, y);
+            for s in pass.samples() {
+                sampler.start_pixel_sample(pixel, s, 0);
+                let sets = vpls.get((s - pass.s0) as usize).map(|v| &**v);
+                scratch.record(&self.scene, &self.camera, pixel, sampler, params, sets);
+                owners.push(k);
+                if scratch.rays() >= igi::IGI_BATCH_RAYS {
+                    flush(&mut scratch, &mut owners);
+                }
+            }
+        }
+        flush(&mut scratch, &mut owners);
+        for ((slot, acc), &converged) in out.iter_mut().zip(&accs).zip(&converged) {
+            if !converged {
+                *slot = acc.finish();
+            }
         }
     }
 
