@@ -1319,8 +1319,9 @@ const MIN_PACKET: usize = 4;
 /// Origin cells of a sorted class: a class's rays are ordered by the octant of their origin
 /// around the scene's center (`Accel::sort_center`), so that its packets hold rays that start
 /// near one another (packets still span cells: only a class ends one). Batches of up to
-/// [`SMALL_SORTED_BATCH`] rays (an IGI point's rays to its VPLs, which share their origin) are
-/// sorted by class alone: with cells there too, `tiny igi` took 711.9M -> 721.2M instructions.
+/// [`SMALL_SORTED_BATCH`] rays are sorted by class alone: with cells there too, `tiny igi`
+/// took 711.9M -> 721.2M instructions when it queried each point's rays to its VPLs (which
+/// share their origin) apart; it now queries many points' at once (`igi::IgiScratch`).
 /// Measured on the Cornell box (the bench's callgrind runs): `tiny` 437.1M -> 427.8M, `tiny
 /// solid` 473.6M -> 464.2M, `tiny igi` 711.9M -> 712.2M; cells everywhere 434.0M; 64 cells
 /// (a 4^3 grid) 446.3M, 27 cells 442.5M (the sort's own cost).

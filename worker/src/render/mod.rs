@@ -722,7 +722,7 @@ const LOCAL_IN_FLIGHT_BYTES: usize = 64 << 20;
 /// `progress(done, total)` is called after each unit.
 ///
 /// Consecutive units of one pass (each of its own tile) render at once on the rayon pool, up to
-/// twice its threads and [`LOCAL_IN_FLIGHT_BYTES`], and are folded in order when all are done:
+/// twice its threads and 64 MiB of results, and are folded in order when all are done:
 /// one unit at a time, each unit's last rows left a thread idle, and so did each fold. Measured
 /// on an Intel Xeon (2 threads, interleaved runs, ratios of wall time): progressive passes of
 /// the Cornell box (256 x 256, 16 spp) 0.907x (9 pairs), of the 130k-triangle scene (64 spp)
