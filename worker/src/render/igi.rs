@@ -446,6 +446,19 @@ pub struct IgiScratch {
 pub const IGI_BATCH_RAYS: usize = 1024;
 
 impl IgiScratch {
+    /// Room for a batch of `rays` shadow rays (and a sample's beyond them), their sums' ops
+    /// and samples, made once for a thread's rows.
+    pub fn with_capacity(rays: usize) -> Self {
+        let room = rays + 256;
+        Self {
+            ops: Vec::with_capacity(2 * room),
+            rays: Vec::with_capacity(room),
+            blocked: Vec::with_capacity(room),
+            samples: Vec::with_capacity(room / 16),
+            stack: Vec::with_capacity(16),
+        }
+    }
+
     /// The shadow rays recorded so far.
     pub fn rays(&self) -> usize {
         self.rays.len()
@@ -474,11 +487,16 @@ impl IgiScratch {
     /// The recorded samples' values in recording order, passed to `each`: their shadow rays
     /// answered in one batch, their sums replayed. Leaves the scratch empty.
     pub fn resolve(&mut self, scene: &RenderScene, mut each: impl FnMut(&SampleValue)) {
-        self.blocked.clear();
-        let mut blocked = Vec::new();
-        for rays in self.rays.chunks(super::accel::SORTED_BATCH) {
-            scene.occluded_many(rays, &mut blocked);
-            self.blocked.extend_from_slice(&blocked);
+        if self.rays.len() <= super::accel::SORTED_BATCH {
+            scene.occluded_many(&self.rays, &mut self.blocked);
+        } else {
+            // No more at once than a query sorts.
+            self.blocked.clear();
+            let mut blocked = Vec::new();
+            for rays in self.rays.chunks(super::accel::SORTED_BATCH) {
+                scene.occluded_many(rays, &mut blocked);
+                self.blocked.extend_from_slice(&blocked);
+            }
         }
         let mut start = 0;
         for (v, end) in &mut self.samples {

@@ -349,13 +349,19 @@ impl Renderer {
         // rays saved), made with room for a batch's strategies and rays: a rayon job's batch
         // grown from nothing reallocated them 912 times in the bench's `tiny bdpt` (with the
         // subpaths' and splats' room below: 706.3M -> 699.3M instructions, `tiny bdpt long`
-        // 0.980x the time, median of 11 interleaved pairs).
+        // 0.980x the time, median of 11 interleaved pairs). So is igi's scratch, with room for
+        // a batch (grown from nothing row by row, its growth was 3% of `tiny igi`'s
+        // instructions).
         let no_wavefront = || {
             let bdpt = match &self.integrator {
                 Integrator::Bdpt(_) => BdptBatch::with_capacity(BDPT_BATCH, BDPT_STRATEGIES),
                 _ => BdptBatch::default(),
             };
-            (None::<Wavefront<S>>, bdpt)
+            let igi = match &self.integrator {
+                Integrator::Igi(_) => IgiScratch::with_capacity(igi::IGI_BATCH_RAYS),
+                _ => IgiScratch::default(),
+            };
+            (None::<Wavefront<S>>, bdpt, igi)
         };
         let wavefront = match (&self.integrator, self.path_kernel) {
             (Integrator::Path(params), PathKernel::Wavefront) => Some(params),
@@ -380,7 +386,7 @@ impl Renderer {
             .sums
             .par_chunks_mut((width * group as usize).max(1))
             .zip(groups)
-            .map_init(no_wavefront, |(wf, bdpt_batch), (out, (y, y_end))| {
+            .map_init(no_wavefront, |(wf, bdpt_batch, igi_scratch), (out, (y, y_end))| {
                 if let Some(params) = wavefront {
                     let wf = wf.get_or_insert_with(|| Wavefront::with_batch(wavefront::batch_len(&self.scene)));
                     self.path_rows_wavefront(wf, tile, pass, mask, y..y_end, params, &new_sampler, out);
@@ -400,7 +406,7 @@ impl Renderer {
                 }
                 if let Integrator::Igi(params) = &self.integrator {
                     let row = BdptRow { tile, pass, mask, y };
-                    self.igi_row(row, params, vpls.as_deref().unwrap_or_default(), &mut sampler, out);
+                    self.igi_row(row, params, vpls.as_deref().unwrap_or_default(), &mut sampler, igi_scratch, out);
                     return splats;
                 }
                 for (x, pixel_out) in (tile.x0..tile.x1).zip(out.iter_mut()) {
@@ -564,10 +570,10 @@ impl Renderer {
         params: &IgiParams,
         vpls: &[std::sync::Arc<igi::VplSets>],
         sampler: &mut S,
+        scratch: &mut IgiScratch,
         out: &mut [film::PixelSums],
     ) {
         let BdptRow { tile, pass, mask, y } = row;
-        let mut scratch = IgiScratch::default();
         let mut accs = vec![film::PixelAccum::default(); out.len()];
         // The pixel (offset in the row) of each recorded sample, in order.
         let mut owners: Vec<usize> = Vec::new();
@@ -596,11 +602,11 @@ impl Renderer {
                 scratch.record(&self.scene, &self.camera, pixel, sampler, params, sets);
                 owners.push(k);
                 if scratch.rays() >= igi::IGI_BATCH_RAYS {
-                    flush(&mut scratch, &mut owners);
+                    flush(scratch, &mut owners);
                 }
             }
         }
-        flush(&mut scratch, &mut owners);
+        flush(scratch, &mut owners);
         for ((slot, acc), &converged) in out.iter_mut().zip(&accs).zip(&converged) {
             if !converged {
                 *slot = acc.finish();
