@@ -434,8 +434,9 @@ pub struct IgiScratch {
     ops: Vec<SumOp>,
     rays: Vec<RayQuery>,
     blocked: Vec<bool>,
-    /// Per recorded sample: its value (radiance to come) and the end of its ops.
-    samples: Vec<(SampleValue, usize)>,
+    /// Per recorded sample: its owner (the caller's tag), its value (radiance to come) and the
+    /// end of its ops.
+    samples: Vec<(usize, SampleValue, usize)>,
     /// The sums' stack while replaying.
     stack: Vec<Vec3A>,
 }
@@ -467,7 +468,7 @@ impl IgiScratch {
 
     /// Records one IGI camera sample through `pixel` (the sampler positioned at dimension 0)
     /// with the VPL sets of its sample index (`None`: no sets, a zero sample): its value
-    /// comes from [`IgiScratch::resolve`], in recording order.
+    /// comes from [`IgiScratch::resolve`], in recording order, with `owner`.
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         &mut self,
@@ -477,17 +478,18 @@ impl IgiScratch {
         sampler: &mut impl Sampler,
         params: &IgiParams,
         vpls: Option<&VplSets>,
+        owner: usize,
     ) {
         let v = match vpls {
             Some(vpls) => record_igi(scene, camera, pixel, sampler, params, vpls, self),
             None => SampleValue::default(),
         };
-        self.samples.push((v, self.ops.len()));
+        self.samples.push((owner, v, self.ops.len()));
     }
 
-    /// The recorded samples' values in recording order, passed to `each`: their shadow rays
-    /// answered in one batch, their sums replayed. Leaves the scratch empty.
-    pub fn resolve(&mut self, scene: &RenderScene, mut each: impl FnMut(&SampleValue)) {
+    /// The recorded samples' owners and values in recording order, passed to `each`: their
+    /// shadow rays answered in one batch, their sums replayed. Leaves the scratch empty.
+    pub fn resolve(&mut self, scene: &RenderScene, mut each: impl FnMut(usize, &SampleValue)) {
         if self.rays.len() <= super::accel::SORTED_BATCH {
             scene.occluded_many(&self.rays, &mut self.blocked);
         } else {
@@ -500,7 +502,7 @@ impl IgiScratch {
             }
         }
         let mut start = 0;
-        for (v, end) in &mut self.samples {
+        for (owner, v, end) in &mut self.samples {
             let mut l = Vec3A::ZERO;
             for op in &self.ops[start..*end] {
                 match *op {
@@ -523,7 +525,7 @@ impl IgiScratch {
             }
             start = *end;
             v.radiance = l.to_array();
-            each(v);
+            each(*owner, v);
         }
         self.ops.clear();
         self.rays.clear();

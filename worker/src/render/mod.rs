@@ -400,12 +400,12 @@ impl Renderer {
                     // of a scene the light paths seldom splat into grows only as it needs.
                     let samples = out.len() * pass.s1.saturating_sub(pass.s0) as usize;
                     splats.reserve((2 * samples).min(MAX_SPLATS_RESERVED));
-                    let row = BdptRow { tile, pass, mask, y };
+                    let row = TileRow { tile, pass, mask, y };
                     self.bdpt_row(row, params, &mut sampler, bdpt_batch, &mut splats, out);
                     return splats;
                 }
                 if let Integrator::Igi(params) = &self.integrator {
-                    let row = BdptRow { tile, pass, mask, y };
+                    let row = TileRow { tile, pass, mask, y };
                     self.igi_row(row, params, vpls.as_deref().unwrap_or_default(), &mut sampler, igi_scratch, out);
                     return splats;
                 }
@@ -478,7 +478,7 @@ impl Renderer {
 
 /// A row of a tile's pass for [`Renderer::bdpt_row`] and [`Renderer::igi_row`].
 #[derive(Clone, Copy)]
-struct BdptRow<'a> {
+struct TileRow<'a> {
     tile: TileRect,
     pass: Pass,
     mask: Option<&'a BlockMask>,
@@ -506,14 +506,14 @@ impl Renderer {
     /// (converged pixels left as they are).
     fn bdpt_row<S: Sampler>(
         &self,
-        row: BdptRow<'_>,
+        row: TileRow<'_>,
         params: &BdptParams,
         sampler: &mut S,
         batch: &mut BdptBatch,
         splats: &mut Vec<Splat>,
         out: &mut [film::PixelSums],
     ) {
-        let BdptRow { tile, pass, mask, y } = row;
+        let TileRow { tile, pass, mask, y } = row;
         let mut values = Vec::with_capacity(BDPT_BATCH);
         // The pixels of the samples in the batch, and the pixel whose values are being folded.
         let mut owners: Vec<usize> = Vec::with_capacity(BDPT_BATCH);
@@ -568,49 +568,41 @@ impl Renderer {
     /// sums written to `out` (converged pixels left as they are).
     fn igi_row<S: Sampler>(
         &self,
-        row: BdptRow<'_>,
+        row: TileRow<'_>,
         params: &IgiParams,
         vpls: &[std::sync::Arc<igi::VplSets>],
         sampler: &mut S,
         scratch: &mut IgiScratch,
         out: &mut [film::PixelSums],
     ) {
-        let BdptRow { tile, pass, mask, y } = row;
+        let TileRow { tile, pass, mask, y } = row;
         let mut accs = vec![film::PixelAccum::default(); out.len()];
-        // The pixel (offset in the row) of each recorded sample, in order.
-        let mut owners: Vec<usize> = Vec::new();
-        let mut flush = |scratch: &mut IgiScratch, owners: &mut Vec<usize>| {
-            let mut owner = owners.iter();
-            scratch.resolve(&self.scene, |v| {
-                if let Some(acc) = owner.next().and_then(|&k| accs.get_mut(k)) {
+        let mut flush = |scratch: &mut IgiScratch| {
+            scratch.resolve(&self.scene, |k, v| {
+                if let Some(acc) = accs.get_mut(k) {
                     acc.add(v);
                 }
             });
-            owners.clear();
         };
-        let mut converged = vec![false; out.len()];
+        let converged = |x: u32| mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0));
         for (k, x) in (tile.x0..tile.x1).enumerate() {
-            if mask.is_some_and(|m| m.pixel_converged(x - tile.x0, y - tile.y0)) {
-                // A converged block: no samples, nothing added by the merge.
-                if let Some(c) = converged.get_mut(k) {
-                    *c = true;
-                }
+            if converged(x) {
                 continue;
             }
             let pixel = UVec2::new(x, y);
             for s in pass.samples() {
                 sampler.start_pixel_sample(pixel, s, 0);
                 let sets = vpls.get((s - pass.s0) as usize).map(|v| &**v);
-                scratch.record(&self.scene, &self.camera, pixel, sampler, params, sets);
-                owners.push(k);
+                scratch.record(&self.scene, &self.camera, pixel, sampler, params, sets, k);
                 if scratch.rays() >= igi::IGI_BATCH_RAYS {
-                    flush(scratch, &mut owners);
+                    flush(scratch);
                 }
             }
         }
-        flush(scratch, &mut owners);
-        for ((slot, acc), &converged) in out.iter_mut().zip(&accs).zip(&converged) {
-            if !converged {
+        flush(scratch);
+        // A converged block: no samples, nothing added by the merge (its sums stay zero).
+        for ((slot, acc), x) in out.iter_mut().zip(&accs).zip(tile.x0..tile.x1) {
+            if !converged(x) {
                 *slot = acc.finish();
             }
         }
