@@ -25,13 +25,14 @@
 //!
 //! The VPL terms of a point are computed for all of its set's VPLs, and their shadow rays wait:
 //! a row's samples are recorded ([`IgiScratch`]: each sample's radiance as the sequence of
-//! additions it makes, the VPL terms' conditional on their rays) until their rays fill a batch
-//! of [`IGI_BATCH_RAYS`], answered in one query, and the sums are then replayed in their order
+//! additions it makes, each VPL term's conditional on its ray) until their rays fill a batch of
+//! [`IGI_BATCH_RAYS`], answered in one query, and the sums are then replayed in their order
 //! (the same f32 operations: the digests of `tests/wavefront.rs` did not move). One point's 64
-//! rays spread over the BVH's 24 ray classes, mostly too few to trace as a packet; a batch's
-//! fill them. Measured on an Intel Xeon (AVX-512): `tiny igi long` 0.887x-0.900x the time (medians of
-//! 9 and 7 interleaved pairs), with the same instructions (713.8M -> 718.6M on `tiny igi`); the
-//! scratch made once per rayon job with room for a batch, 0.941x more (691.8M).
+//! rays spread over the BVH's 24 ray classes, mostly too few per class to trace as a packet;
+//! the rays of a batch fill them. Measured on an Intel Xeon (AVX-512): `tiny igi long`
+//! 0.887x-0.900x the time (medians of 9 and 7 interleaved pairs), with the same instructions
+//! (713.8M -> 718.6M on `tiny igi`); the scratch made once per rayon job with room for a
+//! batch, 0.941x more (691.4M).
 //! Where the point and every VPL of the set are bare Lambertian (the
 //! Cornell box), the terms are computed 8 VPLs at a time in AVX2 lanes ([`vpl_terms`], written
 //! once over [`Real`], the scalar bits): 21% fewer instructions on the bench's `tiny igi`.
