@@ -533,7 +533,12 @@ impl Sampled {
 /// ray in one [`RenderScene::intersect_many`], each walk with its own copy of the sampler): the
 /// walks cost as much as one ray at a time (258M instructions of `tiny bdpt` either way: their
 /// incoherent rays make few full packets) and the batch's bookkeeping more, `tiny bdpt` 706.3M
-/// -> 720.7M with 64 samples a batch, 735.2M with 256. They stay one ray at a time.
+/// -> 720.7M with 64 samples a batch, 735.2M with 256. Tried again and timed, as IGI's batched
+/// shadow rays had run faster at equal instructions (on an Intel Xeon with AVX-512; each walk a
+/// `Walk` stepped from one query of all live walks' rays, camera and light walks together):
+/// 699.4M -> 711.4M instructions, `tiny bdpt long` 1.055x the time (median of 9 interleaved
+/// pairs, quartiles 0.931-1.155), then 0.986x (15 pairs, quartiles 0.934-1.024): no gain
+/// beyond the noise. They stay one ray at a time.
 #[derive(Default)]
 pub struct BdptBatch {
     /// The batch's samples: their subpaths (kept for the MIS weights), reused.
