@@ -68,6 +68,12 @@
 //! (chunks of 8: 447.6M; 32: 432.5M; 128: 427.4M; 256: 426.7M), `tiny long` 1.038x the time with
 //! chunks of 64 (median of 9 interleaved pairs), 0.991x (quartiles 0.935-1.009) with 128 and
 //! 1.003x with 256 (15 pairs each): within the machine's noise at best.
+//!
+//! Tried on an Intel Xeon with AVX-512 and dropped: the stages' glue (`trace_batch`, 21% of
+//! `tiny long`'s time in perf, compiled for the baseline x86-64) run as a kernel compiled for
+//! the CPU's level (`wide::V3Kernel`): `tiny` 426.2M -> 425.0M instructions, `tiny long`
+//! 0.964x then 1.001x the time, `tiny large long` 1.058x then 1.033x (medians of 9 and 11
+//! interleaved pairs): no gain.
 
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;
