@@ -482,12 +482,26 @@ fn digest(scene: &Scene, integrator: IntegratorSettings, size: u32, spp: u32) ->
     let s = settings(size, spp, integrator);
     let r = Renderer::new(scene, &s).expect("renderer");
     let unit = r.render_unit(full_tile(&s), Pass { index: 0, s0: 0, s1: spp });
+    unit_digest(&unit, false)
+}
+
+/// FNV-1a over a unit's pixel sums in their wire layout and, with `splats`, then over its
+/// light-tracing splats.
+fn unit_digest(unit: &UnitResult, splats: bool) -> u64 {
     let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let mut fnv = |bytes: &[u8]| {
+        for &b in bytes {
+            h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    };
     let mut buf = [0u8; PIXEL_BYTES];
     for p in &unit.accum.sums {
         p.write_le(&mut buf);
-        for b in buf {
-            h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+        fnv(&buf);
+    }
+    if splats {
+        for v in unit.splats.iter().flat_map(|s| &s.sums) {
+            fnv(&v.to_le_bytes());
         }
     }
     h
@@ -549,20 +563,7 @@ fn bdpt_batches_give_the_unit_of_one_sample_at_a_time() {
     let unit = r.render_unit(full_tile(&s), Pass { index: 1, s0: 4, s1: 7 });
     let splats = unit.splats.as_ref().expect("bdpt splats");
     assert!(splats.sums.iter().any(|&v| v != 0), "no light-tracing splat");
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    let mut fnv = |bytes: &[u8]| {
-        for &b in bytes {
-            h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
-        }
-    };
-    let mut buf = [0u8; PIXEL_BYTES];
-    for p in &unit.accum.sums {
-        p.write_le(&mut buf);
-        fnv(&buf);
-    }
-    for v in &splats.sums {
-        fnv(&v.to_le_bytes());
-    }
+    let h = unit_digest(&unit, true);
     assert_eq!(h, 0x931b_0828_95f5_e637, "digest 0x{h:016x}");
 }
 
@@ -596,21 +597,7 @@ fn bdpt_units_with_lights_of_every_kind_keep_their_bits() {
     for (name, r, s) in cases {
         let r = r.expect("renderer");
         let unit = r.render_unit(full_tile(s), Pass { index: 1, s0: 4, s1: 7 });
-        let mut h = 0xcbf2_9ce4_8422_2325u64;
-        let mut fnv = |bytes: &[u8]| {
-            for &b in bytes {
-                h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
-            }
-        };
-        let mut buf = [0u8; PIXEL_BYTES];
-        for p in &unit.accum.sums {
-            p.write_le(&mut buf);
-            fnv(&buf);
-        }
-        for v in unit.splats.iter().flat_map(|s| &s.sums) {
-            fnv(&v.to_le_bytes());
-        }
-        got.push((name, h));
+        got.push((name, unit_digest(&unit, true)));
     }
     let want = [
         ("environment constant", 0xdb70_b8ca_0958_ab47),
