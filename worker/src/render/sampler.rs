@@ -469,6 +469,42 @@ impl Sampler for SobolSampler {
             out.extend(lanes.map(|s| s.get_pixel_2d()));
             return;
         };
+        // One kernel for the whole batch (one call per 8 samplers left each call's scrambles
+        // waiting on the last).
+        avx2.run_kernel(Pixel2dMany { avx2, lanes, out });
+    }
+
+    // Inline into its one caller (the wavefront's bounce loop): left to the inliner, it went in
+    // or out of line as unrelated code changed, and out of line cost 0.5% more instructions.
+    #[inline(always)]
+    fn bounce_draws_many<'a>(
+        lanes: impl Iterator<Item = &'a Self>,
+        level: super::wide::SimdLevel,
+        out: &mut Vec<BounceDraws>,
+    ) where
+        Self: 'a,
+    {
+        let Some(avx2) = super::wide::Avx2::at(level) else {
+            out.extend(lanes.map(|s| s.bounce_draws()));
+            return;
+        };
+        // One kernel for the whole batch (see `pixel_2d_many`).
+        avx2.run_kernel(BounceDrawsMany { avx2, lanes, out });
+    }
+}
+
+/// [`SobolSampler::pixel_2d_many`]'s loop, run as one kernel compiled for the CPU's level.
+struct Pixel2dMany<'o, I> {
+    avx2: super::wide::Avx2,
+    lanes: I,
+    out: &'o mut Vec<Vec2>,
+}
+
+impl<'a, I: Iterator<Item = &'a mut SobolSampler>> super::wide::V3Kernel for Pixel2dMany<'_, I> {
+    type Output = ();
+    #[inline(always)]
+    fn call(self) {
+        let Self { avx2, lanes, out } = self;
         // Eight samplers at a time: the 64-bit seeds of `get_2d` here (made once for a pixel's
         // samples: `repeat_or`), its scrambles 8-wide.
         let mut lanes = lanes.peekable();
@@ -487,28 +523,27 @@ impl Sampler for SobolSampler {
                 s.dim = s.dim.wrapping_add(2);
                 n += 1;
             }
-            let (x, y) = avx2.run(|| avx2.sobol_xy(&index, &seeds[0], &seeds[1], &seeds[2]));
+            let (x, y) = avx2.sobol_xy(&index, &seeds[0], &seeds[1], &seeds[2]);
             out.extend((0..n).map(|i| Vec2::new(x[i], y[i])));
         }
     }
+}
 
-    // Inline into its one caller (the wavefront's bounce loop): left to the inliner, it went in
-    // or out of line as unrelated code changed, and out of line cost 0.5% more instructions.
+/// [`SobolSampler::bounce_draws_many`]'s loop, run as one kernel compiled for the CPU's level.
+struct BounceDrawsMany<'o, I> {
+    avx2: super::wide::Avx2,
+    lanes: I,
+    out: &'o mut Vec<BounceDraws>,
+}
+
+impl<'a, I: Iterator<Item = &'a SobolSampler>> super::wide::V3Kernel for BounceDrawsMany<'_, I> {
+    type Output = ();
     #[inline(always)]
-    fn bounce_draws_many<'a>(
-        lanes: impl Iterator<Item = &'a Self>,
-        level: super::wide::SimdLevel,
-        out: &mut Vec<BounceDraws>,
-    ) where
-        Self: 'a,
-    {
-        let Some(avx2) = super::wide::Avx2::at(level) else {
-            out.extend(lanes.map(|s| s.bounce_draws()));
-            return;
-        };
+    fn call(self) {
+        let Self { avx2, lanes, out } = self;
         // Eight samplers at a time: the 64-bit seeds here (made once for a pixel's paths at one
         // bounce: `repeat_or`), the scrambles in 8-wide kernels.
-        let mut chunk: Vec<&Self> = Vec::with_capacity(8);
+        let mut chunk: Vec<&SobolSampler> = Vec::with_capacity(8);
         let mut lanes = lanes.peekable();
         let mut last: Option<((u64, u32), BounceSeeds)> = None;
         while lanes.peek().is_some() {
@@ -545,7 +580,7 @@ impl Sampler for SobolSampler {
             }
             // Row `r` of the requests' values (lanes), transposed: lane `i`'s 8 numbers in a
             // row (4 1D, then 2 2D).
-            let by_lane = avx2.run(|| {
+            let by_lane = {
                 let (x20, y20) = avx2.sobol_xy(&index, &seeds2[0][0], &seeds2[0][1], &seeds2[0][2]);
                 let (x21, y21) = avx2.sobol_xy(&index, &seeds2[1][0], &seeds2[1][1], &seeds2[1][2]);
                 avx2.transpose8x8(&[
@@ -558,7 +593,7 @@ impl Sampler for SobolSampler {
                     x21,
                     y21,
                 ])
-            });
+            };
             for (s, v) in chunk.iter().zip(&by_lane) {
                 out.push(BounceDraws {
                     base: s.dim,

@@ -53,7 +53,10 @@
 //! chain of divisions and square roots waiting on the last), `tiny` 426.2M -> 425.5M and the
 //! 130k-triangle scene, where 85% of camera rays miss, `tiny large` 1,391.5M -> 1,382.2M
 //! instructions, `tiny large long` 0.944x and 0.959x the time (medians of 11 interleaved pairs,
-//! quartiles 0.904-0.968 and 0.855-0.986; `tiny long` 1.007x: noise).
+//! quartiles 0.904-0.968 and 0.855-0.986; `tiny long` 1.007x: noise). The same for the
+//! Sobol draws of the pixel offsets and of each bounce (one kernel for the batch, not one call
+//! per 8 samplers): `tiny` 422.4M, `tiny large` 1,381.8M, `tiny large long` 0.903x and 0.962x
+//! (11 pairs each, quartiles 0.843-0.992 and 0.900-0.985), `tiny long` 1.003x.
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
