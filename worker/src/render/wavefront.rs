@@ -56,7 +56,11 @@
 //! quartiles 0.904-0.968 and 0.855-0.986; `tiny long` 1.007x: noise). The same for the
 //! Sobol draws of the pixel offsets and of each bounce (one kernel for the batch, not one call
 //! per 8 samplers): `tiny` 422.4M, `tiny large` 1,381.8M, `tiny large long` 0.903x and 0.962x
-//! (11 pairs each, quartiles 0.843-0.992 and 0.900-0.985), `tiny long` 1.003x.
+//! (11 pairs each, quartiles 0.843-0.992 and 0.900-0.985), `tiny long` 1.003x. Tried the same
+//! way and dropped: the cosine directions and the light samples in one kernel each: `tiny`
+//! 422.4M -> 420.7M, `tiny solid` 458.9M -> 456.6M instructions, but `tiny long` 0.922x and
+//! 0.990x, `tiny solid long` 1.026x and 1.018x (9 to 15 pairs): no gain in time (each call of
+//! these kernels has work enough of its own to overlap).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
