@@ -64,6 +64,11 @@
 //! their state (192 -> 160 bytes a path) and written in place into the caller's values: `tiny
 //! large` 1,381.8M -> 1,374.3M instructions, `tiny large long` 1.002x then 0.932x the time
 //! (medians of 11 interleaved pairs, quartiles 0.948-1.024 and 0.914-0.951), `tiny long` 0.971x.
+//! The batch's rays kept as an array of their own in the order of the live paths, written
+//! where a path starts or bounces (not a ray in each path, gathered into the query each
+//! bounce; 160 -> 128 bytes a path): `tiny` 422.6M -> 418.4M, `tiny solid` 459.0M -> 454.8M,
+//! `tiny large` 1,374.3M -> 1,360.1M instructions; `tiny large long` 0.933x the time, `tiny
+//! long` 1.012x and 0.993x, `tiny solid long` 1.026x (11 interleaved pairs each: noise).
 //!
 //! Bit identity with [`super::integrator::li_path`]: every path does exactly the f32 operations
 //! of the scalar integrator in the same order, with the same shared functions
@@ -108,7 +113,8 @@ use pathfarm_common::film::SampleValue;
 use pathfarm_common::job::MisHeuristic;
 
 /// Paths per batch: enough that a stage's loop runs long over warm code and data, few enough
-/// that the batch's state (160 bytes a path, and its sample value) stays in the L2 cache. 512 measured no
+/// that the batch's state (128 bytes a path, its ray and its sample value) stays in the L2
+/// cache. 512 measured no
 /// better on the 130k-triangle scene (Intel Xeon, `tiny large long` 0.967x and 0.995x the time,
 /// medians of 11 interleaved pairs).
 pub const BATCH: usize = 256;
@@ -142,10 +148,10 @@ pub enum PathKernel {
     Wavefront,
 }
 
-/// One path of a batch: the loop state of the scalar integrator.
+/// One path of a batch: the loop state of the scalar integrator, but its ray (the batch's
+/// rays are an array of their own, in the order of the live paths: see [`Wavefront::trace`]).
 struct PathState<S> {
     sampler: S,
-    ray: Ray,
     /// Shutter time of the path's camera sample (0 without motion blur).
     time: f32,
     l: Vec3A,
@@ -158,18 +164,17 @@ struct PathState<S> {
 }
 
 impl<S> PathState<S> {
-    /// A path at its camera ray, before its first bounce.
-    fn new(sampler: S, ray: Ray, time: f32) -> Self {
+    /// A path at its camera ray (from `origin`), before its first bounce.
+    fn new(sampler: S, origin: Vec3A, time: f32) -> Self {
         Self {
             sampler,
-            ray,
             time,
             l: Vec3A::ZERO,
             beta: Vec3A::ONE,
             eta_scale: 1.0,
             specular_bounce: true,
             prev_bsdf_pdf: 0.0,
-            prev_ctx: LightSampleContext { p: ray.o, n: Vec3A::ZERO },
+            prev_ctx: LightSampleContext { p: origin, n: Vec3A::ZERO },
             depth: 0,
         }
     }
@@ -177,16 +182,15 @@ impl<S> PathState<S> {
     /// Makes this path [`PathState::new`]'s, field by field in place (a new value would be
     /// built apart and copied: about 30 instructions a path).
     #[inline(always)]
-    fn reset(&mut self, sampler: S, ray: Ray, time: f32) {
+    fn reset(&mut self, sampler: S, origin: Vec3A, time: f32) {
         self.sampler = sampler;
-        self.ray = ray;
         self.time = time;
         self.l = Vec3A::ZERO;
         self.beta = Vec3A::ONE;
         self.eta_scale = 1.0;
         self.specular_bounce = true;
         self.prev_bsdf_pdf = 0.0;
-        self.prev_ctx = LightSampleContext { p: ray.o, n: Vec3A::ZERO };
+        self.prev_ctx = LightSampleContext { p: origin, n: Vec3A::ZERO };
         self.depth = 0;
     }
 }
@@ -208,7 +212,7 @@ struct LambertPath {
 }
 
 /// What the lanes of [`super::lambert`] write back to: the paths, and the stage's shadow rays
-/// and next live paths.
+/// and next live paths and their rays.
 struct LambertSink<'a, S> {
     paths: &'a mut [PathState<S>],
     /// The paths' sample values (the AOVs of their first hits).
@@ -216,6 +220,7 @@ struct LambertSink<'a, S> {
     shadows: &'a mut Vec<PendingShadow>,
     shadow_rays: &'a mut Vec<RayQuery>,
     next_live: &'a mut Vec<u32>,
+    next_rays: &'a mut Vec<RayQuery>,
 }
 
 /// A shadow ray's pending contribution: `beta * contribution` is added to the path's radiance
@@ -240,7 +245,10 @@ pub struct Wavefront<S> {
     /// direction number (`draws[k].d2[1]`), and those numbers.
     cosines: Vec<CosineSample>,
     cosine_us: Vec<Vec2>,
+    /// The live paths' rays (`rays[k]`: path `live[k]`'s), and the next bounce's (in the order
+    /// of `next_live`): written where a ray is made, not gathered from the paths each bounce.
     rays: Vec<RayQuery>,
+    next_rays: Vec<RayQuery>,
     hits: Vec<Option<Hit>>,
     surfaces: Vec<Option<SurfaceInteraction>>,
     /// The shading paths' light samples, where they are sampled ahead in lanes.
@@ -276,6 +284,7 @@ impl<S: Sampler> Wavefront<S> {
             cosines: Vec::with_capacity(batch),
             cosine_us: Vec::with_capacity(batch),
             rays: Vec::with_capacity(batch),
+            next_rays: Vec::with_capacity(batch),
             hits: Vec::with_capacity(batch),
             surfaces: Vec::with_capacity(batch),
             light_samples: LightBatch::with_capacity(batch),
@@ -325,24 +334,28 @@ impl<S: Sampler + Clone> Wavefront<S> {
         // The batch's paths are those of the last batch, reset in place.
         self.paths.truncate(samples.len());
         while self.paths.len() < samples.len() {
-            self.paths.push(PathState::new(proto.clone(), Ray::new(Vec3A::ZERO, Vec3A::Z), 0.0));
+            self.paths.push(PathState::new(proto.clone(), Vec3A::ZERO, 0.0));
         }
+        self.rays.clear();
         let Some(avx2) = lanes else {
             for (p, &(pixel, index)) in self.paths.iter_mut().zip(samples) {
                 proto.start_pixel_sample(pixel, index, 0);
                 let (sampler, ray, time) = camera_sample(proto.clone(), pixel, index, camera.camera, camera.shutter);
-                p.reset(sampler, ray, time);
+                p.reset(sampler, ray.o, time);
+                self.rays.push(RayQuery { o: ray.o, d: ray.d, t_max: f32::INFINITY, time });
             }
             return;
         };
         let origin = camera.camera.position();
         for (p, &(pixel, index)) in self.paths.iter_mut().zip(samples) {
             proto.start_pixel_sample(pixel, index, 0);
-            p.reset(proto.clone(), Ray::new(origin, Vec3A::Z), 0.0);
+            p.reset(proto.clone(), origin, 0.0);
         }
+        // Their directions are the kernel's.
+        self.rays.resize(samples.len(), RayQuery { o: origin, d: Vec3A::Z, t_max: f32::INFINITY, time: 0.0 });
         self.pixel_us.clear();
         S::pixel_2d_many(self.paths.iter_mut().map(|p| &mut p.sampler), level, &mut self.pixel_us);
-        let kernel = PinholeRays { avx2, camera: camera.camera, paths: &mut self.paths, us: &self.pixel_us, samples };
+        let kernel = PinholeRays { avx2, camera: camera.camera, rays: &mut self.rays, us: &self.pixel_us, samples };
         avx2.run_kernel(kernel);
     }
 
@@ -358,18 +371,13 @@ impl<S: Sampler + Clone> Wavefront<S> {
         self.live.clear();
         self.live.extend(0..self.paths.len() as u32);
         while !self.live.is_empty() {
-            // Intersection stage.
-            self.rays.clear();
-            self.rays.extend(self.live.iter().map(|&i| {
-                let p = &self.paths[i as usize];
-                RayQuery { o: p.ray.o, d: p.ray.d, t_max: f32::INFINITY, time: p.time }
-            }));
+            // Intersection stage (the rays were made where the paths were started or bounced).
             scene.intersect_many(&self.rays, &mut self.hits, &mut self.surfaces);
             // Arrival stage: emission, environment, depth limit.
             self.shading.clear();
-            for (k, &i) in self.live.iter().enumerate() {
+            for (k, (&i, ray)) in self.live.iter().zip(&self.rays).enumerate() {
                 let (path, value) = (&mut self.paths[i as usize], &mut values[i as usize]);
-                if arrive(scene, params, path, value, self.surfaces[k].as_ref()) {
+                if arrive(scene, params, path, value, ray.d, self.surfaces[k].as_ref()) {
                     self.shading.push(k as u32);
                 }
             }
@@ -408,6 +416,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
             self.shadows.clear();
             self.shadow_rays.clear();
             self.next_live.clear();
+            self.next_rays.clear();
             let lanes = (ahead
                 && scene.has_plain_lambert()
                 && matches!(params.mis, MisHeuristic::Power | MisHeuristic::Balance))
@@ -419,14 +428,16 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 shadows: &mut self.shadows,
                 shadow_rays: &mut self.shadow_rays,
                 next_live: &mut self.next_live,
+                next_rays: &mut self.next_rays,
             };
             let mut in_lanes = 0;
             for (n, ((&k, draws), cosine)) in self.shading.iter().zip(&self.draws).zip(&self.cosines).enumerate() {
                 let i = self.live[k as usize];
                 let Some(si) = self.surfaces[k as usize].as_ref() else { continue };
                 let path = &mut sink.paths[i as usize];
+                let d = self.rays[k as usize].d;
                 if let Some(avx2) = lanes
-                    && let Some(r) = scene.plain_lambert_at(si, -path.ray.d)
+                    && let Some(r) = scene.plain_lambert_at(si, -d)
                 {
                     // Into the next lane; 8 full lanes bounce at once.
                     let lane_paths = &mut self.lambert;
@@ -434,7 +445,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                     lanes.p.set(in_lanes, si.p);
                     lanes.ng.set(in_lanes, si.ng);
                     lanes.ns.set(in_lanes, si.ns);
-                    lanes.d.set(in_lanes, path.ray.d);
+                    lanes.d.set(in_lanes, d);
                     lanes.r.set(in_lanes, r);
                     lanes.beta.set(in_lanes, path.beta);
                     lanes.eta_scale[in_lanes] = path.eta_scale;
@@ -453,13 +464,14 @@ impl<S: Sampler + Clone> Wavefront<S> {
                     continue;
                 }
                 let light = ahead.then_some((&self.light_samples, n));
-                let pending = scatter(scene, params, path, &mut sink.values[i as usize], si, draws, cosine, light);
+                let pending = scatter(scene, params, path, &mut sink.values[i as usize], d, si, draws, cosine, light);
                 if let Some((ray, shadow)) = pending.shadow {
                     sink.shadow_rays.push(ray);
                     sink.shadows.push(PendingShadow { path: i, beta: shadow.0, contribution: shadow.1 });
                 }
-                if pending.alive {
+                if let Some(ray) = pending.next {
                     sink.next_live.push(i);
+                    sink.next_rays.push(RayQuery { o: ray.o, d: ray.d, t_max: f32::INFINITY, time: path.time });
                 }
             }
             if let Some(avx2) = lanes
@@ -476,6 +488,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 }
             }
             std::mem::swap(&mut self.live, &mut self.next_live);
+            std::mem::swap(&mut self.rays, &mut self.next_rays);
         }
         for (p, v) in self.paths.iter().zip(values) {
             v.radiance = p.l.to_array();
@@ -485,20 +498,20 @@ impl<S: Sampler + Clone> Wavefront<S> {
 
 /// The camera stage's directions of a batch's paths (a pinhole camera), 8 lanes at a time in
 /// one kernel: from each path's pixel and offset, written into its ray.
-struct PinholeRays<'a, S> {
+struct PinholeRays<'a> {
     avx2: Avx2,
     camera: &'a Camera,
-    paths: &'a mut [PathState<S>],
+    rays: &'a mut [RayQuery],
     us: &'a [Vec2],
     samples: &'a [(UVec2, u32)],
 }
 
-impl<S> super::wide::V3Kernel for PinholeRays<'_, S> {
+impl super::wide::V3Kernel for PinholeRays<'_> {
     type Output = ();
     #[inline(always)]
     fn call(self) {
-        let chunks = self.paths.chunks_mut(8).zip(self.us.chunks(8)).zip(self.samples.chunks(8));
-        for ((paths, us), samples) in chunks {
+        let chunks = self.rays.chunks_mut(8).zip(self.us.chunks(8)).zip(self.samples.chunks(8));
+        for ((rays, us), samples) in chunks {
             // A short chunk's missing lanes compute something harmless, and are dropped.
             let [mut px, mut py, mut ux, mut uy] = [[0.0f32; 8]; 4];
             for (i, (&(pixel, _), u)) in samples.iter().zip(us).enumerate().take(8) {
@@ -509,8 +522,8 @@ impl<S> super::wide::V3Kernel for PinholeRays<'_, S> {
                 return;
             };
             let (x, y, z) = (x.to_array(), y.to_array(), z.to_array());
-            for (i, p) in paths.iter_mut().enumerate() {
-                p.ray.d = Vec3A::new(x[i], y[i], z[i]);
+            for (i, r) in rays.iter_mut().enumerate() {
+                r.d = Vec3A::new(x[i], y[i], z[i]);
             }
         }
     }
@@ -554,16 +567,21 @@ fn lambert_bounces<S: Sampler>(
         path.prev_bsdf_pdf = out.pdf[j];
         path.prev_ctx = LightSampleContext { p: lanes.p.get(j), n: out.ng.get(j) };
         path.depth += 1;
-        path.ray = Ray::new(out.ray_o.get(j), out.ray_d.get(j));
         sink.next_live.push(i);
+        sink.next_rays.push(RayQuery {
+            o: out.ray_o.get(j),
+            d: out.ray_d.get(j),
+            t_max: f32::INFINITY,
+            time: path.time,
+        });
     }
 }
 
 /// What one bounce of a path left to do: a shadow ray with (throughput, contribution), and
-/// whether the path goes on with its new ray.
+/// the path's next ray where it goes on.
 struct Bounce {
     shadow: Option<(RayQuery, (Vec3A, Vec3A))>,
-    alive: bool,
+    next: Option<Ray>,
 }
 
 /// The first part of one iteration of `li_path`'s loop after its closest-hit query found `si`,
@@ -575,29 +593,29 @@ fn arrive<S: Sampler>(
     params: &PathParams,
     path: &mut PathState<S>,
     value: &mut SampleValue,
+    d: Vec3A,
     si: Option<&SurfaceInteraction>,
 ) -> bool {
-    let ray = path.ray;
     let time = path.time;
     let Some(si) = si else {
         // The ray left the scene: the environment is its emitter.
         if let Some((i, env)) = scene.environment() {
-            let le = env.le(ray.d);
+            let le = env.le(d);
             if le != Vec3A::ZERO {
                 path.l += path.beta
                     * le
                     * emission_weight(path.specular_bounce, params.mis, path.prev_bsdf_pdf, || {
-                        scene.light_pmf(i) * env.pdf_wi(ray.d)
+                        scene.light_pmf(i) * env.pdf_wi(d)
                     });
             }
         }
         return false;
     };
-    let wo = -ray.d;
+    let wo = -d;
     if path.depth == 0 {
         value.depth = Some(si.t);
     }
-    path.beta *= scene.transmittance(si, ray.d);
+    path.beta *= scene.transmittance(si, d);
     let le = scene.emitted_at(si, wo, time);
     if le != Vec3A::ZERO {
         let prev_ctx = path.prev_ctx;
@@ -629,14 +647,15 @@ fn scatter<S: Sampler>(
     params: &PathParams,
     path: &mut PathState<S>,
     value: &mut SampleValue,
+    d: Vec3A,
     si: &SurfaceInteraction,
     draws: &BounceDraws,
     cosine: &CosineSample,
     light: Option<(&LightBatch, usize)>,
 ) -> Bounce {
-    let done = Bounce { shadow: None, alive: false };
+    let done = Bounce { shadow: None, next: None };
     let time = path.time;
-    let wo = -path.ray.d;
+    let wo = -d;
     let mut sampler = Replay { inner: &mut path.sampler, draws };
     let sh = shade(scene, si, wo, sampler.get_1d());
     if path.depth == 0 {
@@ -663,7 +682,7 @@ fn scatter<S: Sampler>(
         }
     }
     let Some((bs, weight)) = sample_scatter_ahead(bsdf, sh.ng, wo, &mut sampler, Some(cosine)) else {
-        return Bounce { shadow, alive: false };
+        return Bounce { shadow, next: None };
     };
     path.beta *= weight;
     path.specular_bounce = bs.is_specular();
@@ -674,18 +693,17 @@ fn scatter<S: Sampler>(
     }
     path.depth += 1;
     if !(path.beta.max_element() > 0.0) || !path.beta.is_finite() {
-        return Bounce { shadow, alive: false };
+        return Bounce { shadow, next: None };
     }
     if path.depth >= params.rr_depth {
         let u_rr = sampler.get_1d();
         let q = (path.beta.max_element() * path.eta_scale).min(RR_MAX_SURVIVAL);
         if u_rr >= q {
-            return Bounce { shadow, alive: false };
+            return Bounce { shadow, next: None };
         }
         path.beta /= q;
     }
-    path.ray = Ray::new(offset_ray_origin(si.p, sh.ng, bs.wi), bs.wi);
-    Bounce { shadow, alive: true }
+    Bounce { shadow, next: Some(Ray::new(offset_ray_origin(si.p, sh.ng, bs.wi), bs.wi)) }
 }
 
 /// The camera stage of the renderer for a path: a sampler positioned at (pixel, index), and the
