@@ -383,6 +383,7 @@ impl PixelAccum {
     }
 
     /// The pixel's sums, AOVs as means.
+    #[inline(always)]
     pub fn finish(&self) -> PixelSums {
         let mut p = self.exact;
         if p.weight > 0 {
