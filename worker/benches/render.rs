@@ -473,7 +473,7 @@ fn newest_libllvm() -> Option<PathBuf> {
 /// solid-angle light sampling; `tiny igi` and `tiny bdpt`: the same with those integrators;
 /// `tiny long`: 16x the pixels (for sampling profilers such as perf); `tiny large`: the
 /// 130k-triangle scene of [`large_scene_figures`] at 16 spp (`tiny large long`: 256 spp); with
-/// `onepass`, any of them in one pass ([`one_pass`]).
+/// `onepass`, any of them in one pass ([`one_pass`]); with `threads2`, on 2 threads.
 fn tiny() {
     let scene = load_scene(&repo().join("reference/cornell_mitsuba.glb"), &LoadOptions::default()).expect("cornell");
     let mut s = RenderSettings::new(64, 64, 16);
@@ -541,7 +541,10 @@ fn tiny() {
 fn main() {
     if std::env::args().any(|a| a == "tiny") {
         println!("simd: {} kernels, {:?} path kernel", simd_level().name(), path_kernel());
-        rayon::ThreadPoolBuilder::new().num_threads(1).build_global().ok();
+        // `threads2`: on 2 threads (for how a render uses the pool, such as `render_local`'s
+        // folds beside the renders).
+        let threads = if std::env::args().any(|a| a == "threads2") { 2 } else { 1 };
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build_global().ok();
         return tiny();
     }
     let quick = std::env::args().any(|a| a == "quick");

@@ -741,8 +741,7 @@ fn environment_spec(
 }
 
 /// The most memory `render_local`'s units in flight may hold at once (their tiles' sums, and
-/// bdpt's whole-image splat buffers): two chunks of at most half of it each, or of one unit
-/// (at least one unit is always in flight).
+/// bdpt's whole-image splat buffers): at least one unit is always in flight.
 const LOCAL_IN_FLIGHT_BYTES: usize = 64 << 20;
 
 /// Renders a whole job locally, folding its units in canonical order, exactly as the farm does.
@@ -755,17 +754,18 @@ const LOCAL_IN_FLIGHT_BYTES: usize = 64 << 20;
 /// the Cornell box (256 x 256, 16 spp) 0.907x (9 pairs), of the 130k-triangle scene (64 spp)
 /// 0.951x (25 pairs, quartiles 0.892-1.001); one pass of 64 spp, 1.004x (noise: its 16 units
 /// are long). Each unit's result is the same whenever it renders, so the film is the same bits
-/// as one unit at a time (`tests/local.rs`). A chunk folds while the next renders, unless the
-/// next holds one of its tiles (whose mask and skipping wait for its folds): on the same Xeon,
-/// progressive passes of the 130k-triangle scene (256 spp) 0.982x and 0.989x the time (21 pairs
-/// each, quartiles 0.937-0.997 and 0.913-1.033), of the Cornell box 0.999x (11 pairs).
+/// as one unit at a time (`tests/local.rs`). Tried and dropped: a chunk folding while the next
+/// renders (unless the next holds one of its tiles): on 2 threads (the bench's `tiny ...
+/// threads2`), progressive passes of the 130k-triangle scene (256 spp) 0.992x the time (15
+/// pairs), of the Cornell box (256 x 256, 16 spp) 0.967x then 0.998x (11 and 15 pairs): the
+/// folds are about 100 instructions a pixel and pass, well under 1% of a render.
 ///
 /// With adaptive sampling the passes run in order and, after each pass, every tile's mask comes
 /// from [`pathfarm_common::adaptive::converged_blocks`] of the film's merged sums of that tile; the next pass
 /// renders with it, and a tile whose blocks have all converged is skipped (counted as done).
 /// (A tile's mask depends only on its own earlier passes, which are folded before its next
 /// unit renders.)
-pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize) + Send) -> Film {
+pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize)) -> Film {
     let settings = renderer.settings();
     let plan = settings.plan();
     // The farm's merge: the same assembly folds, judges blocks and drops converged tiles.
@@ -782,75 +782,50 @@ pub fn render_local(renderer: &Renderer, mut progress: impl FnMut(usize, usize) 
     let unit_bytes = |key: &UnitKey| {
         plan.tiles[key.tile as usize].pixel_count() * std::mem::size_of::<film::PixelSums>() + splat_bytes
     };
-    // Folds a rendered chunk's results in order (`None`: a tile that had converged).
+    let mut units = plan.units().peekable();
+    let mut chunk = Vec::with_capacity(most_units);
     let mut done = 0;
-    let mut fold = |asm: &mut FilmAssembly, keys: &[UnitKey], results: Vec<Option<UnitResult>>| {
-        for (&key, r) in keys.iter().zip(results) {
+    while let Some(first) = units.next() {
+        chunk.clear();
+        chunk.push(first);
+        let mut bytes = unit_bytes(&first);
+        while chunk.len() < most_units
+            && let Some(next) = units.peek()
+            && next.pass == first.pass
+            && bytes + unit_bytes(next) <= LOCAL_IN_FLIGHT_BYTES
+        {
+            bytes += unit_bytes(next);
+            chunk.extend(units.next());
+        }
+        let pass = plan.passes[first.pass as usize];
+        // The pass's shared state (igi's VPL sets) built once, before its units look it up.
+        renderer.prepare_pass(pass);
+        let asm_now = &asm;
+        let results: Vec<Option<UnitResult>> = chunk
+            .par_iter()
+            .map(|key| {
+                // A tile whose every block converged left the schedule (its later passes count
+                // as done).
+                if asm_now.next_pass(key.tile as usize) != key.pass {
+                    return None;
+                }
+                let tile = plan.tiles[key.tile as usize];
+                let mask = asm_now.mask(key.tile as usize);
+                Some(if mask.is_some() {
+                    // The settings were validated (no bdpt) and the mask is of this tile.
+                    renderer.render_unit_masked(tile, pass, mask).unwrap_or_else(|e| unreachable!("{e}"))
+                } else {
+                    renderer.render_unit(tile, pass)
+                })
+            })
+            .collect();
+        for (&key, r) in chunk.iter().zip(results) {
             if let Some(r) = r {
                 asm.offer(&plan, adaptive, key, r.accum, r.splats);
             }
             done += 1;
             progress(done, total);
         }
-    };
-    let mut units = plan.units().peekable();
-    // The chunk rendered last, not folded yet.
-    let mut pending: Option<(Vec<UnitKey>, Vec<Option<UnitResult>>)> = None;
-    while let Some(first) = units.next() {
-        let mut chunk = Vec::with_capacity(most_units);
-        chunk.push(first);
-        let mut bytes = unit_bytes(&first);
-        while chunk.len() < most_units
-            && let Some(next) = units.peek()
-            && next.pass == first.pass
-            && bytes + unit_bytes(next) <= LOCAL_IN_FLIGHT_BYTES / 2
-        {
-            bytes += unit_bytes(next);
-            chunk.extend(units.next());
-        }
-        // A unit renders with what its own tile's earlier passes folded to (its mask, or the
-        // tile converged): the chunk before folds first where it holds one of this chunk's tiles
-        // (an earlier pass of it), else while this one renders.
-        if let Some((keys, results)) =
-            pending.take_if(|(keys, _)| keys.iter().any(|k| chunk.iter().any(|c| c.tile == k.tile)))
-        {
-            fold(&mut asm, &keys, results);
-        }
-        let pass = plan.passes[first.pass as usize];
-        // The pass's shared state (igi's VPL sets) built once, before its units look it up.
-        renderer.prepare_pass(pass);
-        // What each unit renders with: its tile and mask, or nothing where the tile converged
-        // (its later passes count as done).
-        let todo: Vec<Option<(TileRect, Option<BlockMask>)>> = chunk
-            .iter()
-            .map(|key| {
-                let t = key.tile as usize;
-                (asm.next_pass(t) == key.pass).then(|| (plan.tiles[t], asm.mask(t).cloned()))
-            })
-            .collect();
-        let render = || -> Vec<Option<UnitResult>> {
-            todo.par_iter()
-                .map(|unit| {
-                    let (tile, mask) = unit.as_ref()?;
-                    Some(match mask {
-                        // The settings were validated (no bdpt) and the mask is of this tile.
-                        Some(mask) => {
-                            renderer.render_unit_masked(*tile, pass, Some(mask)).unwrap_or_else(|e| unreachable!("{e}"))
-                        }
-                        None => renderer.render_unit(*tile, pass),
-                    })
-                })
-                .collect()
-        };
-        // The chunk before (other tiles) folds while this one renders.
-        let results = match pending.take() {
-            Some((keys, results)) => rayon::join(|| fold(&mut asm, &keys, results), render).1,
-            None => render(),
-        };
-        pending = Some((chunk, results));
-    }
-    if let Some((keys, results)) = pending.take() {
-        fold(&mut asm, &keys, results);
     }
     asm.into_film().unwrap_or_else(|| unreachable!("render_local never takes the film away"))
 }
