@@ -59,6 +59,14 @@ pub struct RayQuery {
     pub time: f32,
 }
 
+impl RayQuery {
+    /// A ray without an end (a closest-hit query's: a path's next segment).
+    #[inline(always)]
+    pub fn unbounded(o: Vec3A, d: Vec3A, time: f32) -> Self {
+        Self { o, d, t_max: f32::INFINITY, time }
+    }
+}
+
 /// The BVH and its triangles, stored in BVH leaf order for locality.
 pub struct Accel {
     bvh: Option<CwBvh>,

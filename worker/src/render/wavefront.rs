@@ -113,9 +113,8 @@ use pathfarm_common::film::SampleValue;
 use pathfarm_common::job::MisHeuristic;
 
 /// Paths per batch: enough that a stage's loop runs long over warm code and data, few enough
-/// that the batch's state (128 bytes a path, its ray and its sample value) stays in the L2
-/// cache. 512 measured no
-/// better on the 130k-triangle scene (Intel Xeon, `tiny large long` 0.967x and 0.995x the time,
+/// that the batch's state (128 bytes a path, beside its ray and its sample value) stays in the
+/// L2 cache. 512 measured no better on the 130k-triangle scene (Intel Xeon, `tiny large long` 0.967x and 0.995x the time,
 /// medians of 11 interleaved pairs).
 pub const BATCH: usize = 256;
 
@@ -342,7 +341,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 proto.start_pixel_sample(pixel, index, 0);
                 let (sampler, ray, time) = camera_sample(proto.clone(), pixel, index, camera.camera, camera.shutter);
                 p.reset(sampler, ray.o, time);
-                self.rays.push(RayQuery { o: ray.o, d: ray.d, t_max: f32::INFINITY, time });
+                self.rays.push(RayQuery::unbounded(ray.o, ray.d, time));
             }
             return;
         };
@@ -352,7 +351,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
             p.reset(proto.clone(), origin, 0.0);
         }
         // Their directions are the kernel's.
-        self.rays.resize(samples.len(), RayQuery { o: origin, d: Vec3A::Z, t_max: f32::INFINITY, time: 0.0 });
+        self.rays.resize(samples.len(), RayQuery::unbounded(origin, Vec3A::Z, 0.0));
         self.pixel_us.clear();
         S::pixel_2d_many(self.paths.iter_mut().map(|p| &mut p.sampler), level, &mut self.pixel_us);
         let kernel = PinholeRays { avx2, camera: camera.camera, rays: &mut self.rays, us: &self.pixel_us, samples };
@@ -471,7 +470,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
                 }
                 if let Some(ray) = pending.next {
                     sink.next_live.push(i);
-                    sink.next_rays.push(RayQuery { o: ray.o, d: ray.d, t_max: f32::INFINITY, time: path.time });
+                    sink.next_rays.push(RayQuery::unbounded(ray.o, ray.d, path.time));
                 }
             }
             if let Some(avx2) = lanes
@@ -497,7 +496,7 @@ impl<S: Sampler + Clone> Wavefront<S> {
 }
 
 /// The camera stage's directions of a batch's paths (a pinhole camera), 8 lanes at a time in
-/// one kernel: from each path's pixel and offset, written into its ray.
+/// one kernel: from each path's pixel and offset, written into its ray (of the batch's rays).
 struct PinholeRays<'a> {
     avx2: Avx2,
     camera: &'a Camera,
@@ -568,12 +567,7 @@ fn lambert_bounces<S: Sampler>(
         path.prev_ctx = LightSampleContext { p: lanes.p.get(j), n: out.ng.get(j) };
         path.depth += 1;
         sink.next_live.push(i);
-        sink.next_rays.push(RayQuery {
-            o: out.ray_o.get(j),
-            d: out.ray_d.get(j),
-            t_max: f32::INFINITY,
-            time: path.time,
-        });
+        sink.next_rays.push(RayQuery::unbounded(out.ray_o.get(j), out.ray_d.get(j), path.time));
     }
 }
 
