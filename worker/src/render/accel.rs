@@ -228,6 +228,10 @@ impl<R: Real> Sheared<R> {
     }
 
     /// The rest of the test from the edge functions `e`, with `sz` the ray's z scale.
+    ///
+    /// Tried and dropped: the conservative bound on t (a third of these operations) made only
+    /// where some lane still hits without it: `tiny` 417.9M -> 415.9M instructions, `tiny
+    /// large` 1,353.7M -> 1,355.5M (most lanes inside the edges do hit).
     #[inline(always)]
     fn candidate(&self, e: [R; 3], sz: R) -> Candidate<R> {
         let zero = sz.splat(0.0);
