@@ -5,6 +5,7 @@
 //! Blocking HTTP (reqwest) on plain threads: the daemon does one thing at a time, and the render
 //! itself runs on a rayon pool.
 
+use crate::render::wide::SimdLevel;
 use crate::render::{Renderer, UnitResult};
 use anyhow::{Context, bail};
 use pathfarm_common::protocol::{
@@ -57,22 +58,34 @@ pub struct RunArgs {
     pub no_denoise: bool,
 }
 
-/// Tags every worker reports by itself: `cpu`; the widest of `avx512f` and `avx2` this CPU
-/// has; `denoise` when the binary was built with OIDN.
+/// Tags every worker reports by itself: `cpu`; the SIMD level its renderer runs at
+/// ([`simd_tag`]); `denoise` when the binary was built with OIDN.
 pub fn automatic_tags() -> Vec<String> {
+    automatic_tags_at(SimdLevel::detect())
+}
+
+/// [`automatic_tags`] of a worker whose renderer runs at `level`.
+fn automatic_tags_at(level: SimdLevel) -> Vec<String> {
     let mut tags = vec!["cpu".to_string()];
-    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-    {
-        if std::is_x86_feature_detected!("avx512f") {
-            tags.push("avx512f".into());
-        } else if std::is_x86_feature_detected!("avx2") {
-            tags.push("avx2".into());
-        }
-    }
+    tags.extend(simd_tag(level).map(String::from));
     if crate::denoise::AVAILABLE {
         tags.push("denoise".into());
     }
     tags
+}
+
+/// The tag of the level the renderer's kernels run at: `avx512f` where they run compiled for
+/// x86-64-v4 (AVX-512 F, VL, BW, DQ and CD), `avx2` for x86-64-v3 (AVX2 with FMA, BMI1/2,
+/// LZCNT and POPCNT), none for the baseline. From the level, not from one CPU flag: a CPU
+/// (or a virtual machine's masked one) with `avx512f` but not the rest renders with the AVX2
+/// kernels, and one with AVX2 but not FMA with the baseline, and a job that requires a tag is
+/// asking for the speed that goes with it.
+fn simd_tag(level: SimdLevel) -> Option<&'static str> {
+    match level {
+        SimdLevel::Avx512 => Some("avx512f"),
+        SimdLevel::Avx2 => Some("avx2"),
+        SimdLevel::Baseline => None,
+    }
 }
 
 /// The automatic tags followed by `extra` (trimmed, empty entries and repeats dropped),
@@ -275,7 +288,7 @@ impl Daemon {
             match r {
                 Ok(resp) if resp.status().is_success() => {
                     let reg: Registered = resp.json().context("register answer")?;
-                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, tags = ?self.cfg.tags, simd = crate::render::wide::SimdLevel::detect().name(), "registered");
+                    tracing::info!(worker = reg.worker_id, name = %self.cfg.name, tags = ?self.cfg.tags, simd = SimdLevel::detect().name(), "registered");
                     self.worker_id = Some(reg.worker_id);
                     self.secret = reg.worker_secret;
                     self.heartbeat = Duration::from_millis(reg.heartbeat_ms.max(100));
@@ -698,6 +711,20 @@ mod tests {
     use pathfarm_common::job::RenderSettings;
     use pathfarm_common::scene::demo::cornell_demo_glb;
     use pathfarm_common::scene::load_scene_from_slice;
+
+    /// A worker's SIMD tag names the level its renderer runs at, not a CPU flag (checked that
+    /// it fails with the tags taken from `is_x86_feature_detected!("avx512f")` as before, on
+    /// this AVX-512 machine: the AVX2 level's tags then said `avx512f`).
+    #[test]
+    fn the_simd_tag_is_the_renderers_level() {
+        let simd =
+            |level| automatic_tags_at(level).into_iter().filter(|t| t == "avx512f" || t == "avx2").collect::<Vec<_>>();
+        assert_eq!(simd(SimdLevel::Avx512), ["avx512f"]);
+        assert_eq!(simd(SimdLevel::Avx2), ["avx2"]);
+        assert!(simd(SimdLevel::Baseline).is_empty());
+        assert_eq!(automatic_tags(), automatic_tags_at(SimdLevel::detect()));
+        assert_eq!(automatic_tags()[0], "cpu");
+    }
 
     /// The scene cache keeps within its budget by removing the least recently used scenes
     /// (bundle and unpacked folder), never the one being loaded, and leaves other files alone.

@@ -38,8 +38,8 @@ pub struct JobRequestBody {
     pub priority: i32,
     /// Tags a worker must have, all of them, to be leased this job's units (at most 16, each
     /// 1 to 32 characters of `[a-z0-9_-]`). While no live worker has them the job stays queued
-    /// and its `waiting` says so. Workers report `cpu`, `avx2` or `avx512f`, `denoise`, and
-    /// their `--tags`.
+    /// and its `waiting` says so. Workers report `cpu`, `avx2` or `avx512f` (the level of
+    /// their renderer's kernels), `denoise`, and their `--tags`.
     #[serde(default)]
     #[schema(max_items = 16)]
     pub requires: Vec<String>,
