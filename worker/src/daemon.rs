@@ -80,7 +80,7 @@ fn automatic_tags_at(level: SimdLevel) -> Vec<String> {
 /// (or a virtual machine's masked one) with `avx512f` but not the rest renders with the AVX2
 /// kernels, and one with AVX2 but not FMA with the baseline, and a job that requires a tag is
 /// asking for the speed that goes with it.
-fn simd_tag(level: SimdLevel) -> Option<&'static str> {
+pub fn simd_tag(level: SimdLevel) -> Option<&'static str> {
     match level {
         SimdLevel::Avx512 => Some("avx512f"),
         SimdLevel::Avx2 => Some("avx2"),
