@@ -22,6 +22,9 @@
 //!    round). Each timing, ours and Mitsuba's, is the median of several renders (3 of the
 //!    Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba does;
 //!    the figure for the farm's default progressive passes is printed beside it.
+//!    Then both at max depth 2 and 3 (the same settings otherwise): the time per sample of the
+//!    first segments (camera ray, first hit, one light sample and BSDF ray, the film) and what
+//!    each further bounce adds, ours against Mitsuba's.
 //! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
 //!    Mitsuba's throughput on the same view when installed; the equal-time error there, each
 //!    renderer against its own 1,024-spp image (Mitsuba renders the glTF material with its
@@ -295,7 +298,7 @@ fn paired_rounds(
 
 /// Runs the reference script.
 fn mitsuba(variant: &str, spp: u32) -> Option<MitsubaRun> {
-    mitsuba_with(variant, spp, spp, "cornell", CORNELL_REPEATS, &[])
+    mitsuba_with(variant, spp, spp, 8, "cornell", CORNELL_REPEATS, &[])
 }
 
 /// Renders per timing (ours and Mitsuba's, each the median): the Cornell box's take about 2 s
@@ -304,10 +307,12 @@ const CORNELL_REPEATS: usize = 3;
 const LARGE_REPEATS: usize = 7;
 
 /// [`mitsuba`] with more arguments for the script (another scene); `tag` names its output.
+#[allow(clippy::too_many_arguments)]
 fn mitsuba_with(
     variant: &str,
     spp: u32,
     spp_per_pass: u32,
+    max_depth: u32,
     tag: &str,
     repeats: usize,
     extra: &[&std::ffi::OsStr],
@@ -323,7 +328,8 @@ fn mitsuba_with(
     let o = cmd
         .arg(script)
         .args(["--variant", variant, "--spp", &spp.to_string(), "--spp-per-pass", &spp_per_pass.to_string()])
-        .args(["--res", "256", "--repeats", &repeats.to_string(), "--threads", "2", "--max-depth", "8", "--out"])
+        .args(["--res", "256", "--repeats", &repeats.to_string(), "--threads", "2"])
+        .args(["--max-depth", &max_depth.to_string(), "--out"])
         .arg(&out)
         .args(extra)
         .output()
@@ -370,7 +376,7 @@ fn large_scene_figures(quick: bool) {
     let gltf = ["--gltf".as_ref(), path.as_os_str()];
     let mut llvm = None;
     for variant in ["scalar_rgb", "llvm_ad_rgb"] {
-        let Some(m) = mitsuba_with(variant, spp, spp, "vertex_count", LARGE_REPEATS, &gltf) else {
+        let Some(m) = mitsuba_with(variant, spp, spp, 8, "vertex_count", LARGE_REPEATS, &gltf) else {
             println!("mitsuba {variant} on 01_vertex_count_32bit: no result");
             continue;
         };
@@ -388,7 +394,7 @@ fn large_scene_figures(quick: bool) {
     }
     let s_one = one_pass(large_scene_settings(spp));
     paired_rounds("01_vertex_count_32bit", &scene, &s_one, LARGE_REPEATS, || {
-        mitsuba_with("llvm_ad_rgb", spp, spp, "vertex_count", LARGE_REPEATS, &gltf)
+        mitsuba_with("llvm_ad_rgb", spp, spp, 8, "vertex_count", LARGE_REPEATS, &gltf)
     });
     // Equal-time error. Each renderer is compared with its own converged image (1,024 spp):
     // Mitsuba renders the glTF material with its `principled` BSDF, so the images differ.
@@ -400,7 +406,7 @@ fn large_scene_figures(quick: bool) {
     reference.seed = 1000;
     let (_, _, ours_ref) = time_render_median(&scene, &reference, 1);
     let seeded = [gltf[0], gltf[1], "--seed".as_ref(), "1000".as_ref()];
-    let Some(m_ref) = mitsuba_with("llvm_ad_rgb", reference_spp, spp, "vertex_count_ref", 1, &seeded) else {
+    let Some(m_ref) = mitsuba_with("llvm_ad_rgb", reference_spp, spp, 8, "vertex_count_ref", 1, &seeded) else {
         println!("mitsuba llvm_ad_rgb on 01_vertex_count_32bit, {reference_spp} spp: no result");
         return;
     };
@@ -520,6 +526,14 @@ fn tiny() {
         println!("tiny: 01_vertex_count_32bit {}x{}x{} path in {t:.3} s", s.width, s.height, s.spp);
         return;
     }
+    // `depth2`, `depth3`, ...: the path integrator at that max depth (where per-sample costs
+    // dominate: the camera stage, the first hit, one light sample, the film).
+    if let Some(depth) = std::env::args().find_map(|a| a.strip_prefix("depth").and_then(|d| d.parse::<u32>().ok()))
+        && let IntegratorSettings::Path { max_depth, .. } = &mut s.integrator
+    {
+        *max_depth = depth;
+        name = "path (max depth from the arguments)";
+    }
     if std::env::args().any(|a| a == "onepass") {
         s = one_pass(s);
     }
@@ -631,4 +645,53 @@ fn main() {
             rmse(&mi, r, g, b)
         );
     }
+    depth_figures(&scene, ours, llvm.samples_per_s);
+}
+
+/// Where the Cornell box's time goes against Mitsuba's llvm_ad_rgb: both renderers at max
+/// depth 2 (camera ray, one light sample, one BSDF ray: the per-sample costs) and 3 (one
+/// bounce more), one pass, area light sampling; the time per sample of each, and what each
+/// depth adds to it, against `ours_8` and `mitsuba_8` (max depth 8, samples/s).
+fn depth_figures(scene: &pathfarm_common::scene::Scene, ours_8: f64, mitsuba_8: f64) {
+    let samples = 256.0 * 256.0 * 64.0;
+    let (mut ours_ns, mut mitsuba_ns) = (Vec::new(), Vec::new());
+    for depth in [2, 3] {
+        let integrator = IntegratorSettings::Path {
+            max_depth: depth,
+            rr_depth: 5,
+            mis: MisHeuristic::Power,
+            light_sampling: LightSampling::Area,
+        };
+        let (t, _, _) = time_render_median(scene, &one_pass(settings(64, integrator)), CORNELL_REPEATS);
+        let Some(m) = mitsuba_with("llvm_ad_rgb", 64, 64, depth, "cornell_depth", CORNELL_REPEATS, &[]) else {
+            println!("mitsuba llvm_ad_rgb at max depth {depth}: no result");
+            return;
+        };
+        let ours = samples / t;
+        println!(
+            "the Cornell box at max depth {depth}: ours {:.2} M samples/s, mitsuba llvm_ad_rgb {:.2}: {:.2}",
+            ours / 1e6,
+            m.samples_per_s / 1e6,
+            ours / m.samples_per_s
+        );
+        ours_ns.push(1e9 / ours);
+        mitsuba_ns.push(1e9 / m.samples_per_s);
+    }
+    ours_ns.push(1e9 / ours_8);
+    mitsuba_ns.push(1e9 / mitsuba_8);
+    // Nanoseconds (wall, 2 threads) per sample: at depth 2, then what depths 3 and 4-8 add.
+    let parts = |ns: &[f64]| [ns[0], ns[1] - ns[0], ns[2] - ns[1]];
+    let (o, m) = (parts(&ours_ns), parts(&mitsuba_ns));
+    println!(
+        "ns per sample, ours / mitsuba llvm_ad_rgb: depth 2 {:.0} / {:.0} ({:.2}x), depth 3 adds {:.0} / {:.0} ({:.2}x), depths 4-8 add {:.0} / {:.0} ({:.2}x)",
+        o[0],
+        m[0],
+        o[0] / m[0],
+        o[1],
+        m[1],
+        o[1] / m[1],
+        o[2],
+        m[2],
+        o[2] / m[2]
+    );
 }
