@@ -632,7 +632,7 @@ fn main() {
     let (llvm_s, llvm_exr) = (llvm.seconds, llvm.exr);
     // Equal time: our spp for Mitsuba llvm's 64-spp wall time.
     let spp = ((llvm_s * ours / (256.0 * 256.0)).floor() as u32).max(1);
-    let (t_eq, img) = time_render(&scene, &one_pass(settings(spp, path)));
+    let (t_eq, img) = time_render(&scene, &one_pass(settings(spp, path.clone())));
     let ours_rmse = rmse(&img.rgb, r, g, b);
     if let Ok(m) = pathfarm_common::film::read_exr(&llvm_exr) {
         let mi: Vec<[f32; 3]> = (0..65536)
@@ -645,25 +645,24 @@ fn main() {
             rmse(&mi, r, g, b)
         );
     }
-    depth_figures(&scene, ours, llvm.samples_per_s);
+    depth_figures(&scene, &settings(64, path), ours, llvm.samples_per_s);
 }
 
-/// Where the Cornell box's time goes against Mitsuba's llvm_ad_rgb: both renderers at max
-/// depth 2 (camera ray, one light sample, one BSDF ray: the per-sample costs) and 3 (one
-/// bounce more), one pass, area light sampling; the time per sample of each, and what each
-/// depth adds to it, against `ours_8` and `mitsuba_8` (max depth 8, samples/s).
-fn depth_figures(scene: &pathfarm_common::scene::Scene, ours_8: f64, mitsuba_8: f64) {
-    let samples = 256.0 * 256.0 * 64.0;
+/// Where the Cornell box's time goes against Mitsuba's llvm_ad_rgb: both renderers with the
+/// comparison's settings `s` (a path integrator, in one pass) but at max depth 2 (camera ray,
+/// one light sample, one BSDF ray: the per-sample costs) and 3 (one bounce more); the time per
+/// sample of each, and what each depth adds to it, against `ours_8` and `mitsuba_8` (the
+/// comparison's samples/s at its max depth, 8).
+fn depth_figures(scene: &pathfarm_common::scene::Scene, s: &RenderSettings, ours_8: f64, mitsuba_8: f64) {
+    let samples = f64::from(s.width) * f64::from(s.height) * f64::from(s.spp);
     let (mut ours_ns, mut mitsuba_ns) = (Vec::new(), Vec::new());
     for depth in [2, 3] {
-        let integrator = IntegratorSettings::Path {
-            max_depth: depth,
-            rr_depth: 5,
-            mis: MisHeuristic::Power,
-            light_sampling: LightSampling::Area,
-        };
-        let (t, _, _) = time_render_median(scene, &one_pass(settings(64, integrator)), CORNELL_REPEATS);
-        let Some(m) = mitsuba_with("llvm_ad_rgb", 64, 64, depth, "cornell_depth", CORNELL_REPEATS, &[]) else {
+        let mut at_depth = one_pass(s.clone());
+        if let IntegratorSettings::Path { max_depth, .. } = &mut at_depth.integrator {
+            *max_depth = depth;
+        }
+        let (t, _, _) = time_render_median(scene, &at_depth, CORNELL_REPEATS);
+        let Some(m) = mitsuba_with("llvm_ad_rgb", s.spp, s.spp, depth, "cornell_depth", CORNELL_REPEATS, &[]) else {
             println!("mitsuba llvm_ad_rgb at max depth {depth}: no result");
             return;
         };
