@@ -295,6 +295,9 @@ pub struct Distribution1D {
     cdf: Vec<f32>,
 }
 
+/// The most entries [`Distribution1D::sample`] counts rather than searches.
+const SMALL_DISTRIBUTION: usize = 16;
+
 impl Distribution1D {
     pub fn new(weights: &[f32]) -> Self {
         let n = weights.len();
@@ -347,8 +350,15 @@ impl Distribution1D {
             return (0, 0.0, u);
         }
         let u = if u >= 0.0 { u.min(ONE_MINUS_EPSILON) } else { 0.0 };
-        // The last i with cdf[i] <= u; as cdf[n] = 1 > u, cdf[i + 1] > u, so pmf(i) > 0.
-        let i = (self.cdf.partition_point(|&c| c <= u) - 1).min(n - 1);
+        // The last i with cdf[i] <= u; as cdf[n] = 1 > u, cdf[i + 1] > u, so pmf(i) > 0. A few
+        // entries are counted (the same i, the cdf being non-decreasing): independent compares,
+        // not a binary search's chain of dependent loads.
+        let i = if n <= SMALL_DISTRIBUTION {
+            self.cdf.get(1..n).map_or(0, |inner| inner.iter().filter(|&&c| c <= u).count())
+        } else {
+            self.cdf.partition_point(|&c| c <= u) - 1
+        }
+        .min(n - 1);
         let (lo, hi) = (self.cdf[i], self.cdf[i + 1]);
         let pmf = hi - lo;
         let remapped = if pmf > 0.0 { ((u - lo) / pmf).clamp(0.0, ONE_MINUS_EPSILON) } else { 0.0 };
@@ -862,6 +872,27 @@ mod tests {
         assert_eq!(d.sample(0.0).0, 1);
         assert_eq!(d.sample(ONE_MINUS_EPSILON).0, 9);
         assert_eq!(d.sample(d.cdf[5]), (5, d.pmf(5), 0.0));
+    }
+
+    /// Small distributions count their cdf's entries below `u` (`SMALL_DISTRIBUTION`): the
+    /// same entry as the binary search of larger ones, at and beside every cdf step, with zero
+    /// weights (repeated cdf entries) among the others.
+    #[test]
+    fn distribution_1d_count_is_the_binary_search() {
+        let mut rng = TestRng::new(7);
+        for n in 1..=2 * SMALL_DISTRIBUTION {
+            let weights: Vec<f32> = (0..n).map(|i| if i % 3 == 1 { 0.0 } else { rng.uniform() + 0.01 }).collect();
+            let d = Distribution1D::new(&weights);
+            let mut us = vec![0.0, ONE_MINUS_EPSILON, 0.5];
+            for &c in &d.cdf {
+                us.extend([c, f32::from_bits(c.to_bits().saturating_sub(1)), f32::from_bits(c.to_bits() + 1)]);
+            }
+            for u in us {
+                let clamped = if u >= 0.0 { u.min(ONE_MINUS_EPSILON) } else { 0.0 };
+                let searched = (d.cdf.partition_point(|&c| c <= clamped) - 1).min(n - 1);
+                assert_eq!(d.sample(u).0, searched, "n = {n}, u = {u}");
+            }
+        }
     }
 
     #[test]
