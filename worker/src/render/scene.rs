@@ -589,7 +589,12 @@ impl RenderScene {
     /// normals made in lanes (the same bits; the normal's square root and division are half of
     /// this loop's cycles). The gathering costs more than the lanes save: this function's
     /// instructions went from 37.7M to 42.5M on the bench's `tiny` (50.1M with the vertices
-    /// returned by value), `tiny long` 1.018x the time (median of 9 interleaved pairs).
+    /// returned by value), `tiny long` 1.018x the time (median of 9 interleaved pairs). Tried on
+    /// an AVX2-only AMD EPYC (Zen 3) and dropped: the normalization deferred to a loop of its own
+    /// per 64 hits (so that hits' square roots and divisions overlap; perf had a third of this
+    /// function's cycles waiting on them): `tiny` 417.9M -> 423.6M instructions, `tiny long`
+    /// 0.968x the time (median of 15 interleaved pairs, quartiles 0.912-1.080) but 1.022x by the
+    /// fastest of each; this function's share of perf's samples 7.65% -> 7.22%.
     #[inline(never)]
     fn surfaces_into(&self, hits: &[Option<Hit>], rays: &[RayQuery], out: &mut [Option<SurfaceInteraction>]) {
         for ((h, r), slot) in hits.iter().zip(rays).zip(out.iter_mut()) {

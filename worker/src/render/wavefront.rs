@@ -94,6 +94,11 @@
 //! the CPU's level (`wide::V3Kernel`): `tiny` 426.2M -> 425.0M instructions, `tiny long`
 //! 0.964x then 1.001x the time, `tiny large long` 1.058x then 1.033x (medians of 9 and 11
 //! interleaved pairs): no gain.
+//!
+//! Tried on an AVX2-only AMD EPYC (Zen 3) and dropped: the paths prefetched 8 ahead in the
+//! arrival and shadow stages (which reach them through lists of indices; perf put their first
+//! reads among the glue's hottest instructions): `tiny` 415.7M -> 420.2M instructions, `tiny
+//! long` 1.002x the time (median of 15 interleaved pairs), 1.031x by the fastest of each.
 
 use super::accel::{Hit, RayQuery};
 use super::camera::Camera;
@@ -135,7 +140,12 @@ pub const BATCH: usize = 256;
 /// textured scenes keep [`BATCH`]. The sorted batch later went to 2,048 (with the sort's origin
 /// cells); 1,024 again, measured on an Intel Xeon (AVX-512): `tiny` 417.9M -> 423.9M
 /// instructions, one pass of the Cornell box on 2 threads (`tiny long onepass threads2`)
-/// 1.036x the time (median of 15 interleaved pairs, quartiles 1.006-1.056).
+/// 1.036x the time (median of 15 interleaved pairs, quartiles 1.006-1.056). On an AVX2-only
+/// AMD EPYC (Zen 3, 512 KB of L2 cache a core, where 2,048 paths' state does not fit), 1,024
+/// and 512 paths measured no faster: `tiny long` 0.989x and 1.039x the time (the fastest of 15
+/// interleaved runs each). 4,096 (batches whose later bounces stay fuller, the most that
+/// refilling a batch's dead paths with new camera samples could give) took `tiny` from 417.9M
+/// to 413.9M instructions only: refilling was not built.
 pub fn batch_len(scene: &RenderScene) -> usize {
     if scene.textures.is_empty() && scene.sorts_rays() { super::accel::SORTED_BATCH } else { BATCH }
 }
