@@ -143,7 +143,7 @@ pub const BATCH: usize = 256;
 /// 1.036x the time (median of 15 interleaved pairs, quartiles 1.006-1.056). On an AVX2-only
 /// AMD EPYC (Zen 3, 512 KB of L2 cache a core, where 2,048 paths' state does not fit), 1,024
 /// and 512 paths measured no faster: `tiny long` 0.989x and 1.039x the time (the fastest of 15
-/// interleaved runs each). 4,096 (batches whose later bounces stay fuller, the most that
+/// interleaved runs each). 4,096 (batches whose later bounces stay fuller, about what
 /// refilling a batch's dead paths with new camera samples could give) took `tiny` from 417.9M
 /// to 413.9M instructions only: refilling was not built.
 pub fn batch_len(scene: &RenderScene) -> usize {
