@@ -1063,7 +1063,6 @@ fn laine_karras_x8(x: std::arch::x86_64::__m256i, seed: std::arch::x86_64::__m25
 #[target_feature(enable = "avx2")]
 #[inline]
 fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([f32; 8], [f32; 8]) {
-    use super::sampler::SOBOL_DIM1_BYTES;
     use std::arch::x86_64::*;
     // SAFETY (loads and stores): unaligned accesses to 8 u32 or f32 of arrays of 8.
     let load = |v: &[u32; 8]| unsafe { _mm256_loadu_si256(v.as_ptr().cast()) };
@@ -1080,16 +1079,17 @@ fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]
     let shuffled = reverse_bits_x8(laine_karras_x8(reverse_bits_x8(load(index)), load(s1)));
     let x = reverse_bits_x8(laine_karras_x8(shuffled, load(s2)));
     let Some(s3) = s3 else { return (store(x), [0.0; 8]) };
-    // sobol_dim1: the XOR of one table entry per index byte.
-    let byte = _mm256_set1_epi32(0xff);
-    let mut dim1 = _mm256_setzero_si256();
-    for (k, table) in SOBOL_DIM1_BYTES.iter().enumerate() {
-        let idx = _mm256_and_si256(_mm256_srlv_epi32(shuffled, _mm256_set1_epi32(8 * k as i32)), byte);
-        // SAFETY: every index is below 256, the table's length.
-        let t = unsafe { _mm256_i32gather_epi32::<4>(table.as_ptr().cast(), idx) };
-        dim1 = _mm256_xor_si256(dim1, t);
-    }
-    let y = reverse_bits_x8(laine_karras_x8(reverse_bits_x8(dim1), load(s3)));
+    // `sobol_dim1_reversed`: each block's high half XORed into its low half (16, 8, 4, 2, 1
+    // bits), so that the scramble's reversal before the permutation is not needed.
+    let mut dim1 = _mm256_xor_si256(shuffled, _mm256_srli_epi32::<16>(shuffled));
+    let half = |x: __m256i, shifted: __m256i, mask: u32| {
+        _mm256_xor_si256(x, _mm256_and_si256(shifted, _mm256_set1_epi32(mask as i32)))
+    };
+    dim1 = half(dim1, _mm256_srli_epi32::<8>(dim1), 0x00ff_00ff);
+    dim1 = half(dim1, _mm256_srli_epi32::<4>(dim1), 0x0f0f_0f0f);
+    dim1 = half(dim1, _mm256_srli_epi32::<2>(dim1), 0x3333_3333);
+    dim1 = half(dim1, _mm256_srli_epi32::<1>(dim1), 0x5555_5555);
+    let y = reverse_bits_x8(laine_karras_x8(dim1, load(s3)));
     (store(x), store(y))
 }
 
