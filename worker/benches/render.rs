@@ -17,7 +17,7 @@
 //!    ratios, of wall-clock throughput and of throughput per CPU-second (all threads' CPU time:
 //!    less disturbed by other load on the machine); and the equal-time error: RMSE against the
 //!    16k-spp reference of our render given the wall time of Mitsuba's llvm render of 64 spp,
-//!    and of Mitsuba's. Then 3 rounds of ours and Mitsuba's llvm one right after the other,
+//!    and of Mitsuba's. Then 5 rounds of ours and Mitsuba's llvm one right after the other,
 //!    and the median of the rounds' ratios (a shared machine's speed drifts less within a
 //!    round). Each timing, ours and Mitsuba's, is the median of several renders (3 of the
 //!    Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba does;
@@ -279,6 +279,9 @@ struct MitsubaRun {
 /// Rounds of ours then Mitsuba's llvm_ad_rgb on one scene (each the median of its renders),
 /// one right after the other: a shared machine's speed drifts over the minutes a bench takes,
 /// so the ratio within a round, and the median of the rounds' ratios, is the steadier figure.
+/// Five rounds, not three: on an AMD EPYC whose speed varied by 10-15% from render to render,
+/// one run's three Cornell rounds gave 1.33, 1.29 and 1.10; the median of five is the steadier
+/// estimate (it stands while two rounds are disturbed).
 fn paired_rounds(
     name: &str,
     scene: &pathfarm_common::scene::Scene,
@@ -286,7 +289,7 @@ fn paired_rounds(
     repeats: usize,
     llvm: impl Fn() -> Option<MitsubaRun>,
 ) {
-    const ROUNDS: usize = 3;
+    const ROUNDS: usize = 5;
     let samples = f64::from(s.width) * f64::from(s.height) * f64::from(s.spp);
     // Per wall-clock second, and per CPU-second where both sides measured it.
     let (mut wall, mut cpu) = (Vec::new(), Vec::new());
