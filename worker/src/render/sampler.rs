@@ -114,7 +114,7 @@ pub fn sobol_dim1(index: u32) -> u32 {
 /// It replaced a table of 4 x 256 entries (the matrix's columns folded per index byte), looked
 /// up per byte: in lanes, 4 gathers per 2D request. On an AVX2-only AMD EPYC (Zen 3): `tiny`
 /// 415.7M -> 415.6M instructions (the gathers were few instructions, but slow ones), `tiny
-/// long` 0.982x the time (median of 15 interleaved pairs, quartiles 0.902-0.997; 0.966x by the
+/// long` 0.982x the time (median of 15 interleaved pairs, quartiles 0.902-0.997; 0.954x by the
 /// sums), one pass on 2 threads (`tiny long onepass threads2`) 0.979x (21 pairs).
 #[inline]
 pub fn sobol_dim1_reversed(index: u32) -> u32 {
