@@ -583,8 +583,8 @@ impl RenderScene {
     }
 
     /// [`RenderScene::surface`] of each hit of `hits` (at its ray's time) written into its slot
-    /// of `out` in place, `None` into a miss's (a value returned and then pushed is built apart and copied whole: a
-    /// `memcpy` call per hit, 3% of the Cornell box's time), in one loop.
+    /// of `out` in place, `None` into a miss's (a value returned and then pushed is built apart
+    /// and copied whole: a `memcpy` call per hit, 3% of the Cornell box's time), in one loop.
     ///
     /// Tried on an AMD EPYC with AVX-512 (Zen 4) and dropped: the hits on meshes with only
     /// positions and normals gathered 8 at a time and their points and normalized shading
