@@ -1492,24 +1492,17 @@ pub(super) fn trace_packet<const ANY: bool, const KX: usize, const KY: usize, co
     if best.found == 0 {
         return true;
     }
-    if ANY {
-        // Only whether there is a hit is read.
-        for (i, &slot) in slots.iter().enumerate().take(n) {
-            if best.found & (1 << i) != 0
-                && let Some(h) = hits.get_mut(slot as usize)
-            {
-                *h = Some(BLOCKED);
-            }
-        }
-        return true;
-    }
     let (b1, b2, tri) = (best.b1.to_array(), best.b2.to_array(), best.slot.to_array());
     for (i, &slot) in slots.iter().enumerate().take(n) {
         if best.found & (1 << i) != 0
             && let Some(h) = hits.get_mut(slot as usize)
         {
-            let prim = accel.prim_ids[tri[i].to_bits() as usize];
-            *h = Some(Hit { t: t_max[i], prim, b1: b1[i], b2: b2[i] });
+            // `ANY`: only whether there is a hit is read (its lanes keep no best).
+            *h = Some(if ANY {
+                BLOCKED
+            } else {
+                Hit { t: t_max[i], prim: accel.prim_ids[tri[i].to_bits() as usize], b1: b1[i], b2: b2[i] }
+            });
         }
     }
     true
