@@ -16,7 +16,9 @@
 //! operation, the same bits): no faster on AMD Zen 4, which runs a 512-bit operation as two
 //! 256-bit halves, so they save front-end work only; nor, measurably, on an Intel Xeon with
 //! full-width AVX-512 units (`tiny long`, 25 interleaved pairs: median ratio 0.998, quartiles
-//! 0.958-1.037). Nor did the packet's triangle tests' edge functions for two triangles at once
+//! 0.958-1.037). The Sobol scrambles of a bounce's draws do pay at 16 lanes there
+//! ([`Avx2::sobol_x16`]: 512-bit integer products, `tiny long` 0.981x the time, median of 21
+//! interleaved pairs). Nor did the packet's triangle tests' edge functions for two triangles at once
 //! (an early skip of those no ray passes): 8.5% slower there. The whole bench compiled for
 //! x86-64-v3 (`RUSTFLAGS=-Ctarget-cpu=x86-64-v3`, so the stage code between the kernels too) ran
 //! `tiny long` in 0.968x the time (median of 9 interleaved pairs, quartiles 0.916-0.998) on an
@@ -243,6 +245,36 @@ impl Avx2 {
         }
         #[cfg(not(target_arch = "x86_64"))]
         std::array::from_fn(|i| u32_to_unit_float(sobol_scalar(index[i], s1[i], s2[i], None).0))
+    }
+
+    /// Whether this proof runs 16-lane kernels ([`Avx2::sobol_x16`]) in 512-bit operations: the
+    /// x86-64-v4 level. Elsewhere those kernels run as two 8-lane halves.
+    #[inline(always)]
+    pub fn has_16_lanes(self) -> bool {
+        self.v4
+    }
+
+    /// [`Avx2::sobol_x`] and, with `s3`, [`Avx2::sobol_xy`] for 16 requests: one pass of
+    /// 512-bit operations at the x86-64-v4 level, two 8-lane halves below it (the same bits).
+    #[inline(always)]
+    pub fn sobol_x16(
+        self,
+        index: &[u32; 16],
+        s1: &[u32; 16],
+        s2: &[u32; 16],
+        s3: Option<&[u32; 16]>,
+    ) -> ([f32; 16], [f32; 16]) {
+        #[cfg(target_arch = "x86_64")]
+        if self.v4 {
+            // SAFETY: `v4` is set only where `Avx2::new` found AVX-512 F and BW.
+            return unsafe { sobol_x16(index, s1, s2, s3) };
+        }
+        let half = |v: &[u32; 16], h: usize| -> [u32; 8] { std::array::from_fn(|i| v[h * 8 + i]) };
+        let halves: [([f32; 8], [f32; 8]); 2] = std::array::from_fn(|h| match s3 {
+            Some(s3) => self.sobol_xy(&half(index, h), &half(s1, h), &half(s2, h), &half(s3, h)),
+            None => (self.sobol_x(&half(index, h), &half(s1, h), &half(s2, h)), [0.0; 8]),
+        });
+        (std::array::from_fn(|i| halves[i / 8].0[i % 8]), std::array::from_fn(|i| halves[i / 8].1[i % 8]))
     }
 
     /// Both coordinates of 8 Sobol 2D requests: [`Avx2::sobol_x`], and the second coordinate
@@ -1093,6 +1125,70 @@ fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]
     (store(x), store(y))
 }
 
+/// Reverses the bits of each 32-bit lane of 16 (as [`reverse_bits_x8`]: each byte's bits
+/// through a nibble table, then the bytes; `vpshufb` works within 128-bit blocks, so each table
+/// is the same 16 bytes four times).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+#[inline]
+fn reverse_bits_x16(x: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m512i {
+    use std::arch::x86_64::*;
+    let nibbles = _mm512_broadcast_i32x4(_mm_setr_epi8(0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15));
+    let low4 = _mm512_set1_epi8(0x0f);
+    let lo = _mm512_and_si512(x, low4);
+    let hi = _mm512_and_si512(_mm512_srli_epi16::<4>(x), low4);
+    // Each byte holds a value below 16, so the 16-bit shift moves nothing across bytes.
+    let bytes =
+        _mm512_or_si512(_mm512_slli_epi16::<4>(_mm512_shuffle_epi8(nibbles, lo)), _mm512_shuffle_epi8(nibbles, hi));
+    let swap = _mm512_broadcast_i32x4(_mm_setr_epi8(3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12));
+    _mm512_shuffle_epi8(bytes, swap)
+}
+
+/// `laine_karras_permutation` on 16 lanes (as [`laine_karras_x8`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn laine_karras_x16(x: std::arch::x86_64::__m512i, seed: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m512i {
+    use std::arch::x86_64::*;
+    let c = |v: u32| _mm512_set1_epi32(v as i32);
+    let mut x = _mm512_xor_si512(x, _mm512_mullo_epi32(x, c(0x3d20_adea)));
+    x = _mm512_add_epi32(x, seed);
+    x = _mm512_mullo_epi32(x, _mm512_or_si512(_mm512_srli_epi32::<16>(seed), c(1)));
+    x = _mm512_xor_si512(x, _mm512_mullo_epi32(x, c(0x0552_6c56)));
+    _mm512_xor_si512(x, _mm512_mullo_epi32(x, c(0x53a2_2864)))
+}
+
+/// [`sobol_x8`] on 16 lanes (512-bit operations: the same integer operations and exact
+/// conversions, so the same bits).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+#[inline]
+fn sobol_x16(index: &[u32; 16], s1: &[u32; 16], s2: &[u32; 16], s3: Option<&[u32; 16]>) -> ([f32; 16], [f32; 16]) {
+    use std::arch::x86_64::*;
+    // SAFETY (loads and stores): unaligned accesses to 16 u32 or f32 of arrays of 16.
+    let load = |v: &[u32; 16]| unsafe { _mm512_loadu_si512(v.as_ptr().cast()) };
+    let store = |v: __m512i| {
+        let unit =
+            _mm512_mul_ps(_mm512_cvtepi32_ps(_mm512_srli_epi32::<8>(v)), _mm512_set1_ps(1.0 / (1u32 << 24) as f32));
+        let mut out = [0.0f32; 16];
+        unsafe { _mm512_storeu_ps(out.as_mut_ptr(), unit) };
+        out
+    };
+    let shuffled = reverse_bits_x16(laine_karras_x16(reverse_bits_x16(load(index)), load(s1)));
+    let x = reverse_bits_x16(laine_karras_x16(shuffled, load(s2)));
+    let Some(s3) = s3 else { return (store(x), [0.0; 16]) };
+    let mut dim1 = _mm512_xor_si512(shuffled, _mm512_srli_epi32::<16>(shuffled));
+    let half = |x: __m512i, shifted: __m512i, mask: u32| {
+        _mm512_xor_si512(x, _mm512_and_si512(shifted, _mm512_set1_epi32(mask as i32)))
+    };
+    dim1 = half(dim1, _mm512_srli_epi32::<8>(dim1), 0x00ff_00ff);
+    dim1 = half(dim1, _mm512_srli_epi32::<4>(dim1), 0x0f0f_0f0f);
+    dim1 = half(dim1, _mm512_srli_epi32::<2>(dim1), 0x3333_3333);
+    dim1 = half(dim1, _mm512_srli_epi32::<1>(dim1), 0x5555_5555);
+    let y = reverse_bits_x16(laine_karras_x16(dim1, load(s3)));
+    (store(x), store(y))
+}
+
 /// obvhs' node-test epsilon (`cwbvh::node::EPSILON`, crate-private there): the smallest entry
 /// distance of a child box.
 #[cfg(target_arch = "x86_64")]
@@ -1313,6 +1409,29 @@ mod tests {
                     s2[i],
                     s3[i]
                 );
+            }
+        }
+    }
+
+    /// The 16-lane Sobol kernel gives the scalar sampler's bits at every level the CPU has.
+    #[test]
+    fn sobol_x16_matches_the_scalar_sampler() {
+        let Some(best) = Avx2::new() else { return };
+        for level in [SimdLevel::Avx2, best.level()] {
+            let Some(avx2) = Avx2::at(level) else { continue };
+            for round in 0..1000u64 {
+                let word = |k: u64| (hash(round * 64 + k) >> 7) as u32;
+                let index: [u32; 16] =
+                    std::array::from_fn(|i| if round % 3 == 0 { i as u32 + round as u32 } else { word(i as u64) });
+                let seeds: [[u32; 16]; 3] =
+                    std::array::from_fn(|k| std::array::from_fn(|i| word(16 * (k as u64 + 1) + i as u64)));
+                let (x, _) = avx2.run(|| avx2.sobol_x16(&index, &seeds[0], &seeds[1], None));
+                let (x2, y2) = avx2.run(|| avx2.sobol_x16(&index, &seeds[0], &seeds[1], Some(&seeds[2])));
+                for i in 0..16 {
+                    let (want_x, want_y) = sobol_scalar(index[i], seeds[0][i], seeds[1][i], Some(seeds[2][i]));
+                    let (want_x, want_y) = (u32_to_unit_float(want_x), u32_to_unit_float(want_y));
+                    assert_eq!((x[i], x2[i], y2[i]), (want_x, want_x, want_y), "{level:?} lane {i} index {}", index[i]);
+                }
             }
         }
     }
