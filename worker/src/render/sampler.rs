@@ -533,6 +533,13 @@ impl<'a, I: Iterator<Item = &'a mut SobolSampler>> super::wide::V3Kernel for Pix
 /// into the scrambles' lanes), not one sampler at a time and scattered into the lanes' arrays:
 /// `tiny` 417.9M -> 415.6M instructions, `tiny large` 1,353.6M -> 1,351.9M, `tiny long` 1.005x
 /// and `tiny long onepass threads2` 1.002x the time (medians of 11 interleaved pairs): noise.
+/// Also dropped there: only the 1D rows the shading stage may read drawn (the lobe choices
+/// left out where every hit shades in Lambertian lanes, roulette's number before roulette
+/// plays; `Replay` asking the sampler for a missing one): the Cornell box's early bounces drew
+/// one 1D row of four, yet `tiny long` took 0.982x the time (median of 21 interleaved pairs,
+/// quartiles 0.961-1.022), `tiny long depth2` 0.993x, `tiny large long` 0.978x (11 pairs,
+/// quartiles 0.964-1.044), and the AVX2 kernels' `tiny` 412.3M -> 414.2M instructions (the
+/// rows' branches cost the inliner more than the rows saved): within the machine's noise.
 struct BounceDrawsMany<'o, I> {
     avx2: super::wide::Avx2,
     lanes: I,
