@@ -491,6 +491,10 @@ impl Sampler for SobolSampler {
 }
 
 /// [`SobolSampler::pixel_2d_many`]'s loop, run as one kernel compiled for the CPU's level.
+///
+/// Tried on an Intel Xeon (AVX-512) and dropped: 16 samplers at a time in 512-bit operations
+/// ([`super::wide::Avx2::sobol_x16`], which pays for a bounce's draws): `tiny large long` 1.027x
+/// the time (median of 15 interleaved pairs), `tiny long` 1.007x (11), the same instructions.
 struct Pixel2dMany<'o, I> {
     avx2: super::wide::Avx2,
     lanes: I,
