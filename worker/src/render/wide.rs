@@ -18,8 +18,8 @@
 //! full-width AVX-512 units (`tiny long`, 25 interleaved pairs: median ratio 0.998, quartiles
 //! 0.958-1.037). The Sobol scrambles of a bounce's draws do pay at 16 lanes there
 //! ([`Avx2::sobol_x16`]: 512-bit integer products, `tiny long` 0.981x the time, median of 21
-//! interleaved pairs). Nor did the packet's triangle tests' edge functions for two triangles at once
-//! (an early skip of those no ray passes): 8.5% slower there. The whole bench compiled for
+//! interleaved pairs). Nor did the packet's triangle tests' edge functions for two triangles at
+//! once (an early skip of those no ray passes): 8.5% slower there. The whole bench compiled for
 //! x86-64-v3 (`RUSTFLAGS=-Ctarget-cpu=x86-64-v3`, so the stage code between the kernels too) ran
 //! `tiny long` in 0.968x the time (median of 9 interleaved pairs, quartiles 0.916-0.998) on an
 //! AMD EPYC (Zen 4): not worth a second build of the worker, and glam's `cross` would then fuse
