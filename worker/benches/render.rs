@@ -22,9 +22,9 @@
 //!    round). Each timing, ours and Mitsuba's, is the median of several renders (3 of the
 //!    Cornell box, 7 of the 130k scene). The comparisons render in one pass, as Mitsuba does;
 //!    the figure for the farm's default progressive passes is printed beside it.
-//!    Then both at max depth 2 and 3 (the same settings otherwise): the time per sample of the
-//!    first segments (camera ray, first hit, one light sample and BSDF ray, the film) and what
-//!    each further bounce adds, ours against Mitsuba's.
+//!    Then both at max depth 1, 2 and 3 (the same settings otherwise): the time per sample of
+//!    the first segment (camera ray, first hit, the film), what the second adds (one light
+//!    sample and BSDF ray) and what each further bounce adds, ours against Mitsuba's.
 //! 4. Path tracing on 01_vertex_count_32bit (64 spp) under a constant environment, and
 //!    Mitsuba's throughput on the same view when installed; the equal-time error there, each
 //!    renderer against its own 1,024-spp image (Mitsuba renders the glTF material with its
@@ -699,14 +699,15 @@ fn main() {
 }
 
 /// Where the Cornell box's time goes against Mitsuba's llvm_ad_rgb: both renderers with the
-/// comparison's settings `s` (a path integrator, in one pass) but at max depth 2 (camera ray,
-/// one light sample, one BSDF ray: the per-sample costs) and 3 (one bounce more); the time per
-/// sample of each, and what each depth adds to it, against `ours_8` and `mitsuba_8` (the
-/// comparison's samples/s at its max depth, 8).
+/// comparison's settings `s` (a path integrator, in one pass) but at max depth 1 (camera ray,
+/// first hit, emission found there, the film: the per-sample costs; ours also makes the first
+/// hit's albedo and normal), 2 (one light sample and one BSDF ray more) and 3 (one bounce
+/// more); the time per sample of each, and what each depth adds to it, against `ours_8` and
+/// `mitsuba_8` (the comparison's samples/s at its max depth, 8).
 fn depth_figures(scene: &pathfarm_common::scene::Scene, s: &RenderSettings, ours_8: f64, mitsuba_8: f64) {
     let samples = f64::from(s.width) * f64::from(s.height) * f64::from(s.spp);
     let (mut ours_ns, mut mitsuba_ns) = (Vec::new(), Vec::new());
-    for depth in [2, 3] {
+    for depth in [1, 2, 3] {
         let mut at_depth = one_pass(s.clone());
         if let IntegratorSettings::Path { max_depth, .. } = &mut at_depth.integrator {
             *max_depth = depth;
@@ -728,19 +729,11 @@ fn depth_figures(scene: &pathfarm_common::scene::Scene, s: &RenderSettings, ours
     }
     ours_ns.push(1e9 / ours_8);
     mitsuba_ns.push(1e9 / mitsuba_8);
-    // Nanoseconds (wall, 2 threads) per sample: at depth 2, then what depths 3 and 4-8 add.
-    let parts = |ns: &[f64]| [ns[0], ns[1] - ns[0], ns[2] - ns[1]];
+    // Nanoseconds (wall, 2 threads) per sample: at depth 1, then what depths 2, 3 and 4-8 add.
+    let parts = |ns: &[f64]| [ns[0], ns[1] - ns[0], ns[2] - ns[1], ns[3] - ns[2]];
     let (o, m) = (parts(&ours_ns), parts(&mitsuba_ns));
-    println!(
-        "ns per sample, ours / mitsuba llvm_ad_rgb: depth 2 {:.0} / {:.0} ({:.2}x), depth 3 adds {:.0} / {:.0} ({:.2}x), depths 4-8 add {:.0} / {:.0} ({:.2}x)",
-        o[0],
-        m[0],
-        o[0] / m[0],
-        o[1],
-        m[1],
-        o[1] / m[1],
-        o[2],
-        m[2],
-        o[2] / m[2]
-    );
+    let names = ["depth 1", "depth 2 adds", "depth 3 adds", "depths 4-8 add"];
+    let figures: Vec<String> =
+        (0..4).map(|i| format!("{} {:.0} / {:.0} ({:.2}x)", names[i], o[i], m[i], o[i] / m[i])).collect();
+    println!("ns per sample, ours / mitsuba llvm_ad_rgb: {}", figures.join(", "));
 }
