@@ -618,7 +618,11 @@ impl Accel {
         // fast, medium, slow and very slow builds trace it in 429.8M, 425.9M, 425.9M, 426.0M
         // and 426.1M instructions. Leaves of at most 1 triangle (obvhs' `max_prims_per_leaf`;
         // CWBVH leaves hold up to 3): `tiny` 417.9M -> 452.0M (more node visits than the
-        // triangle tests they save); at most 2: 417.9M, the same.
+        // triangle tests they save); at most 2: 417.9M, the same. (`build_cwbvh` over boxes
+        // ignores the slow builds' `pre_split`.) Large triangles' boxes split in parts
+        // (obvhs' `split_aabbs_precise`, the build boxes padded after): the Cornell box split
+        // none, even at a quarter of the preset's area threshold, its walls' boxes being thin
+        // already (a ray enters one only where it meets the wall); not kept.
         let bvh = build_cwbvh(&boxes, BvhBuildParams::medium_build(), &mut Duration::default());
         let prim_ids = bvh.primitive_indices.clone();
         let ordered: Vec<[Vec3A; 3]> = prim_ids.iter().map(|&i| tris[i as usize]).collect();
@@ -1694,6 +1698,16 @@ fn packet_traverse<const ANY: bool, const COUNT: bool, const KX: usize, const KY
 /// still before its `t_max`: `tiny` 414.4M -> 417.6M instructions, `tiny long` 1.003x (11
 /// pairs). In the Cornell box most lanes inside a triangle's edges do hit it before their
 /// `t_max` (the packets tested 3.1 rays per triangle test, 3.9 triangle tests per ray).
+///
+/// Tried on an Intel Xeon with AVX-512 and dropped: a node's leaf triangles two at a time in
+/// 16 lanes (an `F32x16` over `math::Real`: lanes 0..8 the first triangle against the packet's
+/// rays, 8..16 the next; the test reads no `t_max`, so each half is this test's candidate, the
+/// first's hits taken before the second's). The Cornell box's packets make 8.2 triangle tests
+/// each (0.76 packets, 6.2 tests per sample), most of which pair up, but `tiny long` took 1.017x
+/// the time (median of 11 interleaved pairs, quartiles 1.012-1.019), `tiny large long` 0.998x
+/// (7 pairs): on this CPU 512-bit operations issue on two ports where 256-bit ones have three,
+/// and a 16-lane division costs two 8-lane ones, so the halved instruction count bought no
+/// time.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn packet_triangle<const ANY: bool, const KX: usize, const KY: usize, const KZ: usize>(
