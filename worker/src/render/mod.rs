@@ -764,7 +764,11 @@ const LOCAL_IN_FLIGHT_BYTES: usize = 64 << 20;
 /// renders (unless the next holds one of its tiles): on 2 threads (the bench's `tiny ...
 /// threads2`), progressive passes of the 130k-triangle scene (256 spp) 0.992x the time (15
 /// pairs), of the Cornell box (256 x 256, 16 spp) 0.967x then 0.998x (11 and 15 pairs): the
-/// folds are about 100 instructions a pixel and pass, well under 1% of a render.
+/// folds are about 100 instructions a pixel and pass, well under 1% of a render. Tried on an
+/// Intel Xeon and dropped: a chunk's units (distinct tiles) merged into the film together, its
+/// rows in parallel on the pool (the same bits): the 130k-triangle scene at 16 spp in 5 passes
+/// (`tiny large threads2`, where passes cost the most: 0.066-0.073 s against 0.042-0.050 s in
+/// one pass) 1.066x and 1.069x the time (11 and 15 runs each), `tiny long threads2` 0.966x (9).
 ///
 /// With adaptive sampling the passes run in order and, after each pass, every tile's mask comes
 /// from [`pathfarm_common::adaptive::converged_blocks`] of the film's merged sums of that tile; the next pass
