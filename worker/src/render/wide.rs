@@ -1058,107 +1058,258 @@ fn sobol_scalar(index: u32, s1: u32, s2: u32, s3: Option<u32>) -> (u32, u32) {
     (x, s3.map_or(0, |s3| nested_uniform_scramble(sobol_dim1(shuffled), s3)))
 }
 
+/// 8 (AVX2) or 16 (AVX-512) lanes of `u32`: the integer operations the Sobol kernels are
+/// written with, once ([`sobol_lanes`]), for [`sobol_x8`] and [`sobol_x16`]. Private to them:
+/// values are made only inside those kernels, compiled with the lanes' features (the same
+/// convention as [`F32x8`]: an existing value proves the features).
+#[cfg(target_arch = "x86_64")]
+trait WordLanes: Copy {
+    /// The lanes as an array of `u32`, and of `f32`.
+    type Words;
+    type Floats;
+    /// # Safety
+    /// The CPU has the lanes' features.
+    unsafe fn load(v: &Self::Words) -> Self;
+    /// `v` in every lane.
+    fn splat(self, v: u32) -> Self;
+    /// `bytes` in every 128-bit block (a byte-shuffle table).
+    fn table(self, bytes: [u8; 16]) -> Self;
+    fn xor(self, o: Self) -> Self;
+    fn and(self, o: Self) -> Self;
+    fn or(self, o: Self) -> Self;
+    /// Wrapping 32-bit addition and product.
+    fn add(self, o: Self) -> Self;
+    fn mul(self, o: Self) -> Self;
+    /// 32-bit lanes shifted right by `n`; 16-bit halves shifted right or left by `n`.
+    fn shr32(self, n: i32) -> Self;
+    fn shr16(self, n: i32) -> Self;
+    fn shl16(self, n: i32) -> Self;
+    /// Each byte looked up in `self`'s 128-bit block by `index`'s byte (`vpshufb`).
+    fn shuffle_bytes(self, index: Self) -> Self;
+    /// `u32_to_unit_float` of each lane: the top 24 bits (an i32 below 2^24, converted
+    /// exactly) times 2^-24 (exact).
+    fn unit_floats(self) -> Self::Floats;
+}
+
+/// [`WordLanes`] in one AVX2 register.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct Words8(std::arch::x86_64::__m256i);
+
+// SAFETY (every `unsafe` block below): a `Words8` exists only where the CPU has AVX2 (made by
+// `load`, whose caller promises it), and the intrinsics other than the loads and stores touch
+// no memory; those access whole arrays of 8.
+#[cfg(target_arch = "x86_64")]
+impl WordLanes for Words8 {
+    type Words = [u32; 8];
+    type Floats = [f32; 8];
+    #[inline(always)]
+    unsafe fn load(v: &[u32; 8]) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_loadu_si256(v.as_ptr().cast()) })
+    }
+    #[inline(always)]
+    fn splat(self, v: u32) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_set1_epi32(v as i32) })
+    }
+    #[inline(always)]
+    fn table(self, bytes: [u8; 16]) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm256_broadcastsi128_si256(_mm_loadu_si128(bytes.as_ptr().cast())) })
+    }
+    #[inline(always)]
+    fn xor(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_xor_si256(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn and(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_and_si256(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn or(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_or_si256(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_add_epi32(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_mullo_epi32(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn shr32(self, n: i32) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm256_srl_epi32(self.0, _mm_cvtsi32_si128(n)) })
+    }
+    #[inline(always)]
+    fn shr16(self, n: i32) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm256_srl_epi16(self.0, _mm_cvtsi32_si128(n)) })
+    }
+    #[inline(always)]
+    fn shl16(self, n: i32) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm256_sll_epi16(self.0, _mm_cvtsi32_si128(n)) })
+    }
+    #[inline(always)]
+    fn shuffle_bytes(self, index: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm256_shuffle_epi8(self.0, index.0) })
+    }
+    #[inline(always)]
+    fn unit_floats(self) -> [f32; 8] {
+        use std::arch::x86_64::*;
+        let mut out = [0.0f32; 8];
+        unsafe {
+            let unit = _mm256_mul_ps(
+                _mm256_cvtepi32_ps(_mm256_srli_epi32::<8>(self.0)),
+                _mm256_set1_ps(1.0 / (1u32 << 24) as f32),
+            );
+            _mm256_storeu_ps(out.as_mut_ptr(), unit);
+        }
+        out
+    }
+}
+
+/// [`WordLanes`] in one AVX-512 register.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct Words16(std::arch::x86_64::__m512i);
+
+// SAFETY (every `unsafe` block below): a `Words16` exists only where the CPU has AVX-512 F and
+// BW (made by `load`, whose caller promises it), and the intrinsics other than the loads and
+// stores touch no memory; those access whole arrays of 16.
+#[cfg(target_arch = "x86_64")]
+impl WordLanes for Words16 {
+    type Words = [u32; 16];
+    type Floats = [f32; 16];
+    #[inline(always)]
+    unsafe fn load(v: &[u32; 16]) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_loadu_si512(v.as_ptr().cast()) })
+    }
+    #[inline(always)]
+    fn splat(self, v: u32) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_set1_epi32(v as i32) })
+    }
+    #[inline(always)]
+    fn table(self, bytes: [u8; 16]) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm512_broadcast_i32x4(_mm_loadu_si128(bytes.as_ptr().cast())) })
+    }
+    #[inline(always)]
+    fn xor(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_xor_si512(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn and(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_and_si512(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn or(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_or_si512(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_add_epi32(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_mullo_epi32(self.0, o.0) })
+    }
+    #[inline(always)]
+    fn shr32(self, n: i32) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm512_srl_epi32(self.0, _mm_cvtsi32_si128(n)) })
+    }
+    #[inline(always)]
+    fn shr16(self, n: i32) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm512_srl_epi16(self.0, _mm_cvtsi32_si128(n)) })
+    }
+    #[inline(always)]
+    fn shl16(self, n: i32) -> Self {
+        use std::arch::x86_64::*;
+        Self(unsafe { _mm512_sll_epi16(self.0, _mm_cvtsi32_si128(n)) })
+    }
+    #[inline(always)]
+    fn shuffle_bytes(self, index: Self) -> Self {
+        Self(unsafe { std::arch::x86_64::_mm512_shuffle_epi8(self.0, index.0) })
+    }
+    #[inline(always)]
+    fn unit_floats(self) -> [f32; 16] {
+        use std::arch::x86_64::*;
+        let mut out = [0.0f32; 16];
+        unsafe {
+            let unit = _mm512_mul_ps(
+                _mm512_cvtepi32_ps(_mm512_srli_epi32::<8>(self.0)),
+                _mm512_set1_ps(1.0 / (1u32 << 24) as f32),
+            );
+            _mm512_storeu_ps(out.as_mut_ptr(), unit);
+        }
+        out
+    }
+}
+
 /// Reverses the bits of each 32-bit lane: each byte's bits through a nibble table, then the
-/// bytes.
+/// bytes (`vpshufb` works within 128-bit blocks, so each table repeats per block).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[inline]
-fn reverse_bits_x8(x: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256i {
-    use std::arch::x86_64::*;
-    let nibbles = _mm256_setr_epi8(
-        0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15, 0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15,
-    );
-    let low4 = _mm256_set1_epi8(0x0f);
-    let lo = _mm256_and_si256(x, low4);
-    let hi = _mm256_and_si256(_mm256_srli_epi16::<4>(x), low4);
+#[inline(always)]
+fn reverse_bits_lanes<V: WordLanes>(x: V) -> V {
+    let nibbles = x.table([0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15]);
+    let low4 = x.splat(0x0f0f_0f0f);
+    let lo = x.and(low4);
+    let hi = x.shr16(4).and(low4);
     // Each byte holds a value below 16, so the 16-bit shift moves nothing across bytes.
-    let bytes =
-        _mm256_or_si256(_mm256_slli_epi16::<4>(_mm256_shuffle_epi8(nibbles, lo)), _mm256_shuffle_epi8(nibbles, hi));
-    let swap = _mm256_setr_epi8(
-        3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12, 3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12,
-    );
-    _mm256_shuffle_epi8(bytes, swap)
+    let bytes = nibbles.shuffle_bytes(lo).shl16(4).or(nibbles.shuffle_bytes(hi));
+    bytes.shuffle_bytes(bytes.table([3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12]))
 }
 
-/// `laine_karras_permutation` on 8 lanes (wrapping 32-bit products, as the scalar code).
+/// `laine_karras_permutation` on each lane (wrapping 32-bit products, as the scalar code).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[inline]
-fn laine_karras_x8(x: std::arch::x86_64::__m256i, seed: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m256i {
-    use std::arch::x86_64::*;
-    let c = |v: u32| _mm256_set1_epi32(v as i32);
-    let mut x = _mm256_xor_si256(x, _mm256_mullo_epi32(x, c(0x3d20_adea)));
-    x = _mm256_add_epi32(x, seed);
-    x = _mm256_mullo_epi32(x, _mm256_or_si256(_mm256_srli_epi32::<16>(seed), c(1)));
-    x = _mm256_xor_si256(x, _mm256_mullo_epi32(x, c(0x0552_6c56)));
-    _mm256_xor_si256(x, _mm256_mullo_epi32(x, c(0x53a2_2864)))
+#[inline(always)]
+fn laine_karras_lanes<V: WordLanes>(x: V, seed: V) -> V {
+    let mut x = x.xor(x.mul(x.splat(0x3d20_adea)));
+    x = x.add(seed);
+    x = x.mul(seed.shr32(16).or(x.splat(1)));
+    x = x.xor(x.mul(x.splat(0x0552_6c56)));
+    x.xor(x.mul(x.splat(0x53a2_2864)))
 }
 
+/// The Sobol kernels' steps, once for 8 and 16 lanes: the first coordinate of each request
+/// (`nested_uniform_scramble(sobol_dim0(shuffled), s2)`, the index shuffled by `s1`) and, with
+/// `s3`, the second (`nested_uniform_scramble(sobol_dim1(shuffled), s3)`), as 32-bit words.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn sobol_lanes<V: WordLanes>(index: V, s1: V, s2: V, s3: Option<V>) -> (V, Option<V>) {
+    // nested_uniform_scramble(v, s) = reverse(LK(reverse(v), s)); sobol_dim0 = reverse.
+    let shuffled = reverse_bits_lanes(laine_karras_lanes(reverse_bits_lanes(index), s1));
+    let x = reverse_bits_lanes(laine_karras_lanes(shuffled, s2));
+    let Some(s3) = s3 else { return (x, None) };
+    // `sobol_dim1_reversed`: each block's high half XORed into its low half (16, 8, 4, 2, 1
+    // bits), so that the scramble's reversal before the permutation is not needed.
+    let mut dim1 = shuffled.xor(shuffled.shr32(16));
+    for (shift, mask) in [(8, 0x00ff_00ff), (4, 0x0f0f_0f0f), (2, 0x3333_3333), (1, 0x5555_5555)] {
+        dim1 = dim1.xor(dim1.shr32(shift).and(dim1.splat(mask)));
+    }
+    (x, Some(reverse_bits_lanes(laine_karras_lanes(dim1, s3))))
+}
+
+/// [`sobol_lanes`] of 8 requests in AVX2, as unit floats (the second coordinates with `s3`,
+/// else zeros).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
 fn sobol_x8(index: &[u32; 8], s1: &[u32; 8], s2: &[u32; 8], s3: Option<&[u32; 8]>) -> ([f32; 8], [f32; 8]) {
-    use std::arch::x86_64::*;
-    // SAFETY (loads and stores): unaligned accesses to 8 u32 or f32 of arrays of 8.
-    let load = |v: &[u32; 8]| unsafe { _mm256_loadu_si256(v.as_ptr().cast()) };
-    // `u32_to_unit_float`: the top 24 bits (an i32 below 2^24: converted exactly) times 2^-24
-    // (exact).
-    let store = |v: __m256i| {
-        let unit =
-            _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_srli_epi32::<8>(v)), _mm256_set1_ps(1.0 / (1u32 << 24) as f32));
-        let mut out = [0.0f32; 8];
-        unsafe { _mm256_storeu_ps(out.as_mut_ptr(), unit) };
-        out
+    // No closures (see `accel::Sheared::new`). SAFETY: this function runs only where the CPU
+    // has AVX2.
+    let (index, s1, s2) = unsafe { (Words8::load(index), Words8::load(s1), Words8::load(s2)) };
+    let s3 = match s3 {
+        Some(s3) => Some(unsafe { Words8::load(s3) }),
+        None => None,
     };
-    // nested_uniform_scramble(v, s) = reverse(LK(reverse(v), s)); sobol_dim0 = reverse.
-    let shuffled = reverse_bits_x8(laine_karras_x8(reverse_bits_x8(load(index)), load(s1)));
-    let x = reverse_bits_x8(laine_karras_x8(shuffled, load(s2)));
-    let Some(s3) = s3 else { return (store(x), [0.0; 8]) };
-    // `sobol_dim1_reversed`: each block's high half XORed into its low half (16, 8, 4, 2, 1
-    // bits), so that the scramble's reversal before the permutation is not needed.
-    let mut dim1 = _mm256_xor_si256(shuffled, _mm256_srli_epi32::<16>(shuffled));
-    let half = |x: __m256i, shifted: __m256i, mask: u32| {
-        _mm256_xor_si256(x, _mm256_and_si256(shifted, _mm256_set1_epi32(mask as i32)))
-    };
-    dim1 = half(dim1, _mm256_srli_epi32::<8>(dim1), 0x00ff_00ff);
-    dim1 = half(dim1, _mm256_srli_epi32::<4>(dim1), 0x0f0f_0f0f);
-    dim1 = half(dim1, _mm256_srli_epi32::<2>(dim1), 0x3333_3333);
-    dim1 = half(dim1, _mm256_srli_epi32::<1>(dim1), 0x5555_5555);
-    let y = reverse_bits_x8(laine_karras_x8(dim1, load(s3)));
-    (store(x), store(y))
-}
-
-/// Reverses the bits of each 32-bit lane of 16 (as [`reverse_bits_x8`]: each byte's bits
-/// through a nibble table, then the bytes; `vpshufb` works within 128-bit blocks, so each table
-/// is the same 16 bytes four times).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512bw")]
-#[inline]
-fn reverse_bits_x16(x: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m512i {
-    use std::arch::x86_64::*;
-    let nibbles = _mm512_broadcast_i32x4(_mm_setr_epi8(0, 8, 4, 12, 2, 10, 6, 14, 1, 9, 5, 13, 3, 11, 7, 15));
-    let low4 = _mm512_set1_epi8(0x0f);
-    let lo = _mm512_and_si512(x, low4);
-    let hi = _mm512_and_si512(_mm512_srli_epi16::<4>(x), low4);
-    // Each byte holds a value below 16, so the 16-bit shift moves nothing across bytes.
-    let bytes =
-        _mm512_or_si512(_mm512_slli_epi16::<4>(_mm512_shuffle_epi8(nibbles, lo)), _mm512_shuffle_epi8(nibbles, hi));
-    let swap = _mm512_broadcast_i32x4(_mm_setr_epi8(3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12));
-    _mm512_shuffle_epi8(bytes, swap)
-}
-
-/// `laine_karras_permutation` on 16 lanes (as [`laine_karras_x8`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-fn laine_karras_x16(x: std::arch::x86_64::__m512i, seed: std::arch::x86_64::__m512i) -> std::arch::x86_64::__m512i {
-    use std::arch::x86_64::*;
-    let c = |v: u32| _mm512_set1_epi32(v as i32);
-    let mut x = _mm512_xor_si512(x, _mm512_mullo_epi32(x, c(0x3d20_adea)));
-    x = _mm512_add_epi32(x, seed);
-    x = _mm512_mullo_epi32(x, _mm512_or_si512(_mm512_srli_epi32::<16>(seed), c(1)));
-    x = _mm512_xor_si512(x, _mm512_mullo_epi32(x, c(0x0552_6c56)));
-    _mm512_xor_si512(x, _mm512_mullo_epi32(x, c(0x53a2_2864)))
+    match sobol_lanes(index, s1, s2, s3) {
+        (x, Some(y)) => (x.unit_floats(), y.unit_floats()),
+        (x, None) => (x.unit_floats(), [0.0; 8]),
+    }
 }
 
 /// [`sobol_x8`] on 16 lanes (512-bit operations: the same integer operations and exact
@@ -1167,29 +1318,17 @@ fn laine_karras_x16(x: std::arch::x86_64::__m512i, seed: std::arch::x86_64::__m5
 #[target_feature(enable = "avx512f,avx512bw")]
 #[inline]
 fn sobol_x16(index: &[u32; 16], s1: &[u32; 16], s2: &[u32; 16], s3: Option<&[u32; 16]>) -> ([f32; 16], [f32; 16]) {
-    use std::arch::x86_64::*;
-    // SAFETY (loads and stores): unaligned accesses to 16 u32 or f32 of arrays of 16.
-    let load = |v: &[u32; 16]| unsafe { _mm512_loadu_si512(v.as_ptr().cast()) };
-    let store = |v: __m512i| {
-        let unit =
-            _mm512_mul_ps(_mm512_cvtepi32_ps(_mm512_srli_epi32::<8>(v)), _mm512_set1_ps(1.0 / (1u32 << 24) as f32));
-        let mut out = [0.0f32; 16];
-        unsafe { _mm512_storeu_ps(out.as_mut_ptr(), unit) };
-        out
+    // No closures (see `accel::Sheared::new`). SAFETY: this function runs only where the CPU
+    // has AVX-512 F and BW.
+    let (index, s1, s2) = unsafe { (Words16::load(index), Words16::load(s1), Words16::load(s2)) };
+    let s3 = match s3 {
+        Some(s3) => Some(unsafe { Words16::load(s3) }),
+        None => None,
     };
-    let shuffled = reverse_bits_x16(laine_karras_x16(reverse_bits_x16(load(index)), load(s1)));
-    let x = reverse_bits_x16(laine_karras_x16(shuffled, load(s2)));
-    let Some(s3) = s3 else { return (store(x), [0.0; 16]) };
-    let mut dim1 = _mm512_xor_si512(shuffled, _mm512_srli_epi32::<16>(shuffled));
-    let half = |x: __m512i, shifted: __m512i, mask: u32| {
-        _mm512_xor_si512(x, _mm512_and_si512(shifted, _mm512_set1_epi32(mask as i32)))
-    };
-    dim1 = half(dim1, _mm512_srli_epi32::<8>(dim1), 0x00ff_00ff);
-    dim1 = half(dim1, _mm512_srli_epi32::<4>(dim1), 0x0f0f_0f0f);
-    dim1 = half(dim1, _mm512_srli_epi32::<2>(dim1), 0x3333_3333);
-    dim1 = half(dim1, _mm512_srli_epi32::<1>(dim1), 0x5555_5555);
-    let y = reverse_bits_x16(laine_karras_x16(dim1, load(s3)));
-    (store(x), store(y))
+    match sobol_lanes(index, s1, s2, s3) {
+        (x, Some(y)) => (x.unit_floats(), y.unit_floats()),
+        (x, None) => (x.unit_floats(), [0.0; 16]),
+    }
 }
 
 /// obvhs' node-test epsilon (`cwbvh::node::EPSILON`, crate-private there): the smallest entry
