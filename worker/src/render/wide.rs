@@ -1091,162 +1091,113 @@ trait WordLanes: Copy {
     fn unit_floats(self) -> Self::Floats;
 }
 
-/// [`WordLanes`] in one AVX2 register.
+/// A [`WordLanes`] type over one register of `$n` lanes: the trait's operations as the
+/// register width's intrinsics (the same operation on every width).
 #[cfg(target_arch = "x86_64")]
-#[derive(Clone, Copy)]
-struct Words8(std::arch::x86_64::__m256i);
+macro_rules! word_lanes {
+    (
+        $(#[$doc:meta])* $name:ident($reg:ty, $n:literal): load $load:ident, splat $splat:ident,
+        table $table:ident, xor $xor:ident, and $and:ident, or $or:ident, add $add:ident,
+        mul $mul:ident, shr32 $shr32:ident, shr16 $shr16:ident, shl16 $shl16:ident,
+        shuffle $shuffle:ident, shr32_8 $shr32_8:ident, to_float $to_float:ident,
+        mul_float $mul_float:ident, splat_float $splat_float:ident, store_float $store_float:ident
+    ) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy)]
+        struct $name($reg);
 
-// SAFETY (every `unsafe` block below): a `Words8` exists only where the CPU has AVX2 (made by
-// `load`, whose caller promises it), and the intrinsics other than the loads and stores touch
-// no memory; those access whole arrays of 8.
-#[cfg(target_arch = "x86_64")]
-impl WordLanes for Words8 {
-    type Words = [u32; 8];
-    type Floats = [f32; 8];
-    #[inline(always)]
-    unsafe fn load(v: &[u32; 8]) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_loadu_si256(v.as_ptr().cast()) })
-    }
-    #[inline(always)]
-    fn splat(self, v: u32) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_set1_epi32(v as i32) })
-    }
-    #[inline(always)]
-    fn table(self, bytes: [u8; 16]) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm256_broadcastsi128_si256(_mm_loadu_si128(bytes.as_ptr().cast())) })
-    }
-    #[inline(always)]
-    fn xor(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_xor_si256(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn and(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_and_si256(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn or(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_or_si256(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn add(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_add_epi32(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn mul(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_mullo_epi32(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn shr32(self, n: i32) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm256_srl_epi32(self.0, _mm_cvtsi32_si128(n)) })
-    }
-    #[inline(always)]
-    fn shr16(self, n: i32) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm256_srl_epi16(self.0, _mm_cvtsi32_si128(n)) })
-    }
-    #[inline(always)]
-    fn shl16(self, n: i32) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm256_sll_epi16(self.0, _mm_cvtsi32_si128(n)) })
-    }
-    #[inline(always)]
-    fn shuffle_bytes(self, index: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm256_shuffle_epi8(self.0, index.0) })
-    }
-    #[inline(always)]
-    fn unit_floats(self) -> [f32; 8] {
-        use std::arch::x86_64::*;
-        let mut out = [0.0f32; 8];
-        unsafe {
-            let unit = _mm256_mul_ps(
-                _mm256_cvtepi32_ps(_mm256_srli_epi32::<8>(self.0)),
-                _mm256_set1_ps(1.0 / (1u32 << 24) as f32),
-            );
-            _mm256_storeu_ps(out.as_mut_ptr(), unit);
+        // SAFETY (every `unsafe` block below): a value exists only where the CPU has the
+        // register's features (made by `load`, whose caller promises it), and the intrinsics
+        // other than the load and store touch no memory; those access whole arrays of `$n`.
+        impl WordLanes for $name {
+            type Words = [u32; $n];
+            type Floats = [f32; $n];
+            #[inline(always)]
+            unsafe fn load(v: &[u32; $n]) -> Self {
+                Self(unsafe { std::arch::x86_64::$load(v.as_ptr().cast()) })
+            }
+            #[inline(always)]
+            fn splat(self, v: u32) -> Self {
+                Self(unsafe { std::arch::x86_64::$splat(v as i32) })
+            }
+            #[inline(always)]
+            fn table(self, bytes: [u8; 16]) -> Self {
+                use std::arch::x86_64::*;
+                Self(unsafe { $table(_mm_loadu_si128(bytes.as_ptr().cast())) })
+            }
+            #[inline(always)]
+            fn xor(self, o: Self) -> Self {
+                Self(unsafe { std::arch::x86_64::$xor(self.0, o.0) })
+            }
+            #[inline(always)]
+            fn and(self, o: Self) -> Self {
+                Self(unsafe { std::arch::x86_64::$and(self.0, o.0) })
+            }
+            #[inline(always)]
+            fn or(self, o: Self) -> Self {
+                Self(unsafe { std::arch::x86_64::$or(self.0, o.0) })
+            }
+            #[inline(always)]
+            fn add(self, o: Self) -> Self {
+                Self(unsafe { std::arch::x86_64::$add(self.0, o.0) })
+            }
+            #[inline(always)]
+            fn mul(self, o: Self) -> Self {
+                Self(unsafe { std::arch::x86_64::$mul(self.0, o.0) })
+            }
+            #[inline(always)]
+            fn shr32(self, n: i32) -> Self {
+                use std::arch::x86_64::*;
+                Self(unsafe { $shr32(self.0, _mm_cvtsi32_si128(n)) })
+            }
+            #[inline(always)]
+            fn shr16(self, n: i32) -> Self {
+                use std::arch::x86_64::*;
+                Self(unsafe { $shr16(self.0, _mm_cvtsi32_si128(n)) })
+            }
+            #[inline(always)]
+            fn shl16(self, n: i32) -> Self {
+                use std::arch::x86_64::*;
+                Self(unsafe { $shl16(self.0, _mm_cvtsi32_si128(n)) })
+            }
+            #[inline(always)]
+            fn shuffle_bytes(self, index: Self) -> Self {
+                Self(unsafe { std::arch::x86_64::$shuffle(self.0, index.0) })
+            }
+            #[inline(always)]
+            fn unit_floats(self) -> [f32; $n] {
+                use std::arch::x86_64::*;
+                let mut out = [0.0f32; $n];
+                unsafe {
+                    let top = $to_float($shr32_8::<8>(self.0));
+                    $store_float(out.as_mut_ptr(), $mul_float(top, $splat_float(1.0 / (1u32 << 24) as f32)));
+                }
+                out
+            }
         }
-        out
-    }
+    };
 }
 
-/// [`WordLanes`] in one AVX-512 register.
 #[cfg(target_arch = "x86_64")]
-#[derive(Clone, Copy)]
-struct Words16(std::arch::x86_64::__m512i);
+word_lanes! {
+    /// [`WordLanes`] in one AVX2 register.
+    Words8(std::arch::x86_64::__m256i, 8): load _mm256_loadu_si256, splat _mm256_set1_epi32,
+    table _mm256_broadcastsi128_si256, xor _mm256_xor_si256, and _mm256_and_si256,
+    or _mm256_or_si256, add _mm256_add_epi32, mul _mm256_mullo_epi32, shr32 _mm256_srl_epi32,
+    shr16 _mm256_srl_epi16, shl16 _mm256_sll_epi16, shuffle _mm256_shuffle_epi8,
+    shr32_8 _mm256_srli_epi32, to_float _mm256_cvtepi32_ps, mul_float _mm256_mul_ps,
+    splat_float _mm256_set1_ps, store_float _mm256_storeu_ps
+}
 
-// SAFETY (every `unsafe` block below): a `Words16` exists only where the CPU has AVX-512 F and
-// BW (made by `load`, whose caller promises it), and the intrinsics other than the loads and
-// stores touch no memory; those access whole arrays of 16.
 #[cfg(target_arch = "x86_64")]
-impl WordLanes for Words16 {
-    type Words = [u32; 16];
-    type Floats = [f32; 16];
-    #[inline(always)]
-    unsafe fn load(v: &[u32; 16]) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_loadu_si512(v.as_ptr().cast()) })
-    }
-    #[inline(always)]
-    fn splat(self, v: u32) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_set1_epi32(v as i32) })
-    }
-    #[inline(always)]
-    fn table(self, bytes: [u8; 16]) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm512_broadcast_i32x4(_mm_loadu_si128(bytes.as_ptr().cast())) })
-    }
-    #[inline(always)]
-    fn xor(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_xor_si512(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn and(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_and_si512(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn or(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_or_si512(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn add(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_add_epi32(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn mul(self, o: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_mullo_epi32(self.0, o.0) })
-    }
-    #[inline(always)]
-    fn shr32(self, n: i32) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm512_srl_epi32(self.0, _mm_cvtsi32_si128(n)) })
-    }
-    #[inline(always)]
-    fn shr16(self, n: i32) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm512_srl_epi16(self.0, _mm_cvtsi32_si128(n)) })
-    }
-    #[inline(always)]
-    fn shl16(self, n: i32) -> Self {
-        use std::arch::x86_64::*;
-        Self(unsafe { _mm512_sll_epi16(self.0, _mm_cvtsi32_si128(n)) })
-    }
-    #[inline(always)]
-    fn shuffle_bytes(self, index: Self) -> Self {
-        Self(unsafe { std::arch::x86_64::_mm512_shuffle_epi8(self.0, index.0) })
-    }
-    #[inline(always)]
-    fn unit_floats(self) -> [f32; 16] {
-        use std::arch::x86_64::*;
-        let mut out = [0.0f32; 16];
-        unsafe {
-            let unit = _mm512_mul_ps(
-                _mm512_cvtepi32_ps(_mm512_srli_epi32::<8>(self.0)),
-                _mm512_set1_ps(1.0 / (1u32 << 24) as f32),
-            );
-            _mm512_storeu_ps(out.as_mut_ptr(), unit);
-        }
-        out
-    }
+word_lanes! {
+    /// [`WordLanes`] in one AVX-512 register.
+    Words16(std::arch::x86_64::__m512i, 16): load _mm512_loadu_si512, splat _mm512_set1_epi32,
+    table _mm512_broadcast_i32x4, xor _mm512_xor_si512, and _mm512_and_si512,
+    or _mm512_or_si512, add _mm512_add_epi32, mul _mm512_mullo_epi32, shr32 _mm512_srl_epi32,
+    shr16 _mm512_srl_epi16, shl16 _mm512_sll_epi16, shuffle _mm512_shuffle_epi8,
+    shr32_8 _mm512_srli_epi32, to_float _mm512_cvtepi32_ps, mul_float _mm512_mul_ps,
+    splat_float _mm512_set1_ps, store_float _mm512_storeu_ps
 }
 
 /// Reverses the bits of each 32-bit lane: each byte's bits through a nibble table, then the
